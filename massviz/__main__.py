@@ -1,0 +1,5 @@
+import sys
+
+from massviz.cli import main
+
+sys.exit(main())

@@ -1,0 +1,160 @@
+"""Typed data shared by every stage.
+
+Modelled on roboflow ``supervision``'s ``Detections``: one dataclass of parallel arrays, filtered by boolean or
+integer indexing. Masks are stored *cropped to their integer box* (``mask[y1:y2, x1:x2]``), exactly the part of the
+mask the paper's code uses for the average distance, which keeps a whole recording's detections small.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+#: torchvision's COCO category ids (index into ``MaskRCNN_ResNet50_FPN_Weights.meta["categories"]``) of the four
+#: classes the paper keeps.
+COCO_KEEP = {"bottle": 44, "wine glass": 46, "cup": 47, "book": 84}
+#: class id used by class-agnostic detectors (the depth detector).
+OBJECT_CLASS_ID = -1
+
+
+def class_name(class_id: int) -> str:
+    """Human-readable name of a detection class id."""
+    for name, cid in COCO_KEEP.items():
+        if cid == int(class_id):
+            return name
+    if int(class_id) == OBJECT_CLASS_ID:
+        return "object"
+    return f"coco_{int(class_id)}"
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics of the RGB camera (pixels). Depth is aligned to RGB, so they serve both."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    @property
+    def matrix(self) -> np.ndarray:
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1]], dtype=np.float64)
+
+    def to_dict(self) -> dict:
+        return {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "width": self.width, "height": self.height}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Intrinsics":
+        return cls(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]), int(d["width"]), int(d["height"]))
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(json.dumps(self.to_dict(), indent=1) + "\n")
+
+
+@dataclass
+class Frame:
+    """One RGB-D frame: ``rgb`` H×W×3 uint8 (RGB order), ``depth`` H×W uint16 millimetres (0 = no depth)."""
+
+    index: int
+    rgb: np.ndarray
+    depth: np.ndarray
+
+    @property
+    def height(self) -> int:
+        return int(self.rgb.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.rgb.shape[1])
+
+
+def _empty(dtype, shape=(0,)):
+    return np.zeros(shape, dtype=dtype)
+
+
+@dataclass
+class Detections:
+    """Parallel arrays, one entry per detection.
+
+    - ``frame``: index of the source frame in the recording.
+    - ``xyxy``: integer box ``x1, y1, x2, y2`` (x2/y2 exclusive, the slicing the paper's code uses).
+    - ``score``, ``class_id``: detector confidence and class (COCO id, or ``OBJECT_CLASS_ID``).
+    - ``masks``: list of boolean masks cropped to the box (shape ``(y2-y1, x2-x1)``).
+    - ``d``: mean depth (mm) over the mask pixels with depth (NaN when the mask has no depth).
+    - ``a``, ``b``: box width / image width and box height / image height, rounded to 2 decimals.
+    - ``pred``: the mass CNN's prediction for this detection's patch (grams; NaN when not predicted).
+    - ``patches``: the RGB crop of each box (H×W×3 uint8), or ``None`` entries when not kept.
+    """
+
+    frame: np.ndarray = field(default_factory=lambda: _empty(np.int32))
+    xyxy: np.ndarray = field(default_factory=lambda: _empty(np.int32, (0, 4)))
+    score: np.ndarray = field(default_factory=lambda: _empty(np.float32))
+    class_id: np.ndarray = field(default_factory=lambda: _empty(np.int32))
+    masks: list = field(default_factory=list)
+    d: np.ndarray = field(default_factory=lambda: _empty(np.float64))
+    a: np.ndarray = field(default_factory=lambda: _empty(np.float64))
+    b: np.ndarray = field(default_factory=lambda: _empty(np.float64))
+    pred: np.ndarray = field(default_factory=lambda: _empty(np.float32))
+    patches: list = field(default_factory=list)
+
+    _ARRAYS = ("frame", "xyxy", "score", "class_id", "d", "a", "b", "pred")
+    _LISTS = ("masks", "patches")
+
+    def __post_init__(self) -> None:
+        n = len(self.frame)
+        self.frame = np.asarray(self.frame, dtype=np.int32).reshape(n)
+        self.xyxy = np.asarray(self.xyxy, dtype=np.int32).reshape(n, 4)
+        self.score = np.asarray(self.score, dtype=np.float32).reshape(n)
+        self.class_id = np.asarray(self.class_id, dtype=np.int32).reshape(n)
+        for name in ("d", "a", "b"):
+            arr = getattr(self, name)
+            setattr(self, name, np.full(n, np.nan) if len(arr) == 0 and n else np.asarray(arr, np.float64).reshape(n))
+        self.pred = np.full(n, np.nan, np.float32) if len(self.pred) == 0 and n else np.asarray(self.pred, np.float32).reshape(n)
+        if not self.masks and n:
+            self.masks = [None] * n
+        if not self.patches and n:
+            self.patches = [None] * n
+        if len(self.masks) != n or len(self.patches) != n:
+            raise ValueError("Detections: masks/patches must have one entry per detection")
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+    def __getitem__(self, index) -> "Detections":
+        """Boolean mask, integer array/list or slice; always returns ``Detections``."""
+        if isinstance(index, (int, np.integer)):
+            index = [int(index)]
+        idx = np.arange(len(self))[index]
+        kw = {name: getattr(self, name)[idx] for name in self._ARRAYS}
+        kw.update({name: [getattr(self, name)[i] for i in idx] for name in self._LISTS})
+        return Detections(**kw)
+
+    @classmethod
+    def concat(cls, parts: Sequence["Detections"]) -> "Detections":
+        parts = [p for p in parts if len(p)]
+        if not parts:
+            return cls()
+        kw = {name: np.concatenate([getattr(p, name) for p in parts]) for name in cls._ARRAYS}
+        kw.update({name: [x for p in parts for x in getattr(p, name)] for name in cls._LISTS})
+        return cls(**kw)
+
+    def class_names(self) -> list[str]:
+        return [class_name(c) for c in self.class_id]
+
+    def full_mask(self, i: int, height: int, width: int) -> np.ndarray:
+        """The i-th mask pasted back into an H×W boolean image."""
+        out = np.zeros((height, width), dtype=bool)
+        x1, y1, x2, y2 = (int(v) for v in self.xyxy[i])
+        m = self.masks[i]
+        if m is not None:
+            out[y1:y2, x1:x2] = m
+        return out
+
+
+__all__ = [
+    "COCO_KEEP", "OBJECT_CLASS_ID", "class_name", "Intrinsics", "Frame", "Detections"]
