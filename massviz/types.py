@@ -73,6 +73,26 @@ class Frame:
         return int(self.rgb.shape[1])
 
 
+class PackedMask:
+    """A boolean mask stored as packed bits (8× smaller than ``bool``); ``.array()`` unpacks it."""
+
+    __slots__ = ("shape", "bits")
+
+    def __init__(self, mask: np.ndarray | None = None, *, shape=None, bits=None):
+        if mask is not None:
+            mask = np.asarray(mask, dtype=bool)
+            shape, bits = mask.shape, np.packbits(mask, axis=None)
+        self.shape = tuple(int(s) for s in shape)
+        self.bits = np.asarray(bits, dtype=np.uint8)
+
+    def array(self) -> np.ndarray:
+        n = int(np.prod(self.shape))
+        return np.unpackbits(self.bits, count=n).reshape(self.shape).astype(bool)
+
+    def sum(self) -> int:
+        return int(np.unpackbits(self.bits, count=int(np.prod(self.shape))).sum())
+
+
 def _empty(dtype, shape=(0,)):
     return np.zeros(shape, dtype=dtype)
 
@@ -84,7 +104,8 @@ class Detections:
     - ``frame``: index of the source frame in the recording.
     - ``xyxy``: integer box ``x1, y1, x2, y2`` (x2/y2 exclusive, the slicing the paper's code uses).
     - ``score``, ``class_id``: detector confidence and class (COCO id, or ``OBJECT_CLASS_ID``).
-    - ``masks``: list of boolean masks cropped to the box (shape ``(y2-y1, x2-x1)``).
+    - ``masks``: list of boolean masks cropped to the box (shape ``(y2-y1, x2-x1)``), stored as ``PackedMask``
+      (pass bool arrays; read them back with ``mask(i)`` or ``full_mask(i, H, W)``).
     - ``d``: mean depth (mm) over the mask pixels with depth (NaN when the mask has no depth).
     - ``a``, ``b``: box width / image width and box height / image height, rounded to 2 decimals.
     - ``pred``: the mass CNN's prediction for this detection's patch (grams; NaN when not predicted).
@@ -117,6 +138,7 @@ class Detections:
         self.pred = np.full(n, np.nan, np.float32) if len(self.pred) == 0 and n else np.asarray(self.pred, np.float32).reshape(n)
         if not self.masks and n:
             self.masks = [None] * n
+        self.masks = [m if m is None or isinstance(m, PackedMask) else PackedMask(m) for m in self.masks]
         if not self.patches and n:
             self.patches = [None] * n
         if len(self.masks) != n or len(self.patches) != n:
@@ -146,15 +168,21 @@ class Detections:
     def class_names(self) -> list[str]:
         return [class_name(c) for c in self.class_id]
 
+    def mask(self, i: int) -> np.ndarray:
+        """The i-th mask as a bool array cropped to its box."""
+        m = self.masks[i]
+        if m is None:
+            x1, y1, x2, y2 = (int(v) for v in self.xyxy[i])
+            return np.zeros((y2 - y1, x2 - x1), dtype=bool)
+        return m.array()
+
     def full_mask(self, i: int, height: int, width: int) -> np.ndarray:
         """The i-th mask pasted back into an H×W boolean image."""
         out = np.zeros((height, width), dtype=bool)
         x1, y1, x2, y2 = (int(v) for v in self.xyxy[i])
-        m = self.masks[i]
-        if m is not None:
-            out[y1:y2, x1:x2] = m
+        out[y1:y2, x1:x2] = self.mask(i)
         return out
 
 
 __all__ = [
-    "COCO_KEEP", "OBJECT_CLASS_ID", "class_name", "Intrinsics", "Frame", "Detections"]
+    "COCO_KEEP", "OBJECT_CLASS_ID", "class_name", "Intrinsics", "Frame", "Detections", "PackedMask"]
