@@ -1,0 +1,307 @@
+"""The paper's mass CNN (Apicella et al., ICASSP 2022): network, input preprocessing, checkpoint loading.
+
+Provenance: a reimplementation of ``Encoder/Models/CNN_encoder_pooling.py`` (network),
+``Encoder/Models/DataExtractor.py`` (``SquarePad``) and ``demo/generate_video_inference.py`` (patch transform,
+feature normalisation, denormalisation and clamping) of github.com/CORSMAL/Visual, MIT licence,
+Copyright (c) 2021 CORSMAL. The layer names match the published state_dicts so those load strictly.
+
+Faithful to the original:
+
+- forward: ``pool(bn(relu(conv)))`` for four 3×3 convs (3→32→64→64→128) → 128×7×7 → flatten (6272) →
+  ``bn5(relu(linear1))`` → ``relu(linear2)`` (6) → concat normalised ``[a, b, d]`` (9) → ``linear3`` → one value in
+  normalised mass units;
+- patch: PIL image → zero-pad to a square (extra pixel right/bottom) → torchvision ``Resize((112, 112), BILINEAR)``
+  on the PIL image (antialiased) → ``ToTensor`` ([0, 1]). A different resize (e.g. ``cv2.resize``) changes
+  predictions a lot, so only torchvision/PIL is used here;
+- features ``(v - min) / (max - min)``; grams ``clamp(y * (maxMass - minMass) + minMass, min=0)``.
+
+Deliberate differences: the model holds no preprocessing (``forward`` takes ready tensors; :meth:`MassNet.predict`
+does the rest); the normalisation ranges travel with the checkpoint (:class:`Ranges`, see
+:meth:`MassNet.from_checkpoint`) instead of being constants edited in a script; :meth:`MassNet.predict` returns one
+prediction per patch (the original averages them per recording, which is the pipeline's job here).
+"""
+from __future__ import annotations
+
+import json
+import math
+import numbers
+import os
+import tempfile
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from PIL import Image
+from torch import nn
+from torchvision import transforms
+from torchvision.transforms import InterpolationMode
+from torchvision.transforms import functional as TF
+
+from massviz.errors import WeightsError
+from massviz.weights import RANGE_KEYS, PUBLISHED, published_by_sha256, sha256_file
+
+#: side of the square patch the network sees.
+PATCH_SIZE = 112
+#: number of trainable parameters of :class:`MassNet`.
+N_PARAMETERS = 532_752
+#: value of ``"format"`` in checkpoints written by :func:`save_checkpoint`.
+CHECKPOINT_FORMAT = "massviz.massnet/1"
+#: suffix of the ranges file expected beside a checkpoint that carries no ranges: ``<checkpoint>.ranges.json``.
+SIDECAR_SUFFIX = ".ranges.json"
+
+
+# ----------------------------------------------------------------------------------------------------------- ranges
+@dataclass(frozen=True)
+class Ranges:
+    """Min-max normalisation ranges a checkpoint was trained with (distance in mm, ratios unitless, mass in g)."""
+
+    min_distance: float
+    max_distance: float
+    min_ratio_width: float
+    max_ratio_width: float
+    min_ratio_height: float
+    max_ratio_height: float
+    min_mass: float
+    max_mass: float
+
+    def __post_init__(self) -> None:
+        values = self.as_tuple()
+        if not all(isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v) for v in values):
+            raise ValueError(f"Ranges: every value must be a finite number, got {values}")
+        for f, v in zip(fields(self), values):
+            object.__setattr__(self, f.name, float(v))
+        values = self.as_tuple()
+        for lo, hi in zip(values[0::2], values[1::2]):
+            if not hi > lo:
+                raise ValueError(f"Ranges: each max must exceed its min, got {values}")
+
+    def as_tuple(self) -> tuple[float, ...]:
+        """The eight values in :data:`massviz.weights.RANGE_KEYS` order."""
+        return (self.min_distance, self.max_distance, self.min_ratio_width, self.max_ratio_width,
+                self.min_ratio_height, self.max_ratio_height, self.min_mass, self.max_mass)
+
+    def to_dict(self) -> dict[str, float]:
+        """The original code's names (``minAverageDistance`` ... ``maxMass``), as in golden_public.json."""
+        return dict(zip(RANGE_KEYS, (float(v) for v in self.as_tuple())))
+
+    @classmethod
+    def from_dict(cls, d: object, path: str | Path | None = None) -> "Ranges":
+        """Parse the eight-key dict; anything else raises :class:`WeightsError` naming ``path``."""
+        if not isinstance(d, dict) or set(d) != set(RANGE_KEYS):
+            got = sorted(d) if isinstance(d, dict) else type(d).__name__
+            raise WeightsError(f"ranges must have exactly the keys {', '.join(RANGE_KEYS)}; got {got}", path)
+        try:
+            return cls(*(d[k] for k in RANGE_KEYS))
+        except ValueError as e:
+            raise WeightsError(str(e), path) from None
+
+    @classmethod
+    def published(cls, name: str) -> "Ranges":
+        """Ranges of a published checkpoint, by file name (e.g. ``"Encoder_pool_aug_158.torch"``)."""
+        return cls(*PUBLISHED[name].ranges)
+
+    def normalise_features(self, features) -> np.ndarray:
+        """Raw ``[a, b, d_mm]`` rows (N, 3) → float32 (N, 3), each ``(v - min) / (max - min)`` (not clipped)."""
+        f = np.asarray(features, dtype=np.float64)
+        if f.size == 0:
+            f = f.reshape(0, 3)
+        if f.ndim != 2 or f.shape[1] != 3:
+            raise ValueError(f"features must have shape (N, 3) [a, b, d_mm], got {f.shape}")
+        lo = np.array([self.min_ratio_width, self.min_ratio_height, self.min_distance])
+        hi = np.array([self.max_ratio_width, self.max_ratio_height, self.max_distance])
+        return ((f - lo) / (hi - lo)).astype(np.float32)
+
+    def denormalise_mass(self, y) -> np.ndarray:
+        """Network output (normalised) → grams, float32, clamped at 0 as the original does."""
+        y = np.asarray(y, dtype=np.float32)
+        grams = y * np.float32(self.max_mass - self.min_mass) + np.float32(self.min_mass)
+        return np.maximum(grams, np.float32(0.0))
+
+
+# ---------------------------------------------------------------------------------------------------- preprocessing
+def square_pad(img: Image.Image) -> Image.Image:
+    """Zero-pad a PIL image to a square, centred; the odd pixel goes right/bottom (the original's ``SquarePad``)."""
+    w, h = img.size
+    side = max(w, h)
+    left, top = (side - w) // 2, (side - h) // 2
+    return TF.pad(img, [left, top, side - w - left, side - h - top], fill=0, padding_mode="constant")
+
+
+_RESIZE_TO_TENSOR = transforms.Compose([
+    transforms.Resize((PATCH_SIZE, PATCH_SIZE), interpolation=InterpolationMode.BILINEAR),
+    transforms.ToTensor(),
+])
+
+
+def preprocess_patch(rgb: np.ndarray) -> torch.Tensor:
+    """H×W×3 uint8 RGB crop → float32 tensor 3×112×112 in [0, 1], exactly as the original transform."""
+    rgb = np.asarray(rgb)
+    if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.shape[0] == 0 or rgb.shape[1] == 0:
+        raise ValueError(f"patch must be a non-empty H×W×3 uint8 RGB array, got {rgb.dtype} {rgb.shape}")
+    return _RESIZE_TO_TENSOR(square_pad(Image.fromarray(np.ascontiguousarray(rgb))))
+
+
+def preprocess_patches(patches: Sequence[np.ndarray]) -> torch.Tensor:
+    """A list of RGB crops → N×3×112×112 float32 tensor (0×3×112×112 for an empty list)."""
+    if len(patches) == 0:
+        return torch.empty(0, 3, PATCH_SIZE, PATCH_SIZE)
+    return torch.stack([preprocess_patch(p) for p in patches])
+
+
+# ---------------------------------------------------------------------------------------------------------- network
+class MassNet(nn.Module):
+    """The paper's mass CNN. ``forward(images N×3×112×112, features N×3 normalised) → N×1 normalised mass``.
+
+    Attributes set by :meth:`from_checkpoint`: ``ranges`` (:class:`Ranges`, needed by :meth:`predict`) and
+    ``weights_id`` (first 12 hex characters of the checkpoint file's sha256; a cache key).
+    """
+
+    def __init__(self, ranges: Ranges | None = None, weights_id: str | None = None):
+        super().__init__()
+        self.conv1 = nn.Conv2d(3, 32, kernel_size=3, padding=1, stride=1)
+        self.bn1 = nn.BatchNorm2d(32)
+        self.conv2 = nn.Conv2d(32, 64, kernel_size=3, padding=1, stride=1)
+        self.bn2 = nn.BatchNorm2d(64)
+        self.conv3 = nn.Conv2d(64, 64, kernel_size=3, padding=1, stride=1)
+        self.bn3 = nn.BatchNorm2d(64)
+        self.conv4 = nn.Conv2d(64, 128, kernel_size=3, padding=1, stride=1)
+        self.bn4 = nn.BatchNorm2d(128)
+        self.linear1 = nn.Linear(128 * 7 * 7, 64)
+        self.bn5 = nn.BatchNorm1d(64)
+        self.linear2 = nn.Linear(64, 6)
+        self.linear3 = nn.Linear(6 + 3, 1)
+        self.pool = nn.MaxPool2d((2, 2))
+        self.ranges = ranges
+        self.weights_id = weights_id
+
+    def forward(self, images: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+        x = images
+        for conv, bn in ((self.conv1, self.bn1), (self.conv2, self.bn2), (self.conv3, self.bn3),
+                         (self.conv4, self.bn4)):
+            x = self.pool(bn(F.relu(conv(x))))
+        x = self.bn5(F.relu(self.linear1(x.flatten(1))))
+        x = F.relu(self.linear2(x))
+        return self.linear3(torch.cat((x, features), dim=1))
+
+    @torch.no_grad()
+    def predict(self, patches: Sequence[np.ndarray], features, batch_size: int = 64) -> np.ndarray:
+        """Grams (float32, shape (N,)) for N RGB crops (H×W×3 uint8) and their raw ``[a, b, d_mm]`` features."""
+        if self.ranges is None:
+            raise WeightsError("MassNet.predict needs normalisation ranges (load with MassNet.from_checkpoint)")
+        feats = self.ranges.normalise_features(features)
+        if len(patches) != len(feats):
+            raise ValueError(f"{len(patches)} patches but {len(feats)} feature rows")
+        if len(feats) == 0:
+            return np.zeros(0, dtype=np.float32)
+        was_training = self.training
+        self.eval()
+        device = next(self.parameters()).device
+        try:
+            out = []
+            for i in range(0, len(feats), batch_size):
+                images = preprocess_patches(patches[i:i + batch_size]).to(device)
+                y = self(images, torch.from_numpy(feats[i:i + batch_size]).to(device))
+                out.append(y[:, 0].float().cpu().numpy())
+        finally:
+            self.train(was_training)
+        return self.ranges.denormalise_mass(np.concatenate(out))
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path, ranges: Ranges | None = None) -> "MassNet":
+        """Load a checkpoint on the CPU in eval mode, with its normalisation ranges.
+
+        Ranges, first found wins: the ``ranges`` argument; the ``"ranges"`` of a massviz checkpoint (see
+        :func:`save_checkpoint`); the table of published checkpoints, by the file's sha256; the sidecar
+        ``<checkpoint>.ranges.json`` (the eight keys of :data:`massviz.weights.RANGE_KEYS`). None of these, an
+        unreadable file or a state_dict that does not fit raises :class:`WeightsError` naming the file.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise WeightsError("checkpoint file not found", path)
+        try:
+            sha = sha256_file(path)
+            obj = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as e:  # torch raises many types for a corrupt / foreign file
+            raise WeightsError(f"cannot read checkpoint ({type(e).__name__}: {str(e).splitlines()[0][:200]})",
+                               path) from e
+        embedded = None
+        if isinstance(obj, dict) and "state_dict" in obj:
+            state, embedded = obj["state_dict"], obj.get("ranges")
+        else:
+            state = obj
+        if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
+            raise WeightsError("not a MassNet state_dict (nor a massviz checkpoint holding one)", path)
+
+        if ranges is None:
+            if embedded is not None:
+                ranges = Ranges.from_dict(embedded, path)
+            elif (pub := published_by_sha256(sha)) is not None:
+                ranges = Ranges(*pub.ranges)
+            else:
+                ranges = _read_sidecar(path)
+
+        model = cls(ranges=ranges, weights_id=sha[:12])
+        _check_state_dict(model, state, path)
+        model.load_state_dict(state, strict=True)
+        return model.eval()
+
+
+def _read_sidecar(path: Path) -> Ranges:
+    sidecar = path.with_name(path.name + SIDECAR_SUFFIX)
+    if not sidecar.is_file():
+        hint = (" (it is named like a published checkpoint but its sha256 differs)" if path.name in PUBLISHED else "")
+        raise WeightsError(f"checkpoint carries no normalisation ranges and its ranges file {sidecar} is missing"
+                           f"{hint}", path)
+    try:
+        data = json.loads(sidecar.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise WeightsError(f"cannot read ranges file ({e})", sidecar) from e
+    return Ranges.from_dict(data, sidecar)
+
+
+def _check_state_dict(model: MassNet, state: dict, path: Path) -> None:
+    """One-line :class:`WeightsError` for missing / unexpected / mis-shaped keys (load_state_dict's is multi-line)."""
+    expected = {k: tuple(v.shape) for k, v in model.state_dict().items()}
+    got = {k: tuple(v.shape) for k, v in state.items()}
+    problems = []
+    if missing := sorted(set(expected) - set(got)):
+        problems.append(f"missing {', '.join(missing)}")
+    if unexpected := sorted(set(got) - set(expected)):
+        problems.append(f"unexpected {', '.join(unexpected)}")
+    if shapes := [f"{k} {got[k]} (want {expected[k]})" for k in sorted(set(got) & set(expected))
+                  if got[k] != expected[k]]:
+        problems.append(f"wrong shape {', '.join(shapes)}")
+    if problems:
+        raise WeightsError(f"state_dict does not fit MassNet: {'; '.join(problems)}", path)
+
+
+def save_checkpoint(path: str | Path, model: MassNet, ranges: Ranges, extra: dict | None = None) -> Path:
+    """Write a massviz checkpoint ``{"format", "state_dict", "ranges", "extra"}`` atomically (temp file + rename).
+
+    ``extra`` (e.g. epoch, split, metrics) must hold plain Python values (str, int, float, bool, lists, dicts) so the
+    file loads with ``torch.load(weights_only=True)``. :meth:`MassNet.from_checkpoint` reads the file back.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "format": CHECKPOINT_FORMAT,
+        "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
+        "ranges": ranges.to_dict(),
+        "extra": dict(extra or {}),
+    }
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(payload, f)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+__all__ = ["PATCH_SIZE", "N_PARAMETERS", "CHECKPOINT_FORMAT", "Ranges", "square_pad", "preprocess_patch",
+           "preprocess_patches", "MassNet", "save_checkpoint"]
