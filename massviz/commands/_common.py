@@ -1,0 +1,60 @@
+"""Options shared by the commands that run the pipeline, and the objects they build."""
+from __future__ import annotations
+
+import argparse
+
+PIPELINE_HELP = """
+detectors (--detector):
+  auto      maskrcnn when its COCO weights are cached or downloadable, else depth (default)
+  maskrcnn  the paper's torchvision Mask R-CNN (cup, book, wine glass, bottle; score > threshold)
+  depth     no weights: the nearest object(s) in the depth map; works offline
+  replay    detections saved earlier (--replay trace.npz or a detections JSON file)
+
+mass-CNN weights: --weights PATH, else $MASSVIZ_WEIGHTS, else the paper's published checkpoint is downloaded once
+(sha256-checked) into the user cache. Traces are cached (--cache DIR, $MASSVIZ_CACHE_DIR or the user cache) so a
+new K, a higher threshold or another model reuses the detections without running the detector again.
+"""
+
+
+def add_pipeline_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("pipeline")
+    g.add_argument("--detector", default="auto", choices=["auto", "maskrcnn", "depth", "replay"],
+                   help="which detector finds the containers (default: auto)")
+    g.add_argument("--threshold", type=float, default=0.4, metavar="T",
+                   help="keep detections with score > T (default: 0.4, the paper's)")
+    g.add_argument("--k", type=int, default=5, metavar="K",
+                   help="average the predictions of the K nearest detections (default: 5, the paper's)")
+    g.add_argument("--stride", type=int, default=1, metavar="N", help="process every N-th frame (default: 1)")
+    g.add_argument("--weights", metavar="PATH",
+                   help="mass-CNN checkpoint (default: $MASSVIZ_WEIGHTS or the published one, downloaded once)")
+    g.add_argument("--detector-weights", metavar="PATH",
+                   help="offline copy of torchvision's Mask R-CNN COCO state_dict")
+    g.add_argument("--replay", metavar="PATH", help="with --detector replay: a saved trace (.npz) or detections JSON")
+    g.add_argument("--cache", metavar="DIR", help="trace cache directory (default: $MASSVIZ_CACHE_DIR or user cache)")
+    g.add_argument("--no-cache", action="store_true", help="neither read nor write the trace cache")
+    g.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def check_pipeline_args(args) -> None:
+    from massviz.errors import MassvizError
+
+    if not 0.0 <= args.threshold < 1.0:
+        raise MassvizError(f"--threshold must be in [0, 1), got {args.threshold}")
+    if args.k < 1:
+        raise MassvizError(f"--k must be >= 1, got {args.k}")
+    if args.stride < 1:
+        raise MassvizError(f"--stride must be >= 1, got {args.stride}")
+
+
+def build(args):
+    """(detector, model, cache) from parsed args."""
+    from massviz.cache import TraceCache
+    from massviz.detect import make_detector
+    from massviz.model import MassNet, resolve_weights
+
+    check_pipeline_args(args)
+    model = MassNet.from_checkpoint(resolve_weights(args.weights))
+    detector = make_detector(args.detector, args.threshold, detector_weights=args.detector_weights,
+                             replay=args.replay)
+    cache = None if args.no_cache else TraceCache(args.cache)
+    return detector, model, cache

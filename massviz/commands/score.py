@@ -1,0 +1,84 @@
+"""``massviz score``: the CORSMAL challenge score of prediction CSVs, per class and per container, optionally plotted."""
+from __future__ import annotations
+
+import argparse
+import json
+import textwrap
+from pathlib import Path
+
+from massviz.atomic import atomic_path
+from massviz.errors import MassvizError
+from massviz.evaluate import default_class_of, parse_class_map, read_annotations, read_predictions, score
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "score",
+        help="score challenge prediction CSVs against CCM annotations (overall, per class, per container)",
+        description=textwrap.fill(
+            "Print the CORSMAL challenge score s (%) of each prediction CSV, then per-class and per-container "
+            "tables of score and mean relative error ε. s averages exp(-ε) over ALL annotated recordings, a "
+            "recording missing from the predictions or predicted negative (-1) counting 0; mean ε is over the "
+            "estimated recordings only. Predicted recordings absent from the annotations are ignored and listed. "
+            "Several PRED files are paired with the --annotations files in order, or all with a single one.", 100),
+        epilog="examples:\n"
+        "  massviz score VAL.csv --annotations Val_annotations.csv --json val_score.json\n"
+        "  massviz score F1.csv F2.csv F3.csv VAL.csv --annotations test_annotations_fold0.csv "
+        "test_annotations_fold1.csv test_annotations_fold2.csv Val_annotations.csv --labels F1 F2 F3 VAL "
+        "--plot fig4.png",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("predictions", nargs="+", metavar="PRED.csv", help="CORSMAL challenge prediction CSV(s)")
+    parser.add_argument("--annotations", nargs="+", required=True, metavar="ANN.csv",
+                        help="CCM annotation CSV(s): one for all PRED files, or one per PRED file, in order")
+    parser.add_argument("--labels", nargs="+", metavar="LABEL",
+                        help="a name per PRED file for the output and the plot (default: the file names)")
+    parser.add_argument("--classes", metavar="SPEC",
+                        help="container→class mapping, '1=cup,2=cup,3=cup,...' or a JSON file {\"1\": \"cup\", ...} "
+                        "(default: cup 1-3, glass 4-6, box 7-9)")
+    parser.add_argument("--json", metavar="OUT.json",
+                        help="also write the report(s) as JSON: one object, or a list of them for several PRED files")
+    parser.add_argument("--plot", metavar="OUT.png",
+                        help="also draw the paper's Fig. 4 analogue: per-class and total score (top) and mean ε "
+                        "(bottom), one group of bars per PRED file")
+    parser.set_defaults(func=run)
+
+
+def _pairs(args: argparse.Namespace) -> list[tuple[str, str, str]]:
+    """(label, predictions, annotations) for each PRED file."""
+    preds, anns = args.predictions, args.annotations
+    if len(anns) == 1:
+        anns = anns * len(preds)
+    elif len(anns) != len(preds):
+        raise MassvizError(f"{len(preds)} prediction files but {len(anns)} annotation files "
+                           "(give one annotation file for all, or one per prediction file)")
+    labels = args.labels or [Path(p).stem for p in preds]
+    if len(labels) != len(preds):
+        raise MassvizError(f"{len(preds)} prediction files but {len(labels)} labels")
+    return list(zip(labels, preds, anns))
+
+
+def run(args: argparse.Namespace) -> int:
+    class_of = parse_class_map(args.classes) if args.classes else default_class_of
+    pairs = _pairs(args)
+    annotations = {path: read_annotations(path) for path in dict.fromkeys(ann for _, _, ann in pairs)}
+    reports = [score(read_predictions(pred), annotations[ann], class_of) for _, pred, ann in pairs]
+
+    for (label, pred, ann), report in zip(pairs, reports):
+        if len(pairs) > 1:
+            print(f"== {label}: {pred} vs {ann}")
+        print(report.format())
+        if len(pairs) > 1:
+            print()
+    if args.json:
+        docs = [{"label": label, "predictions": pred, "annotations": ann, **report.to_dict()}
+                for (label, pred, ann), report in zip(pairs, reports)]
+        with atomic_path(args.json) as tmp:
+            tmp.write_text(json.dumps(docs[0] if len(docs) == 1 else docs, indent=1) + "\n")
+        print(f"wrote {args.json}")
+    if args.plot:
+        from massviz.score_plot import plot_score_analysis, save_figure  # matplotlib only when plotting
+
+        save_figure(plot_score_analysis(reports, [label for label, _, _ in pairs]), args.plot)
+        print(f"wrote {args.plot}")
+    return 0

@@ -1,0 +1,340 @@
+"""Scoring of container-mass predictions: the CORSMAL challenge score (the paper's Eq. 2) with per-class analysis.
+
+Per annotated recording j with true empty mass m > 0 and prediction m̂:
+
+* ε = |m̂ − m| / m (relative absolute error);
+* the recording is *estimated* when it has a prediction m̂ ≥ 0. A recording missing from the predictions, or
+  predicted negative (the challenge writes -1 for "not estimated"), is not estimated: it scores 0 and has no ε;
+* s = (1/J) Σ_j 1[estimated] · exp(−ε) over **all** J annotated recordings;
+* mean ε is over the *estimated* recordings only (as in the paper's Fig. 4); it is NaN when none is estimated.
+
+Predicted recordings that are not in the annotations are ignored and listed in ``ScoreReport.ignored_ids``.
+A prediction file that predicts the same recording twice is an error (there is no sound rule for which to keep).
+
+Notebook use::
+
+    report = score(read_predictions("F1.csv"), read_annotations("test_annotations_fold0.csv"))
+    report.score_pct, report.per_class, report.per_container
+    score_from_estimates({23: 6.0, 38: 36.0}, read_annotations("Val_annotations.csv"))
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+import pandas as pd
+
+from massviz.errors import DataError
+
+#: Key and value columns of the challenge prediction CSV.
+PRED_ID, PRED_MASS = "Configuration ID", "Container mass"
+#: Recording id, container id and empty container mass (g) columns of the CCM annotation CSV.
+ANN_ID, ANN_CONTAINER, ANN_MASS = "id", "container id", "container mass"
+#: The paper's classes, in the order of its tables and figure.
+CLASS_ORDER = ("cup", "glass", "box")
+
+ClassOf = Callable[[int], str] | Mapping[int, str]
+
+
+# ----------------------------------------------------------------------------------------------------------- reading
+class _Row(NamedTuple):
+    number: int  # 1-based data row (the header is not counted)
+    line: int  # line in the file
+    fields: list[str]
+
+
+def _read_table(path: Path, required: Sequence[str]) -> tuple[list[str], list[_Row]]:
+    """Header and data rows of a CSV file, checking it is text, has the ``required`` columns and a rectangular shape."""
+    rows: list[_Row] = []
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            reader = csv.reader(f)
+            header = [name.strip() for name in next(reader, [])]
+            for fields in reader:
+                if fields:  # blank lines are skipped
+                    rows.append(_Row(len(rows) + 1, reader.line_num, fields))
+    except UnicodeDecodeError:
+        raise DataError("not a CSV file (not UTF-8 text)", path) from None
+    except csv.Error as err:
+        raise DataError(f"line {reader.line_num}: not a valid CSV file ({err})", path) from None
+    except OSError as err:
+        raise DataError(f"cannot read the file ({err.strerror})", path) from None
+    if not any(header):
+        raise DataError("empty file: no header row", path)
+    for name in required:
+        if name not in header:
+            raise DataError(f"header: missing column '{name}' (expected a CSV with columns "
+                            f"{', '.join(repr(n) for n in required)})", path)
+    for row in rows:
+        if len(row.fields) < len(header):
+            raise DataError(f"row {row.number} (line {row.line}), column '{header[len(row.fields)]}': missing "
+                            f"(the row has {len(row.fields)} fields, the header {len(header)})", path)
+        if len(row.fields) > len(header):
+            raise DataError(f"row {row.number} (line {row.line}): {len(row.fields)} fields, "
+                            f"but the header has only {len(header)}", path)
+    return header, rows
+
+
+def _integer(text: str) -> int:
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"{text!r} is not an integer" if text else "empty value") from None
+    if not value.is_integer():
+        raise ValueError(f"{text!r} is not an integer")
+    return int(value)
+
+
+def _number(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"{text!r} is not a number" if text else "empty value") from None
+    if not math.isfinite(value):
+        raise ValueError(f"{text!r} is not a finite number")
+    return value
+
+
+def _positive_mass(text: str) -> float:
+    value = _number(text)
+    if value <= 0:
+        raise ValueError(f"the true mass must be > 0 g (ε divides by it), got {text}")
+    return value
+
+
+def _column(path: Path, header: list[str], rows: list[_Row], name: str, parse: Callable[[str], Any]) -> list:
+    """The values of column ``name`` parsed with ``parse``; a failure names the file, row and column."""
+    index = header.index(name)
+    values = []
+    for row in rows:
+        try:
+            values.append(parse(row.fields[index].strip()))
+        except ValueError as err:
+            raise DataError(f"row {row.number} (line {row.line}), column '{name}': {err}", path) from None
+    return values
+
+
+def _check_unique(path: Path, rows: list[_Row], name: str, ids: list[int]) -> None:
+    first: dict[int, int] = {}
+    for row, value in zip(rows, ids):
+        if value in first:
+            raise DataError(f"row {row.number} (line {row.line}), column '{name}': recording {value} already "
+                            f"appears in row {first[value]} (one row per recording)", path)
+        first[value] = row.number
+
+
+def read_predictions(path: str | Path) -> pd.DataFrame:
+    """Read a CORSMAL challenge prediction CSV: a frame with int ``'Configuration ID'`` and float ``'Container mass'``.
+
+    Only those two columns are read and checked (the file's other task columns are not this project's); a negative
+    mass (the challenge's -1) means "not estimated". A header-only file is valid (nothing estimated).
+    Raises ``DataError`` (naming file, row and column) for an unreadable or non-CSV file, a missing column, a
+    ragged row, a non-numeric or non-finite value, or a recording id that appears twice.
+    """
+    path = Path(path)
+    header, rows = _read_table(path, (PRED_ID, PRED_MASS))
+    ids = _column(path, header, rows, PRED_ID, _integer)
+    _check_unique(path, rows, PRED_ID, ids)
+    masses = _column(path, header, rows, PRED_MASS, _number)
+    return pd.DataFrame({PRED_ID: pd.Series(ids, dtype="int64"), PRED_MASS: pd.Series(masses, dtype="float64")})
+
+
+def read_annotations(path: str | Path) -> pd.DataFrame:
+    """Read a CCM annotation CSV (``id``, ``container id``, ..., ``container mass``, ...) into a frame.
+
+    ``id`` and ``container id`` are ints, ``container mass`` (g) a float > 0; every other column is kept, numeric
+    where all its values parse as numbers. Raises ``DataError`` (naming file, row and column) for an unreadable or
+    non-CSV file, a missing column, a ragged row, a non-numeric value, a mass ≤ 0, a repeated id or no data rows.
+    """
+    path = Path(path)
+    header, rows = _read_table(path, (ANN_ID, ANN_CONTAINER, ANN_MASS))
+    if not rows:
+        raise DataError("no annotated recordings (only a header)", path)
+    parsers = {ANN_ID: _integer, ANN_CONTAINER: _integer, ANN_MASS: _positive_mass}
+    data = {}
+    for name in header:
+        if name in parsers:
+            data[name] = _column(path, header, rows, name, parsers[name])
+        else:
+            text = pd.Series([row.fields[header.index(name)] for row in rows])
+            try:
+                data[name] = pd.to_numeric(text)
+            except ValueError:
+                data[name] = text
+    _check_unique(path, rows, ANN_ID, data[ANN_ID])
+    return pd.DataFrame(data)
+
+
+# ----------------------------------------------------------------------------------------------------------- classes
+def default_class_of(container_id: int) -> str:
+    """The paper's classes of the CCM training containers: cup 1–3, glass 4–6, box 7–9."""
+    if 1 <= container_id <= 9:
+        return CLASS_ORDER[(container_id - 1) // 3]
+    raise DataError(f"container {container_id} has no class (cup 1–3, glass 4–6, box 7–9); "
+                    "give an explicit container→class mapping")
+
+
+def parse_class_map(spec: str) -> dict[int, str]:
+    """Container→class mapping from ``"1=cup,2=cup,..."`` or from a JSON file ``{"1": "cup", ...}``."""
+    if spec.strip().endswith(".json") or Path(spec).is_file():
+        try:
+            raw = json.loads(Path(spec).read_text())
+        except (OSError, ValueError) as err:
+            raise DataError(f"cannot read the class mapping: {err}", spec) from None
+        if not isinstance(raw, dict):
+            raise DataError('class mapping must be a JSON object {"1": "cup", ...}', spec)
+        pairs = [(str(k), str(v)) for k, v in raw.items()]
+    else:
+        pairs = [part.partition("=")[::2] for part in spec.split(",") if part.strip()]
+    mapping = {}
+    for key, name in pairs:
+        try:
+            container = int(key)
+        except ValueError:
+            raise DataError(f"class mapping: {key.strip()!r} is not a container id (expected e.g. 1=cup,2=cup)") from None
+        if not name.strip():
+            raise DataError(f"class mapping: container {container} has no class name (expected e.g. {container}=cup)")
+        mapping[container] = name.strip()
+    if not mapping:
+        raise DataError("class mapping is empty (expected e.g. 1=cup,2=cup,4=glass)")
+    return mapping
+
+
+def _class_function(class_of: ClassOf) -> Callable[[int], str]:
+    if not isinstance(class_of, Mapping):
+        return class_of
+
+    def lookup(container_id: int) -> str:
+        if container_id not in class_of:
+            raise DataError(f"container {container_id} is not in the class mapping "
+                            f"(which maps {', '.join(str(c) for c in sorted(class_of))})")
+        return class_of[container_id]
+
+    return lookup
+
+
+def _class_rank(name: str) -> tuple[int, str]:
+    return (CLASS_ORDER.index(name), "") if name in CLASS_ORDER else (len(CLASS_ORDER), name)
+
+
+# ----------------------------------------------------------------------------------------------------------- scoring
+def _summary(frame: pd.DataFrame, by: str) -> pd.DataFrame:
+    table = frame.groupby(by).agg(recordings=("s", "size"), estimated=("estimated", "sum"),
+                                  score_pct=("s", "mean"), mean_eps=("eps", "mean"))
+    table["score_pct"] *= 100
+    return table
+
+
+def _records(table: pd.DataFrame) -> list[dict]:
+    return json.loads(table.reset_index().to_json(orient="records", double_precision=15))
+
+
+@dataclass(frozen=True)
+class ScoreReport:
+    """The result of :func:`score`.
+
+    ``per_recording`` (index ``id``): ``container``, ``class``, ``true_g``, ``pred_g`` (NaN when missing),
+    ``estimated``, ``eps`` (NaN when not estimated), ``s`` (the recording's term: exp(−ε), or 0).
+    ``per_class`` (index ``class``: cup, glass, box, then others) and ``per_container`` (index ``container``, with
+    its ``class``): ``recordings``, ``estimated``, ``score_pct``, ``mean_eps``. Values are kept at full precision;
+    :meth:`format` rounds the score to 2 and ε to 3 decimals.
+    """
+
+    score: float  # s in [0, 1]
+    mean_eps: float  # over estimated recordings; NaN if none
+    per_class: pd.DataFrame
+    per_container: pd.DataFrame
+    per_recording: pd.DataFrame
+    ignored_ids: tuple[int, ...]  # predicted but not annotated
+
+    @property
+    def score_pct(self) -> float:
+        return 100 * self.score
+
+    @property
+    def n_recordings(self) -> int:
+        return len(self.per_recording)
+
+    @property
+    def n_estimated(self) -> int:
+        return int(self.per_recording["estimated"].sum())
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict (NaN becomes ``None``)."""
+        return {
+            "score_pct": self.score_pct,
+            "mean_eps": None if math.isnan(self.mean_eps) else self.mean_eps,
+            "recordings": self.n_recordings,
+            "estimated": self.n_estimated,
+            "ignored_ids": list(self.ignored_ids),
+            "per_class": _records(self.per_class),
+            "per_container": _records(self.per_container),
+            "per_recording": _records(self.per_recording),
+        }
+
+    def format(self) -> str:
+        """Terminal text: the overall score in % (2 decimals), then the per-class and per-container tables."""
+        eps = "-" if math.isnan(self.mean_eps) else f"{self.mean_eps:.3f}"
+        lines = [f"score {self.score_pct:.2f} % over {self.n_recordings} recordings "
+                 f"({self.n_estimated} estimated), mean ε {eps}"]
+        if self.ignored_ids:
+            shown = ", ".join(str(i) for i in self.ignored_ids[:10])
+            more = f" … ({len(self.ignored_ids) - 10} more)" if len(self.ignored_ids) > 10 else ""
+            lines.append(f"ignored {len(self.ignored_ids)} predicted recordings not in the annotations: {shown}{more}")
+        names = {"score_pct": "score %", "mean_eps": "mean ε"}
+        formatters = {"score %": "{:.2f}".format, "mean ε": lambda v: "-" if math.isnan(v) else f"{v:.3f}"}
+        for title, table in (("per class", self.per_class), ("per container", self.per_container)):
+            text = table.reset_index().rename(columns=names).to_string(index=False, formatters=formatters, col_space=8)
+            lines += ["", f"{title}:", text]
+        return "\n".join(lines)
+
+
+def score(pred: pd.DataFrame, ann: pd.DataFrame, class_of: ClassOf = default_class_of) -> ScoreReport:
+    """Score predictions (a :func:`read_predictions` frame) against annotations (a :func:`read_annotations` frame).
+
+    ``class_of`` maps a container id to its class: a function, or an explicit ``{container: class}`` mapping.
+    See the module docstring for the rules (missing / negative predictions, mean ε, ignored ids).
+    """
+    if not pred[PRED_ID].is_unique:
+        raise DataError(f"predictions: recording {pred[PRED_ID][pred[PRED_ID].duplicated()].iloc[0]} is predicted "
+                        "more than once")
+    if not ann[ANN_ID].is_unique:
+        raise DataError(f"annotations: recording {ann[ANN_ID][ann[ANN_ID].duplicated()].iloc[0]} appears twice")
+    if not (ann[ANN_MASS] > 0).all():
+        raise DataError("annotations: every true container mass must be > 0 g")
+    lookup = _class_function(class_of)
+    frame = pd.DataFrame(
+        {
+            "container": ann[ANN_CONTAINER].astype("int64").to_numpy(),
+            "class": [lookup(int(c)) for c in ann[ANN_CONTAINER]],
+            "true_g": ann[ANN_MASS].astype("float64").to_numpy(),
+        },
+        index=pd.Index(ann[ANN_ID].astype("int64"), name="id"),
+    )
+    frame["pred_g"] = pred.set_index(PRED_ID)[PRED_MASS].astype("float64").reindex(frame.index)
+    frame["estimated"] = frame["pred_g"] >= 0  # NaN (missing) compares False
+    frame["eps"] = ((frame["pred_g"] - frame["true_g"]).abs() / frame["true_g"]).where(frame["estimated"])
+    frame["s"] = np.exp(-frame["eps"]).fillna(0.0)
+
+    per_class = _summary(frame, "class")
+    per_class = per_class.loc[sorted(per_class.index, key=_class_rank)]
+    per_container = _summary(frame, "container")
+    per_container.insert(0, "class", frame.groupby("container")["class"].first())
+    ignored = tuple(sorted(set(pred[PRED_ID].astype(int)) - set(frame.index)))
+    return ScoreReport(score=float(frame["s"].mean()), mean_eps=float(frame["eps"].mean()), per_class=per_class,
+                       per_container=per_container, per_recording=frame, ignored_ids=ignored)
+
+
+def score_from_estimates(estimates: Mapping[int, float | None], ann: pd.DataFrame,
+                         class_of: ClassOf = default_class_of) -> ScoreReport:
+    """Score an in-memory ``{recording id: grams}`` dict (``None`` or a negative value: not estimated)."""
+    pred = pd.DataFrame({PRED_ID: pd.Series(list(estimates), dtype="int64"),
+                         PRED_MASS: pd.Series([np.nan if v is None else v for v in estimates.values()],
+                                              dtype="float64")})
+    return score(pred, ann, class_of)

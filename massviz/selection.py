@@ -1,0 +1,71 @@
+"""Per-detection features and the K-nearest patch selection, as the paper's published code computes them.
+
+For a detection with integer box (x1, y1, x2, y2) and mask M (cropped to the box) on a W×H frame with depth D:
+
+* d = sum(D[box][M]) / count_nonzero(D[box][M]) rounded to 2 decimals (numpy rounding, as the original);
+* a = round((x2 - x1) / W, 2) and b = round((y2 - y1) / H, 2) (Python rounding, as the original).
+
+Deliberate differences from the original code (CORSMAL/Visual, demo/generate_video_inference.py):
+
+* A mask without any depth made the original divide by zero (d = NaN, which then sorts unpredictably). massviz
+  leaves d = NaN, never selects such a detection, and reports it.
+* The original's selection looks every sorted distance up with ``np.where(d == value)[0][0]``, so two detections at
+  exactly the same distance both resolved to the *first* one (the same patch chosen twice). massviz uses a stable
+  sort: ties go to the earliest detection, and each detection is chosen at most once.
+* With exactly one Mask R-CNN detection in a frame, the original's ``masks.squeeze()`` dropped the instance axis and
+  it then used the first image *row* as the mask; massviz keeps the instance axis (see ``detect/maskrcnn.py``).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from massviz.types import Detections
+
+
+def box_ratios(xyxy: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """a = box width / image width, b = box height / image height, each rounded to 2 decimals."""
+    xyxy = np.asarray(xyxy).reshape(-1, 4)
+    a = [round(int(x2 - x1) / width, 2) for x1, _, x2, _ in xyxy]
+    b = [round(int(y2 - y1) / height, 2) for _, y1, _, y2 in xyxy]
+    return np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+
+
+def mask_distance(depth: np.ndarray, xyxy, mask: np.ndarray) -> float:
+    """Mean depth (mm) over the mask pixels that have depth; NaN when none has."""
+    x1, y1, x2, y2 = (int(v) for v in xyxy)
+    values = depth[y1:y2, x1:x2][mask]
+    valid = np.count_nonzero(values)
+    if valid == 0:
+        return float("nan")
+    return float(np.round(np.sum(values) / valid, 2))
+
+
+def compute_features(dets: Detections, depth: np.ndarray) -> Detections:
+    """Fill ``d``, ``a`` and ``b`` of detections made on one frame (in place; also returned)."""
+    height, width = depth.shape[:2]
+    dets.a, dets.b = box_ratios(dets.xyxy, width, height)
+    dets.d = np.array([mask_distance(depth, dets.xyxy[i], dets.mask(i)) for i in range(len(dets))], np.float64)
+    return dets
+
+
+def select_k_nearest(d: np.ndarray, score: np.ndarray, k: int, threshold: float,
+                     exclude: np.ndarray | None = None) -> np.ndarray:
+    """Indices of the ``k`` detections with the smallest ``d`` among those with score > threshold and a finite d,
+    nearest first; ties go to the earliest detection. ``exclude`` (bool mask or indices) removes detections."""
+    if k < 1:
+        raise ValueError("k must be >= 1")
+    d = np.asarray(d, dtype=np.float64)
+    ok = (np.asarray(score) > threshold) & np.isfinite(d)
+    if exclude is not None and len(exclude):
+        ex = np.asarray(exclude)
+        ok[ex if ex.dtype != bool else np.flatnonzero(ex)] = False
+    candidates = np.flatnonzero(ok)
+    order = candidates[np.argsort(d[candidates], kind="stable")]
+    return order[:k]
+
+
+def estimate_mass(pred: np.ndarray, selection: np.ndarray) -> float:
+    """Mean of the selected predictions (grams); -1 when nothing is selected (not estimated)."""
+    if len(selection) == 0:
+        return -1.0
+    return float(np.mean(np.asarray(pred, dtype=np.float64)[selection]))

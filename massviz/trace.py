@@ -1,0 +1,190 @@
+"""The trace: everything one pipeline run computed, with each stage's wall time.
+
+Every consumer (Rerun logger, Open3D sink, notebooks, evaluation, training extraction) only *reads* a ``Trace``.
+``reselect`` recomputes the selection and the estimate for another K, threshold or set of excluded detections
+without running the detector or the model again (every detection already carries its prediction).
+
+A trace saves to a single ``.npz`` (no pickle): JSON header + parallel arrays + packed masks + PNG-encoded patches.
+"""
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from massviz.errors import MassvizError
+from massviz.selection import estimate_mass, select_k_nearest
+from massviz.types import Detections, PackedMask
+
+TRACE_FORMAT = 1
+
+
+@dataclass
+class Trace:
+    """Output of ``massviz.pipeline.run`` for one recording.
+
+    - ``recording``: ``Recording.info()`` (id, path, size, frame count, intrinsics, meta / ground truth).
+    - ``detector``: the detector's name and settings; ``detect_threshold`` the score threshold it ran at.
+    - ``threshold``, ``k``, ``stride``: the selection settings this trace's ``selection``/``estimate`` use.
+    - ``frames``: indices of the processed frames.
+    - ``detections``: every detection (score > detect_threshold) with d, a, b, the model's ``pred`` and, for the
+      ``keep_patches`` nearest ones, the RGB patch.
+    - ``selection``: indices into ``detections`` of the chosen patches, nearest first.
+    - ``estimate``: mean of the chosen predictions in grams; -1 when nothing was selected (not estimated).
+    - ``excluded``: detection indices the user excluded (never selected).
+    - ``timings``: wall time per stage in seconds; ``events``: (frame, message) decisions worth reading.
+    """
+
+    recording: dict
+    detector: dict
+    detect_threshold: float
+    threshold: float
+    k: int
+    stride: int
+    frames: np.ndarray
+    detections: Detections
+    selection: np.ndarray
+    estimate: float
+    weights_id: str = ""
+    timings: dict = field(default_factory=dict)
+    events: list = field(default_factory=list)
+    excluded: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+    # -- views -----------------------------------------------------------------------------------------------------
+    @property
+    def selected(self) -> Detections:
+        return self.detections[self.selection]
+
+    @property
+    def ground_truth_mass(self) -> float | None:
+        c = self.recording.get("meta", {}).get("container") or {}
+        m = c.get("mass_g")
+        return None if m is None else float(m)
+
+    def active(self) -> np.ndarray:
+        """Boolean mask of detections above the current threshold."""
+        return self.detections.score > self.threshold
+
+    def table(self):
+        """One row per detection (pandas DataFrame): frame, class, score, box, d, a, b, pred, selected rank."""
+        import pandas as pd
+
+        dets = self.detections
+        rank = np.full(len(dets), -1)
+        rank[self.selection] = np.arange(len(self.selection))
+        return pd.DataFrame({
+            "frame": dets.frame, "class": dets.class_names(), "score": dets.score,
+            "x1": dets.xyxy[:, 0], "y1": dets.xyxy[:, 1], "x2": dets.xyxy[:, 2], "y2": dets.xyxy[:, 3],
+            "d_mm": dets.d, "a": dets.a, "b": dets.b, "pred_g": dets.pred,
+            "active": self.active(), "rank": rank,
+        })
+
+    # -- reselection -----------------------------------------------------------------------------------------------
+    def reselect(self, k: int | None = None, threshold: float | None = None, exclude=None) -> "Trace":
+        """A new trace with the selection and estimate recomputed for another ``k``/``threshold``/exclusion.
+
+        ``threshold`` must be >= the threshold the detector ran at (lower-scored boxes were never kept).
+        ``exclude``: detection indices (or a bool mask) never to select; ``None`` keeps the current exclusions.
+        """
+        k = self.k if k is None else int(k)
+        threshold = self.threshold if threshold is None else float(threshold)
+        if threshold < self.detect_threshold - 1e-9:
+            raise MassvizError(f"threshold {threshold} is below the detection threshold {self.detect_threshold} "
+                               "this trace was made with; run the detector again with --threshold "
+                               f"{threshold} (detections at threshold t serve any threshold >= t)")
+        if exclude is None:
+            excluded = self.excluded
+        else:
+            ex = np.asarray(exclude)
+            excluded = np.flatnonzero(ex) if ex.dtype == bool else ex.astype(np.int64).reshape(-1)
+        selection = select_k_nearest(self.detections.d, self.detections.score, k, threshold, excluded)
+        return dataclasses.replace(self, k=k, threshold=threshold, selection=selection,
+                                   estimate=estimate_mass(self.detections.pred, selection), excluded=excluded)
+
+    # -- persistence -----------------------------------------------------------------------------------------------
+    def save(self, path: str | Path) -> Path:
+        """Write the trace atomically to ``path`` (.npz)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        dets = self.detections
+        header = {
+            "format": TRACE_FORMAT, "recording": self.recording, "detector": self.detector,
+            "detect_threshold": self.detect_threshold, "threshold": self.threshold, "k": self.k,
+            "stride": self.stride, "estimate": self.estimate, "weights_id": self.weights_id,
+            "timings": self.timings, "events": [list(e) for e in self.events],
+        }
+        masks = [m if m is not None else PackedMask(np.zeros((0, 0), bool)) for m in dets.masks]
+        patch_idx = [i for i, p in enumerate(dets.patches) if p is not None]
+        encoded = [_encode_png(dets.patches[i]) for i in patch_idx]
+        arrays = {
+            "header": np.frombuffer(json.dumps(header, default=_json_default).encode(), dtype=np.uint8),
+            "frames": self.frames, "selection": self.selection, "excluded": self.excluded,
+            **{f"det_{name}": getattr(dets, name) for name in Detections._ARRAYS},
+            "mask_shapes": np.array([m.shape for m in masks], dtype=np.int32).reshape(-1, 2),
+            "mask_sizes": np.array([len(m.bits) for m in masks], dtype=np.int64),
+            "mask_bits": np.concatenate([m.bits for m in masks]) if masks else np.zeros(0, np.uint8),
+            "patch_index": np.array(patch_idx, dtype=np.int64),
+            "patch_sizes": np.array([len(e) for e in encoded], dtype=np.int64),
+            "patch_bytes": np.concatenate(encoded) if encoded else np.zeros(0, np.uint8),
+        }
+        fd, tmp = tempfile.mkstemp(prefix=".trace-", suffix=".npz", dir=path.parent)
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                np.savez_compressed(fh, **arrays)
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Trace":
+        path = Path(path)
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                data = {name: z[name] for name in z.files}
+            header = json.loads(data["header"].tobytes().decode())
+        except Exception as err:  # noqa: BLE001 - any read problem is a corrupt trace file
+            raise MassvizError(f"not a massviz trace ({type(err).__name__}: {err})", path) from None
+        if header.get("format") != TRACE_FORMAT:
+            raise MassvizError(f"trace format {header.get('format')} is not supported (expected {TRACE_FORMAT})", path)
+        offsets = np.concatenate([[0], np.cumsum(data["mask_sizes"])])
+        masks = [PackedMask(shape=tuple(s), bits=data["mask_bits"][offsets[i]:offsets[i + 1]])
+                 for i, s in enumerate(data["mask_shapes"])]
+        patches = [None] * len(masks)
+        poff = np.concatenate([[0], np.cumsum(data["patch_sizes"])])
+        for j, i in enumerate(data["patch_index"]):
+            patches[int(i)] = _decode_png(data["patch_bytes"][poff[j]:poff[j + 1]])
+        dets = Detections(**{name: data[f"det_{name}"] for name in Detections._ARRAYS}, masks=masks, patches=patches)
+        return cls(recording=header["recording"], detector=header["detector"],
+                   detect_threshold=header["detect_threshold"], threshold=header["threshold"], k=header["k"],
+                   stride=header["stride"], frames=data["frames"], detections=dets, selection=data["selection"],
+                   estimate=header["estimate"], weights_id=header["weights_id"], timings=header["timings"],
+                   events=[tuple(e) for e in header["events"]], excluded=data["excluded"])
+
+
+def _encode_png(rgb: np.ndarray) -> np.ndarray:
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR))
+    assert ok
+    return buf.reshape(-1)
+
+
+def _decode_png(buf: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(cv2.imdecode(np.asarray(buf, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+
+
+def _json_default(obj):
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, (Path, io.IOBase)):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
