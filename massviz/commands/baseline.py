@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import textwrap
 
 from massviz.baselines import RANDOM_RANGE_G, average_mass, random_baseline
 from massviz.challenge_csv import write_challenge_csv
@@ -13,14 +14,18 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "baseline",
         help="write the paper's random (M4) or average (M5) baseline predictions",
-        description=f"Write a CORSMAL challenge prediction CSV for every recording of --annotations. "
-        f"'random' (M4) draws each container mass uniformly in [{lo}, {hi}] g with Python's Mersenne Twister "
-        f"(random.Random(SEED)), in the order of the annotation file; 'average' (M5) predicts the mean container "
-        f"mass of the --train recordings for all of them. As in the paper's code the mass is written truncated "
-        f"to an integer (--exact keeps 2 decimals); the other tasks' columns are -1, the execution time 0.",
-        epilog="example: massviz baseline average --annotations test_annotations_fold0.csv "
-        "--train ccm_train_annotation.csv --out M5_fold0.csv && "
-        "massviz score M5_fold0.csv --annotations test_annotations_fold0.csv",
+        description=textwrap.fill(
+            f"Write a CORSMAL challenge prediction CSV for every recording of --annotations. 'random' (M4) draws "
+            f"each container mass uniformly in [{lo}, {hi}] g with Python's Mersenne Twister (random.Random(SEED)), "
+            f"in the order of the annotation file; 'average' (M5) predicts the mean container mass of the --train "
+            f"recordings for all of them. As in the paper's code the mass is written truncated to an integer "
+            f"(--exact keeps 2 decimals); the other tasks' columns are -1, the execution time 0.", 100),
+        epilog="examples:\n"
+        "  massviz baseline random --annotations Val_annotations.csv --seed 0 --out M4_val.csv\n"
+        "  massviz baseline average --annotations test_annotations_fold0.csv --train train_fold0.csv "
+        "--out M5_fold0.csv\n"
+        "  massviz score M4_val.csv --annotations Val_annotations.csv",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("method", choices=("random", "average"), help="M4 (random) or M5 (average)")
     parser.add_argument("--annotations", required=True, metavar="ANN.csv",
