@@ -50,7 +50,8 @@ def build(args):
     """(detector, model, cache) from parsed args."""
     from massviz.cache import TraceCache
     from massviz.detect import make_detector
-    from massviz.model import MassNet, resolve_weights
+    from massviz.model import MassNet
+    from massviz.weights import resolve_weights
 
     check_pipeline_args(args)
     model = MassNet.from_checkpoint(resolve_weights(args.weights))
