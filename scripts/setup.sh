@@ -1,0 +1,45 @@
+#!/usr/bin/env bash
+# massviz set-up on a fresh machine, then one job:
+#   bash scripts/setup.sh demo   install everything, run `massviz log` on a bundled sample -> out/cup_handover.rrd
+#   bash scripts/setup.sh test   install everything, run the test suite (what CI runs)
+# Installs Debian's libraries Open3D needs (libusb-1.0-0; offscreen rendering: libvulkan1 mesa-vulkan-drivers
+# libegl1 libgl1), creates .venv with Python >= 3.11 and installs massviz with its pinned torch/torchvision.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+job="${1:-}"
+case "$job" in demo|test) ;; *) echo "usage: bash scripts/setup.sh demo|test" >&2; exit 2 ;; esac
+
+apt_pkgs=(libusb-1.0-0 libvulkan1 mesa-vulkan-drivers libegl1 libgl1)
+missing=()
+for p in "${apt_pkgs[@]}"; do dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p"); done
+if ((${#missing[@]})); then
+  sudo=""; [ "$(id -u)" = 0 ] || sudo="sudo"
+  echo "setup: installing Debian packages: ${missing[*]}" >&2
+  $sudo apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+fi
+
+py="${PYTHON:-python3}"
+"$py" -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "massviz needs Python >= 3.11")'
+[ -x .venv/bin/python ] || "$py" -m venv .venv
+echo "setup: installing massviz into .venv (torch==2.14.1, torchvision==0.29.1 pinned in pyproject.toml)" >&2
+.venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test,notebooks]" 2>&1 \
+  | { grep -v -e "^WARNING: Location" -e "is ignored: it is neither" || true; }
+
+# Weights of the mass CNN: $MASSVIZ_WEIGHTS, else the reference copy beside the repo when there is one,
+# else massviz downloads the published checkpoint once (sha256-checked) into the user cache.
+ref="../shared/weights/corsmal_visual/Encoder_pool_aug_158.torch"
+if [ -z "${MASSVIZ_WEIGHTS:-}" ] && [ -f "$ref" ]; then export MASSVIZ_WEIGHTS="$PWD/$ref"; fi
+
+if [ "$job" = demo ]; then
+  mkdir -p out
+  .venv/bin/massviz log data_samples/cup_handover --detector depth --rrd out/cup_handover.rrd
+  echo "setup: open it with: .venv/bin/rerun out/cup_handover.rrd" >&2
+else
+  set +e
+  .venv/bin/python -m pytest -q -p no:cacheprovider
+  rc=$?
+  set -e
+  if [ "$rc" = 5 ]; then echo "setup: pytest collected no tests: the suite is missing" >&2; exit 1; fi
+  exit "$rc"
+fi
