@@ -52,6 +52,9 @@ def main(argv: list[str] | None = None) -> int:
     except MassvizError as err:
         print(f"massviz {args.command}: error: {err}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # e.g. `massviz score ... | head`: the reader left; nothing more to say
+        sys.stderr.close()
+        return 141
     except KeyboardInterrupt:
         print(f"massviz {args.command}: interrupted", file=sys.stderr)
         return 130

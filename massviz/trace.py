@@ -11,14 +11,13 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from massviz.atomic import atomic_path
 from massviz.errors import MassvizError
 from massviz.selection import estimate_mass, select_k_nearest
 from massviz.types import Detections, PackedMask
@@ -134,14 +133,8 @@ class Trace:
             "patch_sizes": np.array([len(e) for e in encoded], dtype=np.int64),
             "patch_bytes": np.concatenate(encoded) if encoded else np.zeros(0, np.uint8),
         }
-        fd, tmp = tempfile.mkstemp(prefix=".trace-", suffix=".npz", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez_compressed(fh, **arrays)
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
         return path
 
     @classmethod

@@ -16,14 +16,16 @@ new K, a higher threshold or another model reuses the detections without running
 """
 
 
-def add_pipeline_args(p: argparse.ArgumentParser) -> None:
+def add_pipeline_args(p: argparse.ArgumentParser, selection: bool = True) -> None:
+    """The pipeline options; ``selection=False`` leaves --threshold and --k to the command (e.g. sweeps)."""
     g = p.add_argument_group("pipeline")
     g.add_argument("--detector", default="auto", choices=["auto", "maskrcnn", "depth", "replay"],
                    help="which detector finds the containers (default: auto)")
-    g.add_argument("--threshold", type=float, default=0.4, metavar="T",
-                   help="keep detections with score > T (default: 0.4, the paper's)")
-    g.add_argument("--k", type=int, default=5, metavar="K",
-                   help="average the predictions of the K nearest detections (default: 5, the paper's)")
+    if selection:
+        g.add_argument("--threshold", type=float, default=0.4, metavar="T",
+                       help="keep detections with score > T (default: 0.4, the paper's)")
+        g.add_argument("--k", type=int, default=5, metavar="K",
+                       help="average the predictions of the K nearest detections (default: 5, the paper's)")
     g.add_argument("--stride", type=int, default=1, metavar="N", help="process every N-th frame (default: 1)")
     g.add_argument("--weights", metavar="PATH",
                    help="mass-CNN checkpoint (default: $MASSVIZ_WEIGHTS or the published one, downloaded once)")
@@ -46,16 +48,17 @@ def check_pipeline_args(args) -> None:
         raise MassvizError(f"--stride must be >= 1, got {args.stride}")
 
 
-def build(args):
-    """(detector, model, cache) from parsed args."""
+def build(args, threshold: float | None = None):
+    """(detector, model, cache) from parsed args (``threshold`` overrides ``args.threshold``)."""
     from massviz.cache import TraceCache
     from massviz.detect import make_detector
     from massviz.model import MassNet
     from massviz.weights import resolve_weights
 
-    check_pipeline_args(args)
+    threshold = args.threshold if threshold is None else threshold
+    check_pipeline_args(argparse.Namespace(threshold=threshold, k=getattr(args, "k", 1), stride=args.stride))
     model = MassNet.from_checkpoint(resolve_weights(args.weights))
-    detector = make_detector(args.detector, args.threshold, detector_weights=args.detector_weights,
+    detector = make_detector(args.detector, threshold, detector_weights=args.detector_weights,
                              replay=args.replay)
     cache = None if args.no_cache else TraceCache(args.cache)
     return detector, model, cache

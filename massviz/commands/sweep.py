@@ -1,0 +1,80 @@
+"""``massviz sweep``: the CORSMAL score of every (threshold, K) pair, from cached traces."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from massviz.commands._common import PIPELINE_HELP, add_pipeline_args
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "sweep", help="score every (detection threshold, K) pair from cached detections",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Score every (threshold, K) pair over a dataset without running any detector: the "
+        "detections cached at the lowest threshold of the grid serve every higher threshold, and each detection "
+        "already carries its mass prediction. Recordings missing from the cache are processed once (at the "
+        "lowest threshold) first, unless --cached-only.",
+        epilog="examples:\n"
+        "  massviz sweep data_samples/* --detector depth --threshold 0.3:0.9:0.05 --k 1:10 --plot heatmap.png\n"
+        "  massviz sweep /data/CCM/train --annotations Val_annotations.csv --csv sweep.csv\n" + PIPELINE_HELP)
+    p.add_argument("datasets", nargs="+", metavar="DATASET", help="recordings or dataset roots")
+    p.add_argument("--annotations", metavar="ANN.csv",
+                   help="CCM annotation CSV (default: ground truth from each recording's meta.json)")
+    p.add_argument("--threshold", default="0.4:0.9:0.05", metavar="A:B:STEP",
+                   help="detection thresholds (default: 0.4:0.9:0.05; a list a,b,c or one value also works)")
+    p.add_argument("--k", default="1:10", metavar="A:B", help="K values (default: 1:10)")
+    p.add_argument("--view", type=int, default=3, choices=[1, 2, 3, 4], help="camera view of a CCM root (default 3)")
+    p.add_argument("--classes", metavar="MAP", help="container→class mapping (as massviz score --classes)")
+    p.add_argument("--plot", metavar="PNG", help="write a threshold × K heatmap")
+    p.add_argument("--csv", metavar="OUT", help="write the table as CSV")
+    p.add_argument("--cached-only", action="store_true",
+                   help="fail instead of running the detector for recordings not in the cache")
+    add_pipeline_args(p, selection=False)
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from pathlib import Path
+
+    from tqdm.auto import tqdm
+
+    from massviz.atomic import atomic_path
+    from massviz.commands._common import build
+    from massviz.commands.estimate import collect_recordings
+    from massviz.errors import MassvizError
+    from massviz.evaluate import default_class_of, parse_class_map, read_annotations
+    from massviz.pipeline import process
+    from massviz.sweep import best_pair, parse_range, plot_heatmap, sweep
+
+    thresholds = parse_range(args.threshold, float)
+    ks = parse_range(args.k, int)
+    if min(thresholds) < 0 or max(thresholds) >= 1 or min(ks) < 1:
+        raise MassvizError("thresholds must lie in [0, 1) and K values be >= 1")
+    ann = read_annotations(args.annotations) if args.annotations else None
+    class_of = parse_class_map(args.classes) if args.classes else default_class_of
+    recordings = collect_recordings(args.datasets, args.view)
+    args.k = 1
+    detector, model, cache = build(args, threshold=min(thresholds))
+    if args.cached_only:
+        info = {"name": detector.name, **detector.settings()}
+        missing = [r.id for r in recordings if cache is None or
+                   cache.lookup(r, info, args.stride, min(thresholds)) is None]
+        if missing:
+            raise MassvizError(f"{len(missing)} recording(s) not in the cache at threshold <= {min(thresholds)} "
+                               f"(first: {missing[0]}); run without --cached-only")
+    traces = [process(r, detector, model, k=1, stride=args.stride, cache=cache, progress=not args.quiet)
+              for r in tqdm(recordings, desc="traces", unit="rec", file=sys.stderr, disable=args.quiet)]
+    table = sweep(traces, thresholds, ks, ann, class_of)
+    grid = table.pivot(index="threshold", columns="k", values="score")
+    print(f"CORSMAL score (%) over {int(table['recordings'].iloc[0])} recordings; rows: threshold, columns: K")
+    print(grid.to_string(float_format=lambda v: f"{v:6.2f}"))
+    best = best_pair(table)
+    print(f"best: {best['score']:.2f} % at threshold {best['threshold']:.2f}, K {int(best['k'])} "
+          f"({int(best['estimated'])} estimated)")
+    if args.csv:
+        with atomic_path(Path(args.csv)) as tmp:
+            table.to_csv(tmp, index=False, float_format="%.4f")
+    if args.plot:
+        plot_heatmap(table, args.plot)
+    return 0
