@@ -292,8 +292,8 @@ def find_recordings(root: str | Path, view: int = 3) -> list[Path]:
     for rgb in (root / f"view{view}" / "rgb", root / "rgb"):
         if rgb.is_dir() and any(rgb.glob("*.mp4")):
             return sorted(rgb.glob("*.mp4"))
-    if (root / "rgb.mp4").is_file() or ((root / "rgb").is_dir() and (root / "depth").is_dir()):
-        return [root]
+    if (root / "rgb.mp4").is_file() or (root / "rgb").is_dir():
+        return [root]  # a recording folder, even an incomplete one: open_recording says what is missing
     found = sorted(p for p in root.iterdir() if p.is_dir() and ((p / "rgb.mp4").is_file() or (p / "rgb").is_dir()))
     if not found:
         raise RecordingError(f"no recordings found (looked for view{view}/rgb/*.mp4 and for recording folders)", root)
