@@ -39,6 +39,9 @@ class Trace:
     - ``estimate``: mean of the chosen predictions in grams; -1 when nothing was selected (not estimated).
     - ``excluded``: detection indices the user excluded (never selected).
     - ``timings``: wall time per stage in seconds; ``events``: (frame, message) decisions worth reading.
+    - ``measurements``: the 3D stage's measured size of each chosen detection (``massviz.geometry3d.Measurement``
+      as dicts, read them with ``geometry3d.measurements_of``); empty when not measured. ``reselect`` drops them
+      (they belong to the old selection).
     """
 
     recording: dict
@@ -55,6 +58,7 @@ class Trace:
     timings: dict = field(default_factory=dict)
     events: list = field(default_factory=list)
     excluded: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    measurements: list = field(default_factory=list)
 
     # -- views -----------------------------------------------------------------------------------------------------
     @property
@@ -105,7 +109,8 @@ class Trace:
             excluded = np.flatnonzero(ex) if ex.dtype == bool else ex.astype(np.int64).reshape(-1)
         selection = select_k_nearest(self.detections.d, self.detections.score, k, threshold, excluded)
         return dataclasses.replace(self, k=k, threshold=threshold, selection=selection,
-                                   estimate=estimate_mass(self.detections.pred, selection), excluded=excluded)
+                                   estimate=estimate_mass(self.detections.pred, selection), excluded=excluded,
+                                   measurements=[])
 
     # -- persistence -----------------------------------------------------------------------------------------------
     def save(self, path: str | Path) -> Path:
@@ -118,6 +123,7 @@ class Trace:
             "detect_threshold": self.detect_threshold, "threshold": self.threshold, "k": self.k,
             "stride": self.stride, "estimate": self.estimate, "weights_id": self.weights_id,
             "timings": self.timings, "events": [list(e) for e in self.events],
+            "measurements": list(self.measurements),
         }
         masks = [m if m is not None else PackedMask(np.zeros((0, 0), bool)) for m in dets.masks]
         patch_idx = [i for i, p in enumerate(dets.patches) if p is not None]
@@ -160,7 +166,8 @@ class Trace:
                    detect_threshold=header["detect_threshold"], threshold=header["threshold"], k=header["k"],
                    stride=header["stride"], frames=data["frames"], detections=dets, selection=data["selection"],
                    estimate=header["estimate"], weights_id=header["weights_id"], timings=header["timings"],
-                   events=[tuple(e) for e in header["events"]], excluded=data["excluded"])
+                   events=[tuple(e) for e in header["events"]], excluded=data["excluded"],
+                   measurements=header.get("measurements", []))
 
 
 def _encode_png(rgb: np.ndarray) -> np.ndarray:
