@@ -1,0 +1,554 @@
+"""Log a ``Trace`` to Rerun: every stage of one estimate, on a ``frame`` timeline, with a default layout.
+
+``log_trace`` reads only the trace and the recording's frames (re-streamed for the processed frames); it never runs
+the detector or the model. Each kind of data is logged by a small ``log_*`` function next to it, in the style of
+Rerun's ``rgbd`` and ``detect_and_track_objects`` examples, and ``default_blueprint`` lays out the views.
+
+Entity tree (a public contract; the README copies it). Everything temporal is on the ``frame`` timeline (sequence =
+frame index in the recording); a video asset's frames are also on ``video_time``.
+
+=============================  ========================================================================================
+entity                         what is logged
+=============================  ========================================================================================
+``/camera``                    ``Pinhole`` (static; RDF camera; only with intrinsics) and the ``AnnotationContext``
+                               (static) naming the class ids used by ``/camera/detections`` and ``/camera/masks``
+``/camera/rgb``                an mp4 Rerun can decode: the file once as ``AssetVideo`` (static, not re-encoded) and a
+                               ``VideoFrameReference`` per processed frame; frame folders: ``EncodedImage`` of each
+                               frame file's bytes; an mp4 Rerun cannot decode (e.g. CCM's MPEG-4 Part 2 'mp4v'):
+                               JPEG ``EncodedImage`` per processed frame, with a warning in ``/log``
+``/camera/depth``              ``DepthImage`` (uint16 mm, ``meter=1000``, turbo colormap)
+``/camera/detections``         ``Boxes2D`` (XYXY) labelled "class score · d mm", class ids for colour; chosen patches
+                               get class id ``CHOSEN_ID + rank`` and the label suffix "★rank"
+``/camera/masks``              ``SegmentationImage`` of the same class ids (chosen masks drawn on top)
+``/world``                     ``ViewCoordinates.RDF`` (static): the 3D world is the camera frame
+``/world/points``              ``Points3D``: depth back-projected to metres in the camera frame, every ``step``-th pixel,
+                               at most ``max_points``, coloured by RGB (only with intrinsics)
+``/patches/<rank>``            ``Image`` of chosen patch ``rank`` (0 = nearest) as the model saw it (zero-padded
+                               square, 112×112) at its source frame, with ``AnyValues`` a, b, d_mm, frame, class,
+                               score, pred_g, detection
+``/predictions/patch_<rank>``  ``Scalars``: that patch's prediction (g), at its source frame and the last frame
+``/predictions/estimate``      ``Scalars``: the estimate (g) at the last processed frame (absent when not estimated)
+``/predictions/ground_truth``  ``Scalars``: the container's mass from the recording's meta (``container.mass_g``), at
+                               the first and the last processed frame (absent when unknown)
+``/log``                       ``TextLog`` of the decisions (trace events, missing intrinsics, video fallback) with
+                               levels, at their frames
+``/summary``                   ``TextDocument`` (static, markdown): recording, detector, K, estimate, chosen patches
+``/timings``                   ``TextDocument`` (static, markdown): seconds per pipeline stage and for logging
+``/timings/<stage>``           ``Scalars`` (static): seconds of each stage of ``trace.timings`` and ``log`` (this
+                               logging's own cost)
+=============================  ========================================================================================
+
+Class ids (``AnnotationContext`` at ``/camera``): 0 background, 1 cup, 2 book, 3 wine glass, 4 bottle, 5 object
+(class-agnostic depth detector), 6 other COCO class, 7 below the trace's threshold, ``CHOSEN_ID + rank`` chosen patch.
+"""
+from __future__ import annotations
+
+import math
+import os
+import sys
+import time
+import uuid
+from collections import defaultdict
+from pathlib import Path
+
+import cv2
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+from tqdm.auto import tqdm
+
+from massviz.atomic import atomic_path
+from massviz.errors import MassvizError
+from massviz.recording import Recording
+from massviz.trace import Trace
+from massviz.types import Detections, Intrinsics, class_name
+
+APPLICATION_ID = "massviz"
+#: every ``POINT_STEP``-th pixel (in x and y) of the depth image becomes a point of ``/world/points``.
+POINT_STEP = 4
+#: at most this many points per frame in ``/world/points``.
+MAX_POINTS = 50_000
+
+# ---------------------------------------------------------------------------------------------- annotation context
+BACKGROUND_ID, OTHER_ID, BELOW_THRESHOLD_ID, CHOSEN_ID = 0, 6, 7, 10
+CLASS_IDS = {"cup": 1, "book": 2, "wine glass": 3, "bottle": 4, "object": 5}
+_CLASS_COLOURS = {1: (31, 119, 180), 2: (148, 103, 189), 3: (23, 190, 207), 4: (44, 160, 44), 5: (188, 189, 34),
+                  OTHER_ID: (140, 86, 75), BELOW_THRESHOLD_ID: (127, 127, 127)}
+_CHOSEN_COLOURS = [(255, 40, 40), (255, 140, 0), (255, 215, 0), (255, 0, 160), (255, 100, 100), (230, 80, 0),
+                   (255, 180, 90), (200, 0, 80)]
+
+
+def class_id_of(name: str) -> int:
+    """Annotation class id of a detection class name (``OTHER_ID`` for classes the paper does not keep)."""
+    return CLASS_IDS.get(name, OTHER_ID)
+
+
+def log_annotation_context(rec: rr.RecordingStream, k: int) -> None:
+    """Names and colours of the class ids of ``/camera/detections`` and ``/camera/masks`` (static, at /camera)."""
+    infos = [rr.AnnotationInfo(id=BACKGROUND_ID, label="background", color=(0, 0, 0))]
+    infos += [rr.AnnotationInfo(id=cid, label=name, color=_CLASS_COLOURS[cid]) for name, cid in CLASS_IDS.items()]
+    infos += [rr.AnnotationInfo(id=OTHER_ID, label="other class", color=_CLASS_COLOURS[OTHER_ID]),
+              rr.AnnotationInfo(id=BELOW_THRESHOLD_ID, label="below threshold",
+                                color=_CLASS_COLOURS[BELOW_THRESHOLD_ID])]
+    infos += [rr.AnnotationInfo(id=CHOSEN_ID + r, label=f"chosen ★{r}", color=_CHOSEN_COLOURS[r % len(_CHOSEN_COLOURS)])
+              for r in range(max(k, 1))]
+    rec.log("/camera", rr.AnnotationContext(infos), static=True)
+
+
+# ---------------------------------------------------------------------------------------------------------- camera
+def log_pinhole(rec: rr.RecordingStream, intr: Intrinsics, image_plane_distance: float) -> None:
+    """The RGB camera (depth is aligned to it), right-down-forward, static."""
+    rec.log("/camera", rr.Pinhole(focal_length=[intr.fx, intr.fy], principal_point=[intr.cx, intr.cy],
+                                  width=intr.width, height=intr.height, camera_xyz=rr.ViewCoordinates.RDF,
+                                  image_plane_distance=image_plane_distance), static=True)
+    rec.log("/world", rr.ViewCoordinates.RDF, static=True)
+
+
+def frustum_depth(depth: np.ndarray) -> float:
+    """A frustum depth (m) that reaches about half-way to the scene: half the median valid depth, 0.1..2 m."""
+    valid = depth[depth > 0]
+    return 0.5 if valid.size == 0 else float(np.clip(0.5 * np.median(valid) / 1000.0, 0.1, 2.0))
+
+
+# ------------------------------------------------------------------------------------------------------------- rgb
+class RgbLogger:
+    """Logs ``/camera/rgb``: an mp4 as one video asset + frame references, else compressed images.
+
+    ``video``: ``"auto"`` (asset when Rerun can decode the codec, else JPEG frames), ``"asset"`` (always the asset,
+    even if the viewer cannot decode it) or ``"images"`` (always JPEG frames). ``mode`` is what was chosen;
+    ``warning`` says why an mp4 is not logged as an asset (or cannot be shown).
+    """
+
+    def __init__(self, recording: Recording, video: str = "auto"):
+        if video not in ("auto", "asset", "images"):
+            raise ValueError(f"video must be 'auto', 'asset' or 'images', not {video!r}")
+        self.recording, self.warning, self.timestamps_ns = recording, None, None
+        self.asset = None
+        if recording.rgb_video is None:
+            self.mode = "files"
+            return
+        self.mode = "images" if video == "images" else "asset"
+        if video == "images":
+            return
+        self.asset = rr.AssetVideo(path=recording.rgb_video)
+        try:
+            self.timestamps_ns = np.sort(np.asarray(self.asset.read_frame_timestamps_nanos(), dtype=np.int64))
+        except Exception as err:  # noqa: BLE001 - Rerun reports unsupported codecs / broken containers as errors
+            reason = f"Rerun cannot decode {recording.rgb_video.name} ({err})"
+            if video == "auto":
+                self.mode, self.asset = "images", None
+                self.warning = f"{reason}: logging the processed frames as JPEG images instead of the video asset"
+            else:
+                self.warning = f"{reason}: the video asset is logged but the viewer will not show its frames"
+
+    def log_static(self, rec: rr.RecordingStream) -> None:
+        if self.asset is not None:
+            rec.log("/camera/rgb", self.asset, static=True)
+
+    def video_time_ns(self, index: int) -> int | None:
+        """Presentation time of video frame ``index`` (from the container, else index / fps); None without asset."""
+        if self.mode != "asset":
+            return None
+        if self.timestamps_ns is not None and index < len(self.timestamps_ns):
+            return int(self.timestamps_ns[index])
+        return int(round(index / (self.recording.fps or 30.0) * 1e9))
+
+    def log_frame(self, rec: rr.RecordingStream, index: int, rgb: np.ndarray) -> None:
+        if self.mode == "asset":
+            rec.log("/camera/rgb", rr.VideoFrameReference(nanoseconds=self.video_time_ns(index)))
+        elif self.mode == "files":
+            rec.log("/camera/rgb", rr.EncodedImage(path=self.recording.rgb_files[index]))
+        else:
+            ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 90])
+            if not ok:
+                raise MassvizError(f"cannot JPEG-encode frame {index}", self.recording.path)
+            rec.log("/camera/rgb", rr.EncodedImage(contents=buf.tobytes(), media_type="image/jpeg"))
+
+
+# ----------------------------------------------------------------------------------------------- depth and points
+def log_depth(rec: rr.RecordingStream, depth: np.ndarray) -> None:
+    rec.log("/camera/depth", rr.DepthImage(depth, meter=1000.0, colormap="turbo"))
+
+
+def depth_to_points(depth: np.ndarray, intrinsics: Intrinsics, rgb: np.ndarray | None = None,
+                    step: int = POINT_STEP) -> tuple[np.ndarray, np.ndarray | None]:
+    """Back-project every ``step``-th pixel with depth: (N×3 float32 metres in the RDF camera frame, N×3 uint8 RGB
+    colours or None). Pixels without depth (0) are dropped."""
+    z = depth[::step, ::step].astype(np.float32) / 1000.0
+    v, u = np.mgrid[0:depth.shape[0]:step, 0:depth.shape[1]:step]
+    valid = z > 0
+    z = z[valid]
+    x = (u[valid].astype(np.float32) - intrinsics.cx) * z / intrinsics.fx
+    y = (v[valid].astype(np.float32) - intrinsics.cy) * z / intrinsics.fy
+    points = np.stack([x, y, z], axis=1).astype(np.float32)
+    colours = None if rgb is None else rgb[::step, ::step][valid]
+    return points, colours
+
+
+def log_points(rec: rr.RecordingStream, depth: np.ndarray, rgb: np.ndarray, intr: Intrinsics, step: int,
+               max_points: int) -> int:
+    """``/world/points`` of one frame (at most ``max_points``, evenly subsampled); returns the number logged."""
+    points, colours = depth_to_points(depth, intr, rgb, step)
+    if max_points > 0 and len(points) > max_points:
+        keep = np.arange(0, len(points), math.ceil(len(points) / max_points))
+        points, colours = points[keep], None if colours is None else colours[keep]
+    rec.log("/world/points", rr.Points3D(points, colors=colours, radii=rr.Radius.ui_points(1.5)))
+    return len(points)
+
+
+# ------------------------------------------------------------------------------------------ detections and masks
+def detection_class_ids(dets: Detections, idx: list[int], rank_of: dict[int, int], threshold: float) -> np.ndarray:
+    """Annotation class id of each detection in ``idx``: chosen rank, below threshold, or its class."""
+    out = []
+    for i in idx:
+        if i in rank_of:
+            out.append(CHOSEN_ID + rank_of[i])
+        elif dets.score[i] <= threshold:
+            out.append(BELOW_THRESHOLD_ID)
+        else:
+            out.append(class_id_of(class_name(dets.class_id[i])))
+    return np.asarray(out, dtype=np.uint16)
+
+
+def detection_label(dets: Detections, i: int, rank: int | None) -> str:
+    d = "no depth" if not np.isfinite(dets.d[i]) else f"{dets.d[i]:.0f} mm"
+    star = "" if rank is None else f" ★{rank}"
+    return f"{class_name(dets.class_id[i])} {dets.score[i]:.2f} · {d}{star}"
+
+
+def log_detections(rec: rr.RecordingStream, dets: Detections, idx: list[int], class_ids: np.ndarray,
+                   rank_of: dict[int, int]) -> None:
+    """``/camera/detections`` of one frame (an empty frame clears the previous frame's boxes)."""
+    if not idx:
+        rec.log("/camera/detections", rr.Boxes2D(array=np.zeros((0, 4), np.float32),
+                                                 array_format=rr.Box2DFormat.XYXY))
+        return
+    rec.log("/camera/detections", rr.Boxes2D(
+        array=dets.xyxy[idx].astype(np.float32), array_format=rr.Box2DFormat.XYXY, class_ids=class_ids,
+        labels=[detection_label(dets, i, rank_of.get(i)) for i in idx]))
+
+
+def log_masks(rec: rr.RecordingStream, dets: Detections, idx: list[int], class_ids: np.ndarray,
+              shape: tuple[int, int]) -> None:
+    """``/camera/masks``: one segmentation image of the frame; chosen masks are drawn last (on top)."""
+    seg = np.zeros(shape, dtype=np.uint8 if len(idx) == 0 or int(class_ids.max()) < 256 else np.uint16)
+    for j in sorted(range(len(idx)), key=lambda j: class_ids[j] >= CHOSEN_ID):
+        x1, y1, x2, y2 = (int(v) for v in dets.xyxy[idx[j]])
+        seg[y1:y2, x1:x2][dets.mask(idx[j])] = class_ids[j]
+    rec.log("/camera/masks", rr.SegmentationImage(seg, opacity=0.5))
+
+
+# ------------------------------------------------------------------------------------------------------- patches
+def model_input_preprocessor():
+    """The single import point of the model's patch preprocessing (``massviz.model.preprocess_patch``: H×W×3 uint8
+    → zero-padded square → 3×112×112 float tensor in [0, 1]); imported on first use (it loads torch)."""
+    from massviz.model import preprocess_patch
+
+    return preprocess_patch
+
+
+def model_view(patch: np.ndarray, preprocess) -> np.ndarray:
+    """The patch as the model sees it, as an H×W×3 uint8 image."""
+    tensor = preprocess(patch)
+    return (tensor.detach().cpu().numpy().transpose(1, 2, 0) * 255.0).round().clip(0, 255).astype(np.uint8)
+
+
+def log_patch(rec: rr.RecordingStream, rank: int, dets: Detections, i: int, patch: np.ndarray, preprocess) -> None:
+    """``/patches/<rank>`` at its source frame: the model's input image and the numbers that went with it."""
+    rec.log(f"/patches/{rank}", rr.Image(model_view(patch, preprocess)), rr.AnyValues(
+        a=float(dets.a[i]), b=float(dets.b[i]), d_mm=float(dets.d[i]), frame=int(dets.frame[i]),
+        class_name=class_name(dets.class_id[i]), score=float(dets.score[i]), pred_g=float(dets.pred[i]),
+        detection=int(i)))
+
+
+# --------------------------------------------------------------------------------------------------- predictions
+def log_predictions(rec: rr.RecordingStream, trace: Trace) -> None:
+    """``/predictions/*``: each chosen prediction from its source frame to the last frame, the estimate at the last
+    frame (when estimated), the ground truth over the whole run (when known)."""
+    if len(trace.frames) == 0:
+        return
+    first, last = int(trace.frames[0]), int(trace.frames[-1])
+    dets = trace.detections
+    for rank, i in enumerate(trace.selection):
+        path = f"/predictions/patch_{rank}"
+        rec.log(path, rr.SeriesLines(names=f"patch {rank} ({class_name(dets.class_id[i])}, {dets.d[i]:.0f} mm)",
+                                     colors=_CHOSEN_COLOURS[rank % len(_CHOSEN_COLOURS)]), static=True)
+        for t in sorted({int(dets.frame[i]), last}):
+            rec.set_time("frame", sequence=t)
+            rec.log(path, rr.Scalars(float(dets.pred[i])))
+    if trace.estimate >= 0:
+        rec.log("/predictions/estimate", rr.SeriesLines(names="estimate", colors=(255, 255, 255), widths=2),
+                rr.SeriesPoints(names="estimate", colors=(255, 255, 255), markers="diamond", marker_sizes=6),
+                static=True)
+        rec.set_time("frame", sequence=last)
+        rec.log("/predictions/estimate", rr.Scalars(float(trace.estimate)))
+    gt = trace.ground_truth_mass
+    if gt is not None:
+        rec.log("/predictions/ground_truth", rr.SeriesLines(names="ground truth", colors=(0, 200, 0), widths=2),
+                static=True)
+        for t in sorted({first, last}):
+            rec.set_time("frame", sequence=t)
+            rec.log("/predictions/ground_truth", rr.Scalars(gt))
+
+
+# ----------------------------------------------------------------------------------------------------- text, log
+def event_level(message: str) -> str:
+    if message.startswith(("skipped", "no detection", "not estimated")) or "cannot" in message:
+        return rr.TextLogLevel.WARN
+    if message.startswith("reused cached"):
+        return rr.TextLogLevel.DEBUG
+    return rr.TextLogLevel.INFO
+
+
+def log_events(rec: rr.RecordingStream, events, first_frame: int) -> None:
+    """``/log``: (frame, message) decisions at their frames (frame -1, e.g. cache reuse: at the first frame)."""
+    for frame, message in events:
+        frame = int(frame)
+        rec.set_time("frame", sequence=frame if frame >= 0 else first_frame)
+        rec.log("/log", rr.TextLog(str(message), level=event_level(str(message))))
+
+
+def summary_markdown(trace: Trace) -> str:
+    info, dets = trace.recording, trace.detections
+    est = "**not estimated** (no detection with depth)" if trace.estimate < 0 else f"**{trace.estimate:.1f} g**"
+    gt = trace.ground_truth_mass
+    lines = [f"# {info.get('id', '?')}", "",
+             f"- recording: `{info.get('path', '?')}` ({info.get('width')}×{info.get('height')}, "
+             f"{info.get('num_frames')} frames; {len(trace.frames)} processed, stride {trace.stride})",
+             f"- detector: {trace.detector.get('name', '?')}, threshold {trace.threshold:g}; "
+             f"{len(dets)} detections",
+             f"- model weights: `{trace.weights_id or '?'}`; K = {trace.k}",
+             f"- estimate: {est}" + ("" if gt is None else f"; ground truth {gt:.1f} g"
+                                      + ("" if trace.estimate < 0 else f" (error {trace.estimate - gt:+.1f} g)")),
+             ""]
+    if len(trace.selection):
+        lines += ["| rank | frame | class | score | d (mm) | a | b | prediction (g) |",
+                  "|---:|---:|---|---:|---:|---:|---:|---:|"]
+        lines += [f"| {r} | {dets.frame[i]} | {class_name(dets.class_id[i])} | {dets.score[i]:.2f} | "
+                  f"{dets.d[i]:.0f} | {dets.a[i]:.2f} | {dets.b[i]:.2f} | {dets.pred[i]:.1f} |"
+                  for r, i in enumerate(trace.selection)]
+    return "\n".join(lines) + "\n"
+
+
+def log_summary(rec: rr.RecordingStream, trace: Trace) -> None:
+    rec.log("/summary", rr.TextDocument(summary_markdown(trace), media_type=rr.MediaType.MARKDOWN), static=True)
+
+
+def log_timings(rec: rr.RecordingStream, timings: dict, n_frames: int) -> None:
+    """``/timings``: seconds per stage (the pipeline's and ``log``, this logging's cost), static."""
+    rows = ["| stage | seconds | ms / frame |", "|---|---:|---:|"]
+    for stage, seconds in timings.items():
+        per = f"{1000 * seconds / n_frames:.1f}" if n_frames else "–"
+        rows.append(f"| {stage} | {seconds:.3f} | {per} |")
+        rec.log(f"/timings/{stage}", rr.Scalars(float(seconds)), static=True)
+    rec.log("/timings", rr.TextDocument("\n".join(rows) + "\n", media_type=rr.MediaType.MARKDOWN), static=True)
+
+
+# ------------------------------------------------------------------------------------------------------ blueprint
+def default_blueprint(n_patches: int, *, has_3d: bool = True) -> rrb.Blueprint:
+    """RGB + detections + masks, depth and 3D on the left; the chosen patches, predictions and text on the right."""
+    camera = rrb.Spatial2DView(name="RGB · detections · masks", origin="/camera",
+                               contents=["/camera/rgb", "/camera/detections", "/camera/masks"])
+    depth = rrb.Spatial2DView(name="Depth", origin="/camera", contents=["/camera/depth"])
+    lower = [depth]
+    if has_3d:
+        lower.append(rrb.Spatial3DView(name="3D (camera frame, m)", origin="/",
+                                       contents=["/world/**", "/camera", "/camera/rgb"]))
+    if n_patches:
+        patches = rrb.Grid(*[rrb.Spatial2DView(name=f"patch ★{r}", origin=f"/patches/{r}") for r in range(n_patches)],
+                           name="Chosen patches (model input)")
+    else:
+        patches = rrb.TextDocumentView(name="Summary", origin="/summary")
+    text = rrb.Tabs(rrb.TextLogView(name="Decisions", origin="/log"),
+                    rrb.TextDocumentView(name="Summary", origin="/summary"),
+                    rrb.TextDocumentView(name="Timings", origin="/timings"))
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(camera, rrb.Horizontal(*lower), row_shares=[3, 2]),
+            rrb.Vertical(patches, rrb.TimeSeriesView(name="Predictions (g)", origin="/predictions"), text,
+                         row_shares=[2, 2, 2]),
+            column_shares=[3, 2]),
+        rrb.TimePanel(timeline="frame"),
+        collapse_panels=False,
+    )
+
+
+# ---------------------------------------------------------------------------------------------------------- main
+def _check_match(trace: Trace, recording: Recording) -> None:
+    w, h = trace.recording.get("width"), trace.recording.get("height")
+    if (w, h) != (recording.width, recording.height):
+        raise MassvizError(f"the trace was made on {w}x{h} frames but this recording is "
+                           f"{recording.width}x{recording.height}", recording.path)
+    if len(trace.frames) and int(np.max(trace.frames)) >= recording.num_frames:
+        raise MassvizError(f"the trace has frame {int(np.max(trace.frames))} but the recording has "
+                           f"{recording.num_frames} frames", recording.path)
+
+
+def _log_all(rec: rr.RecordingStream, trace: Trace, recording: Recording, *, video: str, step: int,
+             max_points: int, progress: bool) -> dict:
+    dets, frames = trace.detections, [int(f) for f in trace.frames]
+    first = frames[0] if frames else 0
+    rank_of = {int(i): r for r, i in enumerate(trace.selection)}
+    by_frame: dict[int, list[int]] = defaultdict(list)
+    for i, f in enumerate(dets.frame):
+        by_frame[int(f)].append(i)
+    intr = recording.intrinsics
+    preprocess = model_input_preprocessor() if rank_of else None
+
+    rec.send_recording_name(f"massviz {recording.id}")
+    log_annotation_context(rec, trace.k)
+    log_summary(rec, trace)
+    rgb = RgbLogger(recording, video)
+    rgb.log_static(rec)
+    notes = []
+    if intr is None:
+        notes.append("no camera intrinsics for this recording: /camera Pinhole and /world/points are not logged")
+    if rgb.warning:
+        notes.append(rgb.warning)
+    if trace.estimate < 0 and not any("not estimated" in str(m) for _, m in trace.events):
+        notes.append("not estimated: no detection with depth was selected")
+    rec.set_time("frame", sequence=first)
+    for note in notes:
+        rec.log("/log", rr.TextLog(note, level=rr.TextLogLevel.WARN))
+
+    n_points = 0
+    bar = tqdm(recording.frames(indices=frames), total=len(frames), desc=f"{recording.id} → rerun", unit="frame",
+               file=sys.stderr, disable=not progress, leave=False)
+    for frame in bar:
+        rec.set_time("frame", sequence=frame.index)
+        ns = rgb.video_time_ns(frame.index)
+        if ns is not None:
+            rec.set_time("video_time", duration=ns * 1e-9)
+        if intr is not None and frame.index == first:
+            log_pinhole(rec, intr, frustum_depth(frame.depth))
+        rgb.log_frame(rec, frame.index, frame.rgb)
+        log_depth(rec, frame.depth)
+        idx = by_frame.get(frame.index, [])
+        class_ids = detection_class_ids(dets, idx, rank_of, trace.threshold)
+        log_detections(rec, dets, idx, class_ids, rank_of)
+        log_masks(rec, dets, idx, class_ids, frame.depth.shape[:2])
+        if intr is not None:
+            n_points += log_points(rec, frame.depth, frame.rgb, intr, step, max_points)
+        for i in idx:
+            if i in rank_of:
+                patch = dets.patches[i] if dets.patches[i] is not None else _crop(frame.rgb, dets.xyxy[i])
+                log_patch(rec, rank_of[i], dets, i, patch, preprocess)
+    bar.close()
+    rec.reset_time()
+    log_predictions(rec, trace)
+    log_events(rec, trace.events, first)
+    rec.reset_time()
+    return {"frames": len(frames), "detections": len(dets), "chosen": len(rank_of), "points": n_points,
+            "rgb": rgb.mode, "notes": notes}
+
+
+def _crop(rgb: np.ndarray, xyxy) -> np.ndarray:
+    from massviz.pipeline import crop
+    return crop(rgb, xyxy)
+
+
+def log_trace(trace: Trace, recording: Recording, *, rrd: str | Path | None = None, spawn: bool = False,
+              stream: rr.RecordingStream | None = None, progress: bool = False, max_points: int = MAX_POINTS,
+              step: int = POINT_STEP, video: str = "auto") -> dict:
+    """Log ``trace`` (made on ``recording``) to Rerun; the entity tree is in this module's docstring.
+
+    Outputs: ``rrd`` (a file, written atomically: nothing is left at ``rrd`` if logging fails), ``spawn`` (spawn
+    or connect to a viewer on the default port), both, or ``stream`` (a caller's ``rr.RecordingStream``, e.g. a
+    notebook's inline viewer; its sinks are left as they are and it is not disconnected). Each call logs a new
+    recording of application ``massviz`` on its own ``RecordingStream`` (never the global one).
+
+    ``video``: how an mp4 is logged (see ``RgbLogger``). ``step``/``max_points``: point cloud subsampling.
+
+    Returns stats: ``recording_id``, ``frames``, ``detections``, ``chosen``, ``points``, ``rgb`` ("asset",
+    "images" or "files"), ``notes`` (warnings also in /log), ``log_seconds`` (wall time of logging, flushing
+    included), ``rrd`` (path or None).
+    """
+    if stream is not None and (rrd is not None or spawn):
+        raise ValueError("give either stream or rrd/spawn: a caller's stream keeps its own sinks")
+    if stream is None and rrd is None and not spawn:
+        raise ValueError("nothing to log to: give rrd, spawn=True or stream")
+    _check_match(trace, recording)
+    t0 = time.perf_counter()
+    blueprint = default_blueprint(len(trace.selection), has_3d=recording.intrinsics is not None)
+
+    def log_into(rec: rr.RecordingStream) -> dict:
+        rec.send_blueprint(blueprint, make_active=True, make_default=True)
+        stats = _log_all(rec, trace, recording, video=video, step=step, max_points=max_points, progress=progress)
+        log_timings(rec, {**trace.timings, "log": time.perf_counter() - t0}, stats["frames"])
+        try:
+            rec.flush()
+        except RuntimeError as err:  # the gRPC sink reports an unreachable viewer here
+            where = "the spawned Rerun viewer" if spawn else "Rerun"
+            raise MassvizError(f"could not deliver the recording to {where} ({err}); without a display, "
+                               "log to a file (rrd) and open it elsewhere with 'rerun FILE.rrd'") from None
+        return stats
+
+    if stream is not None:
+        stats = log_into(stream)
+        stats.update(recording_id=stream.get_recording_id(), rrd=None)
+    else:
+        rec = rr.RecordingStream(APPLICATION_ID, recording_id=str(uuid.uuid4()))
+        if rrd is not None:
+            rrd = Path(rrd)
+            with atomic_path(rrd) as tmp:
+                try:
+                    _connect(rec, tmp, spawn)
+                    stats = log_into(rec)
+                finally:
+                    rec.disconnect()
+                if not tmp.is_file() or tmp.stat().st_size == 0:
+                    raise MassvizError("Rerun wrote nothing (is logging disabled with RERUN=off?)", rrd)
+        else:
+            _connect(rec, None, spawn)
+            try:
+                stats = log_into(rec)
+            finally:
+                rec.disconnect()
+        stats.update(recording_id=rec.get_recording_id(), rrd=None if rrd is None else str(rrd))
+    stats["log_seconds"] = time.perf_counter() - t0
+    return stats
+
+
+def _connect(rec: rr.RecordingStream, path: Path | None, spawn: bool) -> None:
+    """Point ``rec`` at a file, a (spawned) viewer, or both."""
+    if spawn:
+        rr.spawn(connect=False)
+    if path is not None and spawn:
+        rec.set_sinks(rr.FileSink(os.fspath(path)), rr.GrpcSink())
+    elif path is not None:
+        rec.save(path)
+    else:
+        rec.connect_grpc()
+
+
+# ------------------------------------------------------------------------------------------------- reading .rrd
+def rrd_contents(path: str | Path) -> dict[str, set[str]]:
+    """Entity path → its components (e.g. ``"AssetVideo:blob"``) in the first recording of an .rrd file
+    (recording properties ``/__properties`` left out)."""
+    from rerun.chunk import RrdReader
+
+    path = Path(path)
+    if not path.is_file():
+        raise MassvizError("no such .rrd file", path)
+    try:
+        reader = RrdReader(path)
+        try:
+            schema = reader.store().schema()
+        except Exception:  # noqa: BLE001 - files without a footer: read every chunk instead
+            schema = reader.stream().collect().schema()
+    except Exception as err:  # noqa: BLE001 - any read problem is a corrupt file
+        raise MassvizError(f"not a readable Rerun .rrd file ({type(err).__name__}: {err})", path) from None
+    out: dict[str, set[str]] = defaultdict(set)
+    for col in schema.component_columns():
+        if not col.is_property:
+            out[col.entity_path].add(col.component)
+    return dict(out)
+
+
+def rrd_entities(path: str | Path) -> set[str]:
+    """Entity paths logged in the first recording of an .rrd file."""
+    return set(rrd_contents(path))
+
+
+__all__ = ["log_trace", "default_blueprint", "depth_to_points", "rrd_entities", "rrd_contents", "RgbLogger",
+           "CLASS_IDS", "CHOSEN_ID", "POINT_STEP", "MAX_POINTS"]
