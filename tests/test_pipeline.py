@@ -1,0 +1,217 @@
+"""massviz.pipeline / trace / cache: a run's trace against values computed by hand, persistence, reselection and
+the trace cache (which must never run the detector again for another K, a higher threshold or another model)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from massviz.cache import TraceCache
+from massviz.errors import MassvizError
+from massviz.model import MassNet
+from massviz.pipeline import process, run
+from massviz.recording import open_recording
+from massviz.trace import Trace
+from test_recording import write_recording
+from test_selection import DistanceModel, ListDetector
+
+W, H, N = 64, 48, 6
+
+
+def scene():
+    """Frames with a textured background; depth 2000 mm except a block per frame at a known distance."""
+    rng = np.random.default_rng(3)
+    rgbs = [rng.integers(0, 256, (H, W, 3), dtype=np.uint8) for _ in range(N)]
+    depths = []
+    for i in range(N):
+        depth = np.full((H, W), 2000, np.uint16)
+        depth[10:40, 5:30] = 1500 - 70 * i  # the detection at (5, 10, 30, 40) gets nearer every frame
+        depth[5:25, 40:60] = 900 + 50 * i  # the one at (40, 5, 60, 25) gets further
+        depths.append(depth)
+    return rgbs, depths
+
+
+# frame -> [(box, score, mask)]: two detections per frame with different scores, one frame with none
+DETECTIONS = {i: [((5, 10, 30, 40), 0.5 + 0.08 * i, None), ((40, 5, 60, 25), 0.9 - 0.1 * i, None)]
+              for i in range(N) if i != 4}
+
+
+@pytest.fixture(scope="module")
+def weights(shared_dir):
+    return shared_dir / "weights" / "corsmal_visual"
+
+
+@pytest.fixture(scope="module")
+def model(weights):
+    return MassNet.from_checkpoint(weights / "Encoder_pool_aug_158.torch")
+
+
+@pytest.fixture(scope="module")
+def other_model(weights):
+    return MassNet.from_checkpoint(weights / "Encoder_pool_aug_fold0_94.torch")
+
+
+@pytest.fixture
+def fast():
+    """A stand-in model (d / 10 grams) for the tests about selection and caching, not about the CNN."""
+    return DistanceModel()
+
+
+@pytest.fixture(scope="module")
+def rec(tmp_path_factory):
+    rgbs, depths = scene()
+    return open_recording(write_recording(tmp_path_factory.mktemp("pipe") / "scene", rgbs, depths))
+
+
+def expected(model, threshold: float, k: int, stride: int = 1):
+    """(rows, preds, estimate) computed from the scene itself: rows are (frame, box, d) of each detection."""
+    rgbs, depths = scene()
+    rows = [(f, box, float(depths[f][box[1], box[0]])) for f in range(0, N, stride)
+            for box, score, _ in DETECTIONS.get(f, []) if np.float32(score) > threshold]
+    patches = [rgbs[f][y1:y2, x1:x2] for f, (x1, y1, x2, y2), _ in rows]
+    feats = [[round((b[2] - b[0]) / W, 2), round((b[3] - b[1]) / H, 2), d] for _, b, d in rows]
+    preds = model.predict(patches, np.array(feats))
+    nearest = sorted(range(len(rows)), key=lambda i: (rows[i][2], i))[:k]
+    est = float(np.mean(preds[nearest].astype(np.float64))) if nearest else -1.0
+    return rows, preds, est
+
+
+def same_selection(a: Trace, b: Trace) -> bool:
+    """Same chosen detections (frame and box, in order) in two traces whose detection lists may differ."""
+    pick = lambda t: [(int(t.detections.frame[i]), t.detections.xyxy[i].tolist()) for i in t.selection]  # noqa
+    return pick(a) == pick(b)
+
+
+# ------------------------------------------------------------------------------------------------------------ run
+def test_run_builds_the_trace(rec, model):
+    trace = run(rec, ListDetector(DETECTIONS), model, k=3)
+    rows, preds, est = expected(model, 0.4, 3)
+    dets = trace.detections
+    assert trace.frames.tolist() == list(range(N))
+    assert [(int(f), b.tolist(), float(d)) for f, b, d in zip(dets.frame, dets.xyxy, dets.d)] == \
+        [(f, list(b), d) for f, b, d in rows]
+    np.testing.assert_allclose(dets.pred, preds, rtol=1e-5)
+    assert len(trace.selection) == 3
+    assert trace.estimate == pytest.approx(est, rel=1e-5)
+    assert trace.estimate == pytest.approx(float(np.mean(dets.pred[trace.selection])), rel=1e-6)
+    assert (trace.k, trace.threshold, trace.detect_threshold, trace.stride) == (3, 0.4, 0.4, 1)
+    assert trace.weights_id == model.weights_id and trace.recording["id"] == "scene"
+    assert {"read", "detect", "features", "predict", "select", "total"} <= set(trace.timings)
+
+
+def test_run_with_stride(rec, model):
+    det = ListDetector(DETECTIONS)
+    trace = run(rec, det, model, k=5, stride=2)
+    rows, _, est = expected(model, 0.4, 5, stride=2)
+    assert trace.frames.tolist() == [0, 2, 4] and det.calls == 3
+    assert len(trace.detections) == len(rows) and trace.estimate == pytest.approx(est, rel=1e-5)
+
+
+def test_trace_save_load_round_trip(rec, model, tmp_path):
+    trace = run(rec, ListDetector(DETECTIONS), model, k=2).reselect(exclude=[0])
+    back = Trace.load(trace.save(tmp_path / "t.npz"))
+    a, b = trace.detections, back.detections
+    for name in ("frame", "xyxy", "score", "class_id", "d", "a", "b", "pred"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    for i in range(len(a)):
+        np.testing.assert_array_equal(a.mask(i), b.mask(i))
+        assert (a.patches[i] is None) == (b.patches[i] is None)
+        if a.patches[i] is not None:
+            np.testing.assert_array_equal(a.patches[i], b.patches[i])
+    assert sum(p is not None for p in b.patches) == len(b)  # 10 detections < KEEP_PATCHES: all kept
+    assert back.events == trace.events and back.timings == trace.timings
+    assert back.selection.tolist() == trace.selection.tolist() and back.excluded.tolist() == [0]
+    assert (back.estimate, back.k, back.threshold, back.weights_id) == (trace.estimate, 2, 0.4, model.weights_id)
+    assert back.recording == trace.recording and back.detector == trace.detector
+
+
+def test_reselect_equals_a_fresh_run(rec, fast):
+    model = fast
+    base = run(rec, ListDetector(DETECTIONS, threshold=0.4), model, k=5)
+    for k, t in ((1, 0.4), (2, 0.55), (4, 0.7), (5, 0.95)):
+        fresh = run(rec, ListDetector(DETECTIONS, threshold=t), model, k=k)
+        again = base.reselect(k=k, threshold=t)
+        assert same_selection(again, fresh), (k, t)
+        assert again.estimate == pytest.approx(fresh.estimate, rel=1e-6), (k, t)
+        assert again.estimate == pytest.approx(expected(model, t, k)[2], rel=1e-5), (k, t)
+    with pytest.raises(MassvizError, match="below the detection threshold"):
+        base.reselect(threshold=0.3)
+
+
+def test_keep_patches_keeps_only_the_nearest(rec, fast):
+    model = fast
+    trace = run(rec, ListDetector(DETECTIONS), model, k=2, keep_patches=3)
+    d = trace.detections.d
+    kept = [i for i, p in enumerate(trace.detections.patches) if p is not None]
+    assert kept == sorted(np.argsort(d, kind="stable")[:3].tolist())
+    rgbs, _ = scene()
+    for i in kept:
+        x1, y1, x2, y2 = trace.detections.xyxy[i]
+        np.testing.assert_array_equal(trace.detections.patches[i], rgbs[trace.detections.frame[i]][y1:y2, x1:x2])
+    assert len(kept) == 3 < len(d)
+    assert len([p for p in run(rec, ListDetector(DETECTIONS), model, k=4, keep_patches=1).detections.patches
+                if p is not None]) == 4  # never fewer than K
+
+
+# ---------------------------------------------------------------------------------------------------------- cache
+def test_cache_reuses_detections(rec, fast, tmp_path):
+    model = fast
+    cache = TraceCache(tmp_path / "cache")
+    det = ListDetector(DETECTIONS, threshold=0.4)
+    first = process(rec, det, model, k=5, cache=cache)
+    assert det.calls == N and len(list((tmp_path / "cache").rglob("*.npz"))) == 1
+
+    # another K: the detector does not run, the result is a fresh run's
+    second = process(rec, det, model, k=2, cache=cache)
+    assert det.calls == N
+    fresh = run(rec, ListDetector(DETECTIONS), model, k=2)
+    assert same_selection(second, fresh) and second.estimate == pytest.approx(fresh.estimate, rel=1e-6)
+    assert any("reused cached detections" in e[1] for e in second.events)
+    assert first.estimate != second.estimate
+
+    # a higher threshold reuses the entry made at the lower one
+    high = ListDetector(DETECTIONS, threshold=0.75)
+    third = process(rec, high, model, k=3, cache=cache)
+    assert high.calls == 0
+    fresh = run(rec, ListDetector(DETECTIONS, threshold=0.75), model, k=3)
+    assert same_selection(third, fresh) and third.estimate == pytest.approx(fresh.estimate, rel=1e-6)
+    assert third.threshold == 0.75 and third.detect_threshold == 0.4
+
+    # a threshold below every cached one needs the detector again
+    low = ListDetector(DETECTIONS, threshold=0.2)
+    process(rec, low, model, k=5, cache=cache)
+    assert low.calls == N
+
+
+def test_cache_another_model_repredicts_without_detecting(rec, model, other_model, tmp_path):
+    cache = TraceCache(tmp_path / "cache")
+    det = ListDetector(DETECTIONS, threshold=0.4)
+    first = process(rec, det, model, k=5, cache=cache)
+    assert det.calls == N
+    counted = []
+    real_predict = other_model.predict
+    other_model.predict = lambda p, f: counted.append(len(p)) or real_predict(p, f)
+    try:
+        fourth = process(rec, ListDetector(DETECTIONS, threshold=0.4), other_model, k=5, cache=cache)
+    finally:
+        del other_model.predict
+    assert det.calls == N and sum(counted) == len(fourth.detections)
+    fresh = run(rec, ListDetector(DETECTIONS), other_model, k=5)
+    np.testing.assert_allclose(fourth.detections.pred, fresh.detections.pred, rtol=1e-6)
+    assert fourth.weights_id == other_model.weights_id != model.weights_id
+    assert fourth.estimate == pytest.approx(fresh.estimate, rel=1e-6) and fourth.estimate != pytest.approx(
+        first.estimate)
+    # the entry now holds the new model's predictions; the first model gets its own back, still without detecting
+    again = process(rec, det, model, k=5, cache=cache)
+    assert det.calls == N and again.estimate == pytest.approx(first.estimate, rel=1e-6)
+
+
+def test_cache_separates_detector_settings_and_stride(rec, fast, tmp_path):
+    model = fast
+    cache = TraceCache(tmp_path / "cache")
+    process(rec, ListDetector(DETECTIONS), model, k=5, cache=cache)
+    other = ListDetector({f: v[:1] for f, v in DETECTIONS.items()})  # different detections: different entry
+    trace = process(rec, other, model, k=5, cache=cache)
+    assert other.calls == N and len(trace.detections) == len(DETECTIONS)
+    strided = ListDetector(DETECTIONS)
+    assert process(rec, strided, model, k=5, stride=3, cache=cache).frames.tolist() == [0, 3]
+    assert strided.calls == 2
