@@ -20,6 +20,8 @@ def register(sub) -> None:
     out = p.add_argument_group("output (one of them is required)")
     out.add_argument("--rrd", metavar="OUT.rrd", help="write the Rerun recording to this file")
     out.add_argument("--spawn", action="store_true", help="spawn (or connect to) a Rerun viewer")
+    p.add_argument("--ply", metavar="DIR", help="also write the chosen frames' point clouds (.ply) into DIR "
+                   "(as 'massviz cloud' does)")
     add_pipeline_args(p)
     p.set_defaults(func=run)
 
@@ -42,6 +44,10 @@ def run(args) -> int:
     trace = process(rec, detector, model, k=args.k, stride=args.stride, cache=cache, progress=not args.quiet)
     stats = log_trace(trace, rec, rrd=Path(args.rrd) if args.rrd else None, spawn=args.spawn,
                       progress=not args.quiet)
+    if args.ply:
+        from massviz.geometry3d import write_ply_or_skip
+
+        print(write_ply_or_skip(Path(args.ply), trace, rec), file=sys.stderr)
     est = "not estimated" if trace.estimate < 0 else f"{trace.estimate:.1f} g"
     gt = trace.ground_truth_mass
     print(f"{rec.id}: {est}" + (f" (ground truth {gt:.1f} g)" if gt is not None else "")
