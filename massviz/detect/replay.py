@@ -101,6 +101,12 @@ class ReplayDetector:
         idx = self._by_frame.get(frame.index, [])
         dets = self._dets[idx]
         dets = dets[dets.score > self.threshold]
+        x1, y1, x2, y2 = dets.xyxy.T
+        outside = (x1 < 0) | (y1 < 0) | (x2 > frame.width) | (y2 > frame.height)
+        if outside.any():
+            raise DataError(f"frame {frame.index}: box {dets.xyxy[outside][0].tolist()} lies outside the "
+                            f"{frame.width}x{frame.height} frame (is this replay file for this recording?)",
+                            self.source)
         # features and predictions are recomputed by the pipeline on this recording's frames
         return Detections(frame=dets.frame, xyxy=dets.xyxy, score=dets.score, class_id=dets.class_id,
                           masks=dets.masks)
