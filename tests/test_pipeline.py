@@ -2,6 +2,8 @@
 the trace cache (which must never run the detector again for another K, a higher threshold or another model)."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -215,3 +217,33 @@ def test_cache_separates_detector_settings_and_stride(rec, fast, tmp_path):
     strided = ListDetector(DETECTIONS)
     assert process(rec, strided, model, k=5, stride=3, cache=cache).frames.tolist() == [0, 3]
     assert strided.calls == 2
+
+
+# --------------------------------------------------------------------------------------------------------- replay
+def test_replay_json_detections(rec, fast, tmp_path):
+    import cv2
+
+    from massviz.detect.replay import ReplayDetector
+    from massviz.errors import DataError
+
+    mask = np.zeros((H, W), np.uint8)
+    mask[12:30, 8:20] = 255  # full-frame mask PNG: only this part of box (5, 10, 30, 40) is the object
+    cv2.imwrite(str(tmp_path / "m.png"), mask)
+    rows = [{"frame": 1, "box": [5.9, 10, 30, 40], "score": 0.9, "class": "cup", "mask": "m.png"},
+            {"frame": 3, "box": [40, 5, 60, 25], "score": 0.3, "class": "bottle"},  # below the threshold
+            {"frame": 3, "box": [40, 5, 60, 25], "class": 84}]
+    (tmp_path / "d.json").write_text(json.dumps({"detections": rows}))
+    trace = run(rec, ReplayDetector(tmp_path / "d.json", threshold=0.4), fast, k=5)
+    dets = trace.detections
+    assert dets.frame.tolist() == [1, 3] and dets.class_id.tolist() == [47, 84]
+    assert dets.xyxy.tolist() == [[5, 10, 30, 40], [40, 5, 60, 25]]  # floats truncated
+    np.testing.assert_array_equal(dets.mask(0), mask[10:40, 5:30] > 0)
+    assert dets.mask(1).all() and dets.score[1] == 1.0
+    np.testing.assert_array_equal(dets.d, [1500 - 70, 900 + 150])
+
+    # a box that does not fit this recording's frames is a data error naming the replay file, not a crash
+    rows.append({"frame": 5, "box": [50, 30, 70, 50], "score": 0.9})
+    (tmp_path / "d.json").write_text(json.dumps({"detections": rows}))
+    with pytest.raises(DataError, match=r"box \[50, 30, 70, 50\] lies outside the 64x48 frame") as info:
+        run(rec, ReplayDetector(tmp_path / "d.json"), fast)
+    assert str(info.value).startswith(f"{tmp_path / 'd.json'}: ")
