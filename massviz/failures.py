@@ -1,0 +1,322 @@
+"""Failure analysis of the K-nearest selection: why each patch was chosen, which chosen patches are probably not the
+manipulated container, and user exclusions that survive a re-run.
+
+**Why chosen.** A patch is chosen because it is among the K detections with the smallest d (mean depth over its
+mask) among those with score > threshold; ``chosen_table`` lists rank, d, score and frame of each.
+
+**Flagging** (``chosen_table``; column ``flagged`` and ``flag_reason``):
+
+* *Ground truth, where known* (massviz recordings whose ``meta.json`` has ``instance_masks``, a per-frame PNG of
+  instance ids, and ``instances``, id → name): the detection's mask is compared with the container's instance mask
+  of its frame. IoU < :data:`GT_MIN_IOU` → flagged, naming the instance that covers most of the detection's mask
+  (``pitcher``, ``hand``, ...; ``container`` when the detection is only a part of it, e.g. a glass's rim).
+* *Otherwise*, cues (column ``cues``): robust z-scores, z = 0.6745 (x − median) / MAD, of each patch against the
+  *other* chosen patches (leave-one-out; the MAD is floored so that identical patches do not make every difference
+  infinite): size (``a``, ``b``), depth ``d`` and time (``frame``); |z| > :data:`Z_MAX` is a cue. A class different
+  from the most common class of the chosen patches is a cue too. Any cue flags the patch.
+
+Both are computed whenever possible (``flag_gt`` and ``cues``) so the cues can be checked against the ground truth.
+
+**Exclusions** (``Exclusion``, ``save_exclusions``, ``load_exclusions``, ``match_exclusions``): detections the user
+rules out, identified by recording id, frame and box, never by position in a trace, so the file stays valid when the
+trace is recomputed (another stride, threshold or cache). JSON format (``massviz.exclusions/1``)::
+
+    {
+      "format": "massviz.exclusions/1",
+      "exclusions": [
+        {"recording": "cup_handover", "frame": 12, "box": [101, 80, 160, 171], "note": "pitcher"}
+      ]
+    }
+
+``recording`` is the recording's id (``meta.json`` "id", else the folder name; CCM: the video's number, e.g.
+``"000123"``); ``frame`` the frame index in the recording; ``box`` the detection's integer box ``x1, y1, x2, y2``
+(x2/y2 exclusive) in pixels; ``note`` free text (optional). An entry matches the detection of that recording and
+frame with exactly that box or, failing that, the one whose box overlaps it most with IoU >= 0.9 (a re-run of a
+detector with slightly different settings); entries that match nothing are reported, never silently dropped.
+``massviz estimate --exclude FILE`` honours the file.
+"""
+from __future__ import annotations
+
+import json
+from collections import Counter
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import cv2
+import numpy as np
+import pandas as pd
+
+from massviz.atomic import atomic_path
+from massviz.errors import DataError
+from massviz.trace import Trace
+from massviz.types import class_name
+
+EXCLUSIONS_FORMAT = "massviz.exclusions/1"
+#: a chosen patch whose mask has IoU below this with the ground-truth container mask is flagged.
+GT_MIN_IOU = 0.5
+#: robust z-score beyond which a feature is a cue.
+Z_MAX = 3.5
+#: floors of the MAD per feature (a, b as image fractions, d in mm, frames).
+MAD_FLOOR = {"a": 0.02, "b": 0.02, "d_mm": 20.0, "frame": 2.0}
+#: IoU a box must reach to match an exclusion entry whose exact box is not found.
+MATCH_MIN_IOU = 0.9
+
+
+# ------------------------------------------------------------------------------------------------------ exclusions
+@dataclass(frozen=True)
+class Exclusion:
+    """One excluded detection: recording id, frame index, integer box (x1, y1, x2, y2) and an optional note."""
+
+    recording: str
+    frame: int
+    box: tuple[int, int, int, int]
+    note: str = ""
+
+    def to_dict(self) -> dict:
+        out = {"recording": self.recording, "frame": self.frame, "box": list(self.box)}
+        if self.note:
+            out["note"] = self.note
+        return out
+
+
+def recording_id(trace: Trace) -> str:
+    return str(trace.recording.get("id"))
+
+
+def exclusion_of(trace: Trace, index: int, note: str = "") -> Exclusion:
+    """The ``Exclusion`` entry naming detection ``index`` of ``trace``."""
+    dets = trace.detections
+    return Exclusion(recording_id(trace), int(dets.frame[index]), tuple(int(v) for v in dets.xyxy[index]), note)
+
+
+def save_exclusions(path: str | Path, exclusions: Iterable[Exclusion]) -> Path:
+    """Write the exclusions JSON (format in the module docstring) atomically; entries sorted, duplicates dropped."""
+    path = Path(path)
+    unique = sorted({(e.recording, e.frame, e.box): e for e in exclusions}.values(),
+                    key=lambda e: (e.recording, e.frame, e.box))
+    entries = ",\n".join("  " + json.dumps(e.to_dict()) for e in unique)
+    text = f'{{\n "format": "{EXCLUSIONS_FORMAT}",\n "exclusions": [\n{entries}\n ]\n}}\n' if unique else \
+        json.dumps({"format": EXCLUSIONS_FORMAT, "exclusions": []}) + "\n"
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+    return path
+
+
+def load_exclusions(path: str | Path) -> list[Exclusion]:
+    """Read an exclusions JSON file; ``DataError`` naming the file and entry when it is malformed."""
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except OSError as err:
+        raise DataError(f"cannot read the exclusions file ({err.strerror or err})", path) from None
+    except ValueError as err:
+        raise DataError(f"not a JSON file ({err})", path) from None
+    if not isinstance(doc, dict) or doc.get("format") != EXCLUSIONS_FORMAT:
+        raise DataError(f'not a massviz exclusions file (expected an object with "format": "{EXCLUSIONS_FORMAT}")',
+                        path)
+    entries = doc.get("exclusions")
+    if not isinstance(entries, list):
+        raise DataError('"exclusions" must be a list of {"recording", "frame", "box"} objects', path)
+    out = []
+    for n, e in enumerate(entries, 1):
+        where = f"exclusion {n}"
+        if not isinstance(e, dict):
+            raise DataError(f"{where}: expected an object with recording, frame and box", path)
+        rec, frame, box = e.get("recording"), e.get("frame"), e.get("box")
+        if not isinstance(rec, str) or not rec:
+            raise DataError(f'{where}: "recording" must be a non-empty string (the recording id)', path)
+        if not isinstance(frame, int) or isinstance(frame, bool) or frame < 0:
+            raise DataError(f'{where}: "frame" must be an integer >= 0, got {frame!r}', path)
+        if (not isinstance(box, list) or len(box) != 4
+                or not all(isinstance(v, int) and not isinstance(v, bool) for v in box)
+                or not (box[2] > box[0] and box[3] > box[1])):
+            raise DataError(f'{where}: "box" must be 4 integers [x1, y1, x2, y2] with x2 > x1 and y2 > y1, '
+                            f"got {box!r}", path)
+        out.append(Exclusion(rec, frame, tuple(box), str(e.get("note", ""))))
+    return out
+
+
+def box_iou(box: Sequence[float], boxes: np.ndarray) -> np.ndarray:
+    """IoU of one x1, y1, x2, y2 box with each row of ``boxes``."""
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    x1 = np.maximum(box[0], boxes[:, 0])
+    y1 = np.maximum(box[1], boxes[:, 1])
+    x2 = np.minimum(box[2], boxes[:, 2])
+    y2 = np.minimum(box[3], boxes[:, 3])
+    inter = np.clip(x2 - x1, 0, None) * np.clip(y2 - y1, 0, None)
+    area = lambda b: (b[..., 2] - b[..., 0]) * (b[..., 3] - b[..., 1])  # noqa: E731
+    union = area(np.asarray(box, np.float64)) + area(boxes) - inter
+    return np.where(union > 0, inter / np.where(union > 0, union, 1), 0.0)
+
+
+def match_exclusions(trace: Trace, exclusions: Iterable[Exclusion],
+                     min_iou: float = MATCH_MIN_IOU) -> tuple[np.ndarray, list[Exclusion]]:
+    """(indices into ``trace.detections`` of the entries for this trace's recording, entries for this recording that
+    match no detection). Entries for other recordings are ignored."""
+    dets = trace.detections
+    rid = recording_id(trace)
+    found, unmatched = set(), []
+    for e in exclusions:
+        if e.recording != rid:
+            continue
+        same_frame = np.flatnonzero(dets.frame == e.frame)
+        if len(same_frame) == 0:
+            unmatched.append(e)
+            continue
+        exact = same_frame[(dets.xyxy[same_frame] == np.asarray(e.box)).all(axis=1)]
+        if len(exact):
+            found.add(int(exact[0]))
+            continue
+        iou = box_iou(e.box, dets.xyxy[same_frame])
+        best = int(np.argmax(iou))
+        if iou[best] >= min_iou:
+            found.add(int(same_frame[best]))
+        else:
+            unmatched.append(e)
+    return np.array(sorted(found), dtype=np.int64), unmatched
+
+
+def same_object(trace: Trace, index: int, min_iou: float = 0.7, max_dd_mm: float = 30.0) -> np.ndarray:
+    """Detections of ``trace`` that look like the same object standing still as detection ``index``: box IoU >=
+    ``min_iou`` and |d difference| <= ``max_dd_mm`` (e.g. a pitcher on the table, detected in every frame).
+    Includes ``index``."""
+    dets = trace.detections
+    iou = box_iou(dets.xyxy[index], dets.xyxy)
+    close = np.abs(dets.d - dets.d[index]) <= max_dd_mm
+    out = np.flatnonzero((iou >= min_iou) & close)
+    return np.union1d(out, [index]).astype(np.int64)
+
+
+# ------------------------------------------------------------------------------------------------------- flagging
+def robust_z(values: np.ndarray, others: np.ndarray, floor: float) -> np.ndarray:
+    """z = 0.6745 (x − median(others)) / max(MAD(others), floor) for each x in ``values``."""
+    others = np.asarray(others, dtype=np.float64)
+    others = others[np.isfinite(others)]
+    if len(others) == 0:
+        return np.zeros(len(values))
+    med = np.median(others)
+    mad = max(float(np.median(np.abs(others - med))), floor)
+    return 0.6745 * (np.asarray(values, dtype=np.float64) - med) / mad
+
+
+@lru_cache(maxsize=256)
+def _gt_frame(path: str) -> np.ndarray | None:
+    img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    return None if img is None else (img if img.ndim == 2 else img[..., 0])
+
+
+def ground_truth_masks(trace: Trace, frame: int) -> tuple[np.ndarray, dict[int, str]] | None:
+    """(instance-id image of ``frame``, {id: name}) from the recording's meta.json, or None when unknown."""
+    meta = trace.recording.get("meta") or {}
+    pattern, instances = meta.get("instance_masks"), meta.get("instances")
+    if not pattern or not instances or not trace.recording.get("path"):
+        return None
+    img = _gt_frame(str(Path(trace.recording["path"]) / pattern.format(frame=int(frame))))
+    if img is None:
+        return None
+    return img, {int(k): (v.get("name") if isinstance(v, dict) else str(v)) for k, v in instances.items()}
+
+
+def ground_truth_overlap(trace: Trace, index: int) -> dict | None:
+    """For detection ``index``: ``iou_container`` (IoU of its mask with the container's), ``overlaps`` (name of
+    the instance covering most of its mask, "background" for none) and ``fraction`` (of the mask it covers); None
+    without ground truth."""
+    dets = trace.detections
+    gt = ground_truth_masks(trace, int(dets.frame[index]))
+    if gt is None:
+        return None
+    img, names = gt
+    mask = dets.full_mask(index, *img.shape[:2])
+    container = [i for i, n in names.items() if n == "container"]
+    cmask = np.isin(img, container)
+    union = int((mask | cmask).sum())
+    iou = float((mask & cmask).sum() / union) if union else 0.0
+    ids, counts = np.unique(img[mask], return_counts=True)
+    if len(ids) == 0:
+        return {"iou_container": iou, "overlaps": "background", "fraction": 0.0}
+    best = int(np.argmax(counts))
+    name = names.get(int(ids[best]), "background" if ids[best] == 0 else f"instance {ids[best]}")
+    return {"iou_container": iou, "overlaps": name, "fraction": float(counts[best] / counts.sum())}
+
+
+def _cues(trace: Trace, selection: np.ndarray) -> list[list[str]]:
+    dets = trace.detections
+    feats = {"a": dets.a[selection], "b": dets.b[selection], "d_mm": dets.d[selection],
+             "frame": dets.frame[selection].astype(np.float64)}
+    labels = {"a": "width a", "b": "height b", "d_mm": "depth d", "frame": "time (frame)"}
+    classes = [class_name(c) for c in dets.class_id[selection]]
+    common = Counter(classes).most_common(1)[0][0] if classes else None
+    out = []
+    for j in range(len(selection)):
+        others = np.delete(np.arange(len(selection)), j)
+        cues = []
+        if len(others) >= 2:
+            for name, values in feats.items():
+                z = float(robust_z(values[j:j + 1], values[others], MAD_FLOOR[name])[0])
+                if abs(z) > Z_MAX:
+                    cues.append(f"{labels[name]} z={z:+.1f}")
+        if classes[j] != common:
+            cues.append(f"class {classes[j]} (others mostly {common})")
+        out.append(cues)
+    return out
+
+
+def chosen_table(trace: Trace, extra: Sequence[int] = ()) -> pd.DataFrame:
+    """One row per chosen patch (nearest first), then one per ``extra`` detection (e.g. excluded ones, rank -1):
+    ``detection`` (index), ``rank``, ``frame``, ``class``, ``score``, ``d_mm``, ``a``, ``b``, ``pred_g``, ``why``
+    (why it was chosen), ``gt_iou`` / ``gt_overlaps`` (NaN / "" without ground truth), ``flag_gt`` (None without),
+    ``cues``, ``flagged`` and ``flag_reason``."""
+    dets = trace.detections
+    sel = np.asarray(trace.selection, dtype=np.int64)
+    rows_idx = list(sel) + [int(i) for i in extra if int(i) not in set(sel.tolist())]
+    cues = _cues(trace, sel) + [[] for _ in range(len(rows_idx) - len(sel))]
+    n_active = int((trace.active() & np.isfinite(dets.d)).sum())
+    rows = []
+    for r, i in enumerate(rows_idx):
+        rank = r if r < len(sel) else -1
+        why = (f"rank {rank + 1} of K={trace.k}: d={dets.d[i]:.0f} mm, among the {trace.k} smallest of "
+               f"{n_active} detections with score > {trace.threshold:.2f} (score {dets.score[i]:.2f}, frame "
+               f"{int(dets.frame[i])})") if rank >= 0 else "not chosen (excluded)"
+        gt = ground_truth_overlap(trace, i)
+        flag_gt = None if gt is None else gt["iou_container"] < GT_MIN_IOU
+        if flag_gt is None:
+            flagged, reason = bool(cues[r]), "; ".join(cues[r])
+        elif flag_gt:
+            part = " (only part of the container)" if gt["overlaps"] == "container" else ""
+            flagged, reason = True, (f"ground truth: IoU {gt['iou_container']:.2f} < {GT_MIN_IOU} with the container; "
+                                     f"{gt['fraction']:.0%} of its mask is on the {gt['overlaps']}{part}")
+        else:
+            flagged, reason = False, ""
+        rows.append({
+            "detection": int(i), "rank": rank, "frame": int(dets.frame[i]), "class": class_name(dets.class_id[i]),
+            "score": float(dets.score[i]), "d_mm": float(dets.d[i]), "a": float(dets.a[i]), "b": float(dets.b[i]),
+            "pred_g": float(dets.pred[i]), "why": why,
+            "gt_iou": np.nan if gt is None else gt["iou_container"], "gt_overlaps": "" if gt is None else gt["overlaps"],
+            "flag_gt": flag_gt, "cues": "; ".join(cues[r]), "flagged": flagged, "flag_reason": reason,
+        })
+    return pd.DataFrame(rows)
+
+
+def rank_by_error(traces: Sequence[Trace]) -> pd.DataFrame:
+    """Recordings with known ground truth ranked by relative error ε = |estimate − true| / true, worst first (not
+    estimated first of all): ``position`` (in ``traces``), ``recording``, ``class``, ``true_g``, ``estimate_g``,
+    ``eps``, ``k``."""
+    rows = []
+    for pos, t in enumerate(traces):
+        true = t.ground_truth_mass
+        if true is None or true <= 0:
+            continue
+        est = float(t.estimate)
+        eps = abs(est - true) / true if est >= 0 else np.inf
+        cls = ((t.recording.get("meta") or {}).get("container") or {}).get("class", "")
+        rows.append({"position": pos, "recording": recording_id(t), "class": cls, "true_g": true,
+                     "estimate_g": est if est >= 0 else np.nan, "eps": eps, "k": len(t.selection)})
+    table = pd.DataFrame(rows, columns=["position", "recording", "class", "true_g", "estimate_g", "eps", "k"])
+    return table.sort_values("eps", ascending=False, kind="stable").reset_index(drop=True)
+
+
+__all__ = ["EXCLUSIONS_FORMAT", "GT_MIN_IOU", "Z_MAX", "Exclusion", "exclusion_of", "save_exclusions",
+           "load_exclusions", "match_exclusions", "box_iou", "same_object", "robust_z", "ground_truth_masks",
+           "ground_truth_overlap", "chosen_table", "rank_by_error", "recording_id"]

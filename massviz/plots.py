@@ -1,0 +1,180 @@
+"""Static matplotlib figures of one trace's stages, for notebooks and reports.
+
+Every function returns a ``matplotlib.figure.Figure`` built with the object API (no pyplot state; Jupyter's inline
+backend displays it, ``fig.savefig`` writes it). They only read the trace and, for pixels, the recording's frames.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
+
+from massviz.evaluate import ScoreReport
+from massviz.trace import Trace
+from massviz.types import Frame, Intrinsics, class_name
+
+#: colour of chosen patches (rank shown) and of the other detections.
+CHOSEN, OTHER, FLAGGED = "#ffd400", "#38b6ff", "#ff3b30"
+
+
+def frame_detections(trace: Trace, frame_index: int) -> np.ndarray:
+    """Indices of the trace's detections made on ``frame_index``."""
+    return np.flatnonzero(trace.detections.frame == int(frame_index))
+
+
+def best_frame(trace: Trace) -> int:
+    """The frame of the nearest chosen patch (else the first processed frame)."""
+    if len(trace.selection):
+        return int(trace.detections.frame[trace.selection[0]])
+    return int(trace.frames[0]) if len(trace.frames) else 0
+
+
+def frame_figure(trace: Trace, frame: Frame, flagged: Sequence[int] = (), width: float = 7.0) -> Figure:
+    """RGB frame with every detection of that frame: mask tinted, box, "class score · d mm" and the rank of chosen
+    patches (★rank, yellow); flagged detections in red."""
+    dets = trace.detections
+    rank_of = {int(i): r for r, i in enumerate(trace.selection)}
+    fig = Figure(figsize=(width, width * frame.height / frame.width + 0.4))
+    ax = fig.add_subplot()
+    overlay = frame.rgb.astype(np.float32) / 255.0
+    for i in frame_detections(trace, frame.index):
+        colour = FLAGGED if int(i) in set(flagged) else (CHOSEN if int(i) in rank_of else OTHER)
+        rgb = np.array([int(colour[k:k + 2], 16) for k in (1, 3, 5)]) / 255.0
+        m = dets.full_mask(int(i), frame.height, frame.width)
+        overlay[m] = 0.55 * overlay[m] + 0.45 * rgb
+    ax.imshow(overlay)
+    for i in frame_detections(trace, frame.index):
+        x1, y1, x2, y2 = (int(v) for v in dets.xyxy[i])
+        chosen = int(i) in rank_of
+        colour = FLAGGED if int(i) in set(flagged) else (CHOSEN if chosen else OTHER)
+        ax.add_patch(Rectangle((x1, y1), x2 - x1, y2 - y1, fill=False, edgecolor=colour, linewidth=2))
+        label = f"{class_name(dets.class_id[i])} {dets.score[i]:.2f} · {dets.d[i]:.0f} mm"
+        if chosen:
+            label += f" ★{rank_of[int(i)]}"
+        ax.text(x1, max(y1 - 3, 8), label, color="black", fontsize=8,
+                bbox={"facecolor": colour, "alpha": 0.85, "pad": 1, "edgecolor": "none"})
+    ax.set_title(f"{trace.recording.get('id')} · frame {frame.index}: masks and boxes "
+                 f"(yellow: chosen, ★rank; blue: other detections)", fontsize=9)
+    ax.set_axis_off()
+    fig.tight_layout()
+    return fig
+
+
+def depth_figure(frame: Frame, width: float = 7.0) -> Figure:
+    """The depth map in mm (turbo colour map; pixels without depth are white)."""
+    fig = Figure(figsize=(width, width * frame.height / frame.width + 0.4))
+    ax = fig.add_subplot()
+    depth = np.ma.masked_equal(frame.depth.astype(np.float32), 0)
+    im = ax.imshow(depth, cmap="turbo")
+    fig.colorbar(im, ax=ax, label="depth (mm)", fraction=0.03)
+    ax.set_title(f"frame {frame.index}: depth (white: no depth)", fontsize=9)
+    ax.set_axis_off()
+    fig.tight_layout()
+    return fig
+
+
+def point_cloud_figure(trace: Trace, frame: Frame, intrinsics: Intrinsics, step: int = 3,
+                       width: float = 7.0) -> Figure:
+    """The frame's depth back-projected to 3D (metres, camera frame; RGB colours), chosen patches' masks in yellow.
+    A matplotlib 3D scatter, viewed from slightly above the camera."""
+    from massviz.rerun_log import depth_to_points
+
+    points, colours = depth_to_points(frame.depth, intrinsics, frame.rgb, step)
+    sub = frame.depth[::step, ::step] > 0
+    chosen = np.zeros(frame.depth.shape, bool)
+    for i in trace.selection:
+        if int(trace.detections.frame[i]) == frame.index:
+            chosen |= trace.detections.full_mask(int(i), frame.height, frame.width)
+    highlight = chosen[::step, ::step][sub]
+    cols = colours.astype(np.float32) / 255.0
+    cols[highlight] = [1.0, 0.83, 0.0]
+    fig = Figure(figsize=(width, width * 0.75))
+    ax = fig.add_subplot(projection="3d")
+    # camera frame is x right, y down, z forward: plot x, z (depth), -y (up)
+    ax.scatter(points[:, 0], points[:, 2], -points[:, 1], c=cols, s=1.0, depthshade=False)
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("z: distance from camera (m)")
+    ax.set_zlabel("up (m)")
+    ax.view_init(elev=12, azim=-65)
+    ax.set_title(f"frame {frame.index}: depth as a point cloud ({len(points)} points; chosen patch in yellow)",
+                 fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
+def patches_figure(trace: Trace, indices: Sequence[int] | None = None, flags: dict | None = None,
+                   columns: int = 5, patch_source=None) -> Figure:
+    """The chosen patches (or ``indices``), one tile each titled with rank, frame, a, b, d and the prediction;
+    ``flags`` ({index: short reason}) are drawn in red. ``patch_source(i)`` returns the RGB patch of detection i
+    when the trace did not keep it (default: a grey tile)."""
+    dets = trace.detections
+    idx = [int(i) for i in (trace.selection if indices is None else indices)]
+    rank_of = {int(i): r for r, i in enumerate(trace.selection)}
+    n = max(len(idx), 1)
+    cols = min(columns, n)
+    rows = int(np.ceil(n / cols))
+    fig = Figure(figsize=(2.3 * cols, 2.7 * rows))
+    for j, i in enumerate(idx):
+        ax = fig.add_subplot(rows, cols, j + 1)
+        patch = dets.patches[i] if dets.patches[i] is not None else (patch_source(i) if patch_source else None)
+        ax.imshow(patch if patch is not None else np.full((8, 8, 3), 200, np.uint8))
+        rank = f"#{rank_of[i]}" if i in rank_of else "excluded"
+        title = (f"{rank} · frame {int(dets.frame[i])}\na={dets.a[i]:.2f} b={dets.b[i]:.2f} d={dets.d[i]:.0f}mm\n"
+                 f"pred {dets.pred[i]:.1f} g")
+        red = flags is not None and i in flags
+        ax.set_title(title + (f"\n⚑ {flags[i]}" if red else ""), fontsize=8, color=FLAGGED if red else "black")
+        ax.set_axis_off()
+    if not idx:
+        fig.text(0.5, 0.5, "no patch chosen", ha="center")
+    fig.tight_layout()
+    return fig
+
+
+def estimate_figure(trace: Trace) -> Figure:
+    """Each chosen patch's prediction (bars, by rank), their mean (the estimate) and the ground truth when known."""
+    pred = trace.detections.pred[trace.selection]
+    fig = Figure(figsize=(6, 3))
+    ax = fig.add_subplot()
+    ax.bar(np.arange(len(pred)), pred, color="#7f7f7f", label="patch prediction")
+    if trace.estimate >= 0:
+        ax.axhline(trace.estimate, color="#1f77b4", linewidth=2, label=f"estimate {trace.estimate:.1f} g")
+    gt = trace.ground_truth_mass
+    if gt is not None:
+        ax.axhline(gt, color="#2ca02c", linestyle="--", linewidth=2, label=f"ground truth {gt:.1f} g")
+    ax.set_xticks(np.arange(len(pred)))
+    ax.set_xlabel("chosen patch (rank; 0 = nearest)")
+    ax.set_ylabel("mass (g)")
+    ax.set_title(f"{trace.recording.get('id')}: K={trace.k}, threshold {trace.threshold:.2f}", fontsize=9)
+    ax.legend(fontsize=8, loc="best")
+    fig.tight_layout()
+    return fig
+
+
+def timings_figure(trace: Trace) -> Figure:
+    """Wall time of each pipeline stage (seconds; ``total`` and ``cache`` apart)."""
+    stages = [(k, v) for k, v in trace.timings.items() if k not in ("total",)]
+    fig = Figure(figsize=(6, 0.4 + 0.35 * max(len(stages), 1)))
+    ax = fig.add_subplot()
+    ax.barh([k for k, _ in stages], [v for _, v in stages], color="#1f77b4")
+    for y, (_, v) in enumerate(stages):
+        ax.text(v, y, f" {v:.2f} s", va="center", fontsize=8)
+    ax.invert_yaxis()
+    total = trace.timings.get("total")
+    ax.set_xlabel("seconds")
+    ax.set_title(f"stage timings over {len(trace.frames)} frames"
+                 + (f" (total {total:.1f} s)" if total is not None else ""), fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
+def score_figure(report: ScoreReport, label: str = "samples") -> Figure:
+    """Per-class and total CORSMAL score and mean ε (the paper's Fig. 4 style, one group of bars)."""
+    from massviz.score_plot import plot_score_analysis
+
+    return plot_score_analysis([report], [label])
+
+
+__all__ = ["frame_figure", "depth_figure", "point_cloud_figure", "patches_figure", "estimate_figure",
+           "timings_figure", "score_figure", "best_frame", "frame_detections"]

@@ -1,0 +1,87 @@
+"""Re-estimation from cached traces for another threshold, K, frame stride or set of excluded detections.
+
+Nothing here runs the detector or the model: every detection of a trace already carries its d and its prediction.
+
+* ``subsample(trace, stride)``: the trace as if only every ``stride``-th frame had been processed (detections whose
+  ``frame % stride == 0``), with its selection and estimate recomputed. Detection indices change (the kept ones are
+  renumbered in order); ``kept_indices`` maps them back.
+* ``retune(trace, k=, threshold=, stride=, exclude=)``: all four at once; ``exclude`` are indices into *this*
+  trace's detections, as for ``Trace.reselect``. For ``stride == 1`` it is exactly ``trace.reselect(k, threshold,
+  exclude)``.
+* ``score_traces(traces, ann)``: the CORSMAL score (``massviz.evaluate.ScoreReport``) of the traces' estimates,
+  against an annotation CSV frame or, by default, the ground truth in the recordings' ``meta.json``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Sequence
+
+import numpy as np
+import pandas as pd
+
+from massviz.evaluate import ScoreReport, default_class_of, score_from_estimates
+from massviz.sweep import annotations_from_meta, match_annotations
+from massviz.trace import Trace
+
+
+def kept_indices(trace: Trace, stride: int) -> np.ndarray:
+    """Indices of the detections that ``subsample(trace, stride)`` keeps (frame % stride == 0), ascending."""
+    if int(stride) < 1:
+        raise ValueError(f"stride must be >= 1, got {stride}")
+    return np.flatnonzero(trace.detections.frame % int(stride) == 0)
+
+
+def subsample(trace: Trace, stride: int) -> Trace:
+    """``trace`` restricted to the frames with ``frame % stride == 0``; selection and estimate recomputed with the
+    trace's K and threshold, its exclusions carried over (renumbered). ``stride`` of the result is the least common
+    multiple of the trace's stride and ``stride`` (the frames a run with that stride would have processed, when the
+    trace's stride divides it)."""
+    stride = int(stride)
+    keep = kept_indices(trace, stride)
+    if stride == 1:
+        return trace
+    renumber = np.full(len(trace.detections), -1, dtype=np.int64)
+    renumber[keep] = np.arange(len(keep))
+    excluded = renumber[np.asarray(trace.excluded, dtype=np.int64)]
+    sub = dataclasses.replace(
+        trace, detections=trace.detections[keep], frames=trace.frames[trace.frames % stride == 0],
+        stride=math.lcm(int(trace.stride), stride), excluded=excluded[excluded >= 0],
+        selection=np.zeros(0, dtype=np.int64))
+    return sub.reselect()
+
+
+def retune(trace: Trace, *, k: int | None = None, threshold: float | None = None, stride: int = 1,
+           exclude=None) -> Trace:
+    """The trace re-selected for ``k``/``threshold`` (None: keep the trace's), every ``stride``-th frame and the
+    detections ``exclude`` (indices into ``trace.detections`` or a bool mask; None keeps the trace's exclusions)."""
+    base = trace if exclude is None else trace.reselect(exclude=exclude)
+    if int(stride) == 1:
+        return base.reselect(k=k, threshold=threshold)
+    return subsample(base, stride).reselect(k=k, threshold=threshold)
+
+
+def original_selection(trace: Trace, retuned: Trace, stride: int) -> np.ndarray:
+    """The selection of ``retuned`` (= ``retune(trace, stride=stride, ...)``) as indices into ``trace.detections``."""
+    sel = np.asarray(retuned.selection, dtype=np.int64)
+    return sel if int(stride) == 1 else kept_indices(trace, stride)[sel]
+
+
+def score_traces(traces: Sequence[Trace], ann: pd.DataFrame | None = None, class_of=None) -> ScoreReport:
+    """CORSMAL score of the traces' estimates.
+
+    ``ann`` None: the ground truth of the recordings' ``meta.json`` (``massviz.sweep.annotations_from_meta``; ids are
+    the traces' positions, one container per recording, its class from ``container.class``). Otherwise an annotation
+    frame (``massviz.evaluate.read_annotations``) matched by the recordings' configuration ids, with ``class_of``
+    (default: the CCM classes).
+    """
+    if ann is None:
+        ann, classes = annotations_from_meta(traces)
+        estimates = {i: float(t.estimate) for i, t in enumerate(traces)}
+        return score_from_estimates(estimates, ann, class_of or classes)
+    index = match_annotations(traces, ann)
+    estimates = {int(a): (float(traces[j].estimate) if j >= 0 else None) for a, j in zip(ann["id"], index)}
+    return score_from_estimates(estimates, ann, class_of or default_class_of)
+
+
+__all__ = ["kept_indices", "subsample", "retune", "original_selection", "score_traces"]

@@ -1,0 +1,372 @@
+"""Notebook widgets and the plain state objects behind them (testable without a browser).
+
+* ``Tuner``: traces + the current threshold, K, stride and per-recording exclusions; ``update`` re-estimates every
+  recording from the cached detections (``massviz.tuning.retune``, i.e. ``Trace.reselect`` on the frames kept by the
+  stride) and re-scores them (``massviz.tuning.score_traces``). No detector or model runs.
+* ``TuningPanel``: sliders for threshold, K and stride, a recording picker, the chosen patches, their predictions,
+  the estimate and the CORSMAL score with its per-class table (notebook 02). Slider callbacks only set widget values
+  (HTML, PNG bytes), so an update stays fast; ``last_update_s`` is the time of the last one.
+* ``FailurePanel``: recordings ranked by error, the chosen patches of one with why each was chosen and whether it is
+  flagged (``massviz.failures.chosen_table``), a keep / exclude / exclude-track toggle per patch, the re-estimate,
+  and an export of the exclusions to the JSON file ``massviz estimate --exclude`` reads (notebook 03).
+* ``open_samples``, ``notebook_weights``, ``load_traces``: what the notebooks need to get traces (cached).
+
+ipywidgets is imported only when a panel is built.
+"""
+from __future__ import annotations
+
+import dataclasses
+import html
+import os
+import time
+from pathlib import Path
+from typing import Sequence
+
+import cv2
+import numpy as np
+import pandas as pd
+
+from massviz.failures import (Exclusion, chosen_table, exclusion_of, rank_by_error, same_object, save_exclusions)
+from massviz.trace import Trace
+from massviz.tuning import original_selection, retune, score_traces
+
+#: where the notebooks look for the published weights when $MASSVIZ_WEIGHTS is not set (relative to notebooks/).
+REFERENCE_WEIGHTS = Path("../../shared/weights/corsmal_visual/Encoder_pool_aug_158.torch")
+SAMPLES_DIR = Path(__file__).resolve().parents[1] / "data_samples"
+MODES = ("keep", "exclude", "exclude track")
+
+
+# ------------------------------------------------------------------------------------------------ getting traces
+def notebook_weights(candidates: Sequence[str | Path] = (REFERENCE_WEIGHTS, "../shared/weights/corsmal_visual/"
+                                                         "Encoder_pool_aug_158.torch")) -> Path:
+    """The mass-CNN checkpoint: ``$MASSVIZ_WEIGHTS``, else the first existing ``candidates`` path, else the published
+    checkpoint from the user cache, downloaded once (``massviz.weights.resolve_weights``; needs the network once)."""
+    from massviz.weights import resolve_weights
+
+    if os.environ.get("MASSVIZ_WEIGHTS"):
+        return resolve_weights()
+    for c in candidates:
+        if Path(c).is_file():
+            return Path(c).resolve()
+    return resolve_weights()
+
+
+def open_samples(root: str | Path = SAMPLES_DIR) -> list:
+    """The bundled sample recordings (``massviz.recording.Recording``), sorted by name."""
+    from massviz.recording import find_recordings, open_recording
+
+    return [open_recording(p) for p in find_recordings(root)]
+
+
+def load_traces(recordings: Sequence, *, weights: str | Path, cache_dir: str | Path | None = None,
+                detector: str = "depth", threshold: float = 0.4, k: int = 5, stride: int = 1,
+                progress: bool = False) -> list[Trace]:
+    """One trace per recording: from the trace cache when there, else by running the pipeline (then cached)."""
+    from massviz.cache import TraceCache
+    from massviz.detect import make_detector
+    from massviz.model import MassNet
+    from massviz.pipeline import process
+
+    model = MassNet.from_checkpoint(weights)
+    det = make_detector(detector, threshold, quiet=True)
+    cache = TraceCache(cache_dir)
+    return [process(r, det, model, k=k, stride=stride, cache=cache, progress=progress) for r in recordings]
+
+
+# ------------------------------------------------------------------------------------------------------- state
+class Tuner:
+    """Re-estimation state over many traces (see the module docstring).
+
+    ``traces`` are the cached traces (any K; their detections are what counts). ``ann``/``class_of``: annotation
+    frame for ``score_traces`` (None: the recordings' meta.json).
+    """
+
+    def __init__(self, traces: Sequence[Trace], *, k: int = 5, threshold: float | None = None, stride: int = 1,
+                 ann: pd.DataFrame | None = None, class_of=None):
+        self.traces = list(traces)
+        self.ann, self.class_of = ann, class_of
+        self.min_threshold = max((t.detect_threshold for t in self.traces), default=0.0)
+        self.k, self.stride = int(k), int(stride)
+        self.threshold = self.min_threshold if threshold is None else float(threshold)
+        self.modes: list[dict[int, str]] = [{} for _ in self.traces]  # detection index -> "exclude" / "exclude track"
+        self.current: list[Trace] = []
+        self.report = None
+        self.update()
+
+    # -- exclusions -------------------------------------------------------------------------------------------------
+    def excluded(self, i: int) -> np.ndarray:
+        """Detection indices of trace ``i`` excluded by the user's choices (tracks expanded)."""
+        out: set[int] = set()
+        for det, mode in self.modes[i].items():
+            out.update(same_object(self.traces[i], det).tolist() if mode == "exclude track" else [det])
+        return np.array(sorted(out), dtype=np.int64)
+
+    def set_mode(self, i: int, detection: int, mode: str) -> None:
+        """Keep / exclude / exclude-track detection ``detection`` of trace ``i``, then re-estimate trace ``i``."""
+        if mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        if mode == "keep":
+            self.modes[i].pop(int(detection), None)
+        else:
+            self.modes[i][int(detection)] = mode
+        self.current[i] = self._retune(i)
+        self.report = self._score()
+
+    def exclusions(self) -> list[Exclusion]:
+        """Every excluded detection as a file entry (recording id, frame, box)."""
+        return [exclusion_of(t, int(d), note=self._note(i, int(d)))
+                for i, t in enumerate(self.traces) for d in self.excluded(i)]
+
+    def _note(self, i: int, det: int) -> str:
+        return "excluded" if det in self.modes[i] else "excluded with its track"
+
+    def export(self, path: str | Path) -> Path:
+        """Write the exclusions JSON (``massviz.failures`` format) for ``massviz estimate --exclude``."""
+        return save_exclusions(path, self.exclusions())
+
+    # -- re-estimation ----------------------------------------------------------------------------------------------
+    def update(self, *, k: int | None = None, threshold: float | None = None, stride: int | None = None) -> None:
+        """Set any of K, threshold, stride and re-estimate every recording and the score."""
+        if k is not None:
+            self.k = int(k)
+        if threshold is not None:
+            self.threshold = float(threshold)
+        if stride is not None:
+            self.stride = int(stride)
+        self.current = [self._retune(i) for i in range(len(self.traces))]
+        self.report = self._score()
+
+    def _retune(self, i: int) -> Trace:
+        return retune(self.traces[i], k=self.k, threshold=self.threshold, stride=self.stride,
+                      exclude=self.excluded(i))
+
+    def _score(self):
+        try:
+            return score_traces(self.current, self.ann, self.class_of)
+        except Exception:  # noqa: BLE001 - recordings without ground truth: no score, the rest still works
+            return None
+
+    def selection(self, i: int) -> np.ndarray:
+        """Chosen patches of recording ``i`` as indices into ``traces[i].detections``, nearest first."""
+        return original_selection(self.traces[i], self.current[i], self.stride)
+
+    def estimates(self) -> dict[str, float]:
+        return {str(t.recording.get("id")): float(t.estimate) for t in self.current}
+
+    def patch_table(self, i: int) -> pd.DataFrame:
+        """The chosen patches of recording ``i``: rank, detection, frame, class, score, a, b, d_mm, pred_g."""
+        t = self.traces[i].table()
+        sel = self.selection(i)
+        out = t.iloc[sel][["frame", "class", "score", "a", "b", "d_mm", "pred_g"]].copy()
+        out.insert(0, "detection", sel)
+        out.insert(0, "rank", np.arange(len(sel)))
+        return out.reset_index(drop=True)
+
+
+# ------------------------------------------------------------------------------------------------------- views
+class PatchImages:
+    """PNG bytes of detection patches, cached; patches the trace did not keep are cropped from the recording."""
+
+    def __init__(self):
+        self._png: dict[tuple[int, int], bytes] = {}
+        self._recordings: dict[int, object] = {}
+
+    def patch(self, trace: Trace, i: int) -> np.ndarray | None:
+        p = trace.detections.patches[i]
+        if p is not None:
+            return p
+        try:
+            from massviz.pipeline import crop
+            from massviz.recording import open_recording
+
+            rec = self._recordings.get(id(trace)) or open_recording(trace.recording["path"])
+            self._recordings[id(trace)] = rec
+            return crop(rec.read_frame(int(trace.detections.frame[i])).rgb, trace.detections.xyxy[i])
+        except Exception:  # noqa: BLE001 - recording moved or unreadable: a grey tile
+            return None
+
+    def png(self, trace: Trace, i: int, height: int = 96) -> bytes:
+        key = (id(trace), int(i))
+        if key not in self._png:
+            p = self.patch(trace, int(i))
+            if p is None or p.size == 0:
+                p = np.full((height, height, 3), 200, np.uint8)
+            scale = height / p.shape[0]
+            p = cv2.resize(p, (max(1, int(round(p.shape[1] * scale))), height), interpolation=cv2.INTER_AREA)
+            self._png[key] = cv2.imencode(".png", cv2.cvtColor(p, cv2.COLOR_RGB2BGR))[1].tobytes()
+        return self._png[key]
+
+
+def _table_html(df: pd.DataFrame, floatfmt: str = "{:.2f}") -> str:
+    return df.to_html(index=False, float_format=floatfmt.format, border=0, na_rep="-", escape=True)
+
+
+def score_html(report) -> str:
+    """Overall CORSMAL score and the per-class table as HTML ('no ground truth' without a report)."""
+    if report is None:
+        return "<i>no ground truth for these recordings: no score</i>"
+    eps = "-" if np.isnan(report.mean_eps) else f"{report.mean_eps:.3f}"
+    head = (f"<b>CORSMAL score {report.score_pct:.2f} %</b> over {report.n_recordings} recordings "
+            f"({report.n_estimated} estimated), mean ε {eps}")
+    table = report.per_class.reset_index().rename(columns={"score_pct": "score %", "mean_eps": "mean ε"})
+    return head + _table_html(table)
+
+
+def estimate_html(trace: Trace) -> str:
+    gt = trace.ground_truth_mass
+    est = "not estimated" if trace.estimate < 0 else f"{trace.estimate:.1f} g"
+    text = f"<b>{html.escape(str(trace.recording.get('id')))}</b>: estimate <b>{est}</b>"
+    if gt is not None:
+        text += f" · ground truth {gt:.1f} g"
+        if trace.estimate >= 0:
+            text += f" · ε = {abs(trace.estimate - gt) / gt:.3f}"
+    return text + f" · K={trace.k}, threshold {trace.threshold:.2f}, stride {trace.stride}"
+
+
+class TuningPanel:
+    """Sliders (threshold, K, stride) + recording picker → chosen patches, predictions, estimate, score."""
+
+    def __init__(self, tuner: Tuner, recording: int = 0, max_k: int = 32, max_stride: int = 12):
+        import ipywidgets as W
+
+        self.tuner, self.images, self.i = tuner, PatchImages(), int(recording)
+        self.threshold = W.FloatSlider(value=tuner.threshold, min=tuner.min_threshold, max=0.99, step=0.01,
+                                       description="threshold", continuous_update=False, readout_format=".2f")
+        self.k = W.IntSlider(value=tuner.k, min=1, max=max_k, description="K", continuous_update=False)
+        self.stride = W.IntSlider(value=tuner.stride, min=1, max=max_stride, description="stride",
+                                  continuous_update=False)
+        self.recording = W.Dropdown(options=[(str(t.recording.get("id")), j) for j, t in enumerate(tuner.traces)],
+                                    value=self.i, description="recording")
+        self.estimate = W.HTML()
+        self.patches = W.HBox(layout=W.Layout(flex_flow="row wrap"))
+        self.predictions = W.HTML()
+        self.score = W.HTML()
+        self.timing = W.HTML()
+        for w in (self.threshold, self.k, self.stride):
+            w.observe(self._on_slider, names="value")
+        self.recording.observe(self._on_recording, names="value")
+        self.widget = W.VBox([W.HBox([self.threshold, self.k, self.stride]), self.recording, self.estimate,
+                              self.patches, self.predictions, W.HTML("<b>Over all recordings</b>"), self.score,
+                              self.timing])
+        self.last_update_s = 0.0
+        self.refresh()
+
+    def set(self, *, threshold: float | None = None, k: int | None = None, stride: int | None = None) -> float:
+        """What a slider change does (also for tests): re-estimate, refresh the views; returns the seconds taken."""
+        t0 = time.perf_counter()
+        self.tuner.update(k=k, threshold=threshold, stride=stride)
+        self.refresh()
+        self.last_update_s = time.perf_counter() - t0
+        self.timing.value = f"<small>updated in {1000 * self.last_update_s:.0f} ms</small>"
+        return self.last_update_s
+
+    def _on_slider(self, change) -> None:
+        self.set(threshold=self.threshold.value, k=self.k.value, stride=self.stride.value)
+
+    def _on_recording(self, change) -> None:
+        self.i = int(change["new"])
+        self.refresh()
+
+    def tiles(self, i: int, indices: Sequence[int], captions: Sequence[str]):
+        import ipywidgets as W
+
+        trace = self.tuner.traces[i]
+        return [W.VBox([W.Image(value=self.images.png(trace, d), format="png"), W.HTML(c)],
+                       layout=W.Layout(margin="2px 6px"))
+                for d, c in zip(indices, captions)]
+
+    def refresh(self) -> None:
+        i, tuner = self.i, self.tuner
+        cur = tuner.current[i]
+        self.estimate.value = estimate_html(cur)
+        table = tuner.patch_table(i)
+        captions = [f"<small>#{r.rank} · f{r.frame}<br>d={r.d_mm:.0f} mm<br>{r.pred_g:.1f} g</small>"
+                    for r in table.itertuples()]
+        self.patches.children = self.tiles(i, table["detection"].tolist(), captions)
+        self.predictions.value = _table_html(table)
+        self.score.value = score_html(tuner.report)
+
+
+class FailurePanel(TuningPanel):
+    """Recordings ranked by error; per recording the chosen patches with why they were chosen, flags, and a
+    keep / exclude / exclude-track toggle each; the re-estimate; export of the exclusions."""
+
+    def __init__(self, tuner: Tuner, recording: int | None = None, export_path: str | Path = "exclusions.json"):
+        import ipywidgets as W
+
+        self.ranking_html = W.HTML()
+        self.rows = W.VBox()
+        self.path = W.Text(value=str(export_path), description="export to")
+        self.export_button = W.Button(description="export exclusions", icon="download")
+        self.export_status = W.HTML()
+        self.export_button.on_click(lambda _: self.export())
+        self.toggles: dict[int, object] = {}
+        ranking = rank_by_error(tuner.current)
+        first = int(ranking["position"].iloc[0]) if len(ranking) else 0
+        super().__init__(tuner, recording=first if recording is None else recording)
+        order = list(ranking["position"]) + [j for j in range(len(tuner.traces)) if j not in set(ranking["position"])]
+        self.recording.options = [(f"{j + 1}. {tuner.traces[p].recording.get('id')}", p)
+                                  for j, p in enumerate(order)]
+        self.recording.value = self.i
+        self.widget = W.VBox([self.ranking_html, W.HBox([self.threshold, self.k, self.stride]), self.recording,
+                              self.estimate, self.rows, W.HTML("<b>Over all recordings</b>"), self.score,
+                              W.HBox([self.path, self.export_button]), self.export_status])
+        self.refresh()
+
+    def table(self, i: int | None = None) -> pd.DataFrame:
+        """``chosen_table`` of recording ``i`` (default: the shown one) with detection indices of the cached trace
+        and the user's mode per patch."""
+        i = self.i if i is None else int(i)
+        cur = self.tuner.current[i]
+        table = chosen_table(cur)
+        if len(table):
+            table["detection"] = original_selection(self.tuner.traces[i], cur, self.tuner.stride)
+        excluded = list(self.tuner.modes[i])
+        none = dataclasses.replace(self.tuner.traces[i], selection=np.zeros(0, dtype=np.int64))
+        extra = chosen_table(none, extra=excluded).assign(why="excluded by you")
+        out = pd.concat([table, extra], ignore_index=True) if len(extra) else table
+        out["mode"] = [self.tuner.modes[i].get(int(d), "keep") for d in out["detection"]]
+        return out
+
+    def set_mode(self, detection: int, mode: str, i: int | None = None) -> None:
+        """What a toggle does (also for tests): keep / exclude / exclude track, re-estimate, refresh."""
+        self.tuner.set_mode(self.i if i is None else int(i), int(detection), mode)
+        self.refresh()
+
+    def export(self, path: str | Path | None = None) -> Path:
+        out = self.tuner.export(path or self.path.value)
+        n = len(self.tuner.exclusions())
+        self.export_status.value = f"wrote {n} exclusions to <code>{html.escape(str(out))}</code>"
+        return out
+
+    def refresh(self) -> None:
+        if not hasattr(self, "rows"):
+            return
+        import ipywidgets as W
+
+        i, tuner = self.i, self.tuner
+        ranking = rank_by_error(tuner.current)
+        self.ranking_html.value = "<b>Recordings ranked by error (worst first)</b>" + _table_html(ranking, "{:.3f}")
+        self.estimate.value = estimate_html(tuner.current[i])
+        self.score.value = score_html(tuner.report)
+        table = self.table(i)
+        rows = []
+        self.toggles = {}
+        for r in table.itertuples():
+            flag = (f"<span style='color:#d00'>⚑ flagged: {html.escape(r.flag_reason)}</span>" if r.flagged
+                    else "<span style='color:#080'>not flagged</span>")
+            cues = f"<br><small>cues: {html.escape(r.cues)}</small>" if r.cues and r.flag_gt is not None else ""
+            rank = f"#{r.rank}" if r.rank >= 0 else "excluded"
+            text = (f"<b>{rank}</b> · frame {r.frame} · d={r.d_mm:.0f} mm · score {r.score:.2f} · "
+                    f"a={r.a:.2f} b={r.b:.2f} · pred {r.pred_g:.1f} g"
+                    f"<br><small>{html.escape(r.why)}</small><br>{flag}{cues}")
+            toggle = W.ToggleButtons(options=list(MODES), value=r.mode, style={"button_width": "90px"})
+            toggle.observe(lambda ch, d=int(r.detection): self.set_mode(d, ch["new"]), names="value")
+            self.toggles[int(r.detection)] = toggle
+            img = W.Image(value=self.images.png(tuner.traces[i], int(r.detection)), format="png")
+            rows.append(W.HBox([img, W.VBox([W.HTML(text), toggle])], layout=W.Layout(margin="4px 0")))
+        self.rows.children = rows
+
+
+__all__ = ["Tuner", "TuningPanel", "FailurePanel", "PatchImages", "notebook_weights", "open_samples", "load_traces",
+           "score_html", "estimate_html", "MODES"]
