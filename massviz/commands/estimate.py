@@ -26,6 +26,9 @@ def register(sub) -> None:
                    help="camera view of a CCM dataset root (default: 3, the fixed frontal view)")
     p.add_argument("--exact", action="store_true",
                    help="write masses with 2 decimals (default: truncated to int, as the paper's code)")
+    p.add_argument("--exclude", metavar="FILE",
+                   help="never select the detections listed in FILE (JSON, format massviz.exclusions/1: entries "
+                   "recording id + frame + box, e.g. exported by notebooks/03_failure_cases.ipynb)")
     add_pipeline_args(p)
     p.set_defaults(func=run)
 
@@ -38,6 +41,20 @@ def collect_recordings(paths, view: int):
     return [open_recording(p) for p in found]
 
 
+def apply_exclusions(trace, exclusions):
+    """The trace re-selected without the detections the exclusion entries name (matched by recording id, frame and
+    box; ``massviz.failures.match_exclusions``); entries of this recording that match nothing are reported."""
+    from massviz.failures import match_exclusions
+
+    indices, unmatched = match_exclusions(trace, exclusions)
+    if unmatched:
+        print(f"massviz estimate: {trace.recording.get('id')}: {len(unmatched)} exclusion(s) match no detection "
+              f"(first: frame {unmatched[0].frame}, box {list(unmatched[0].box)})", file=sys.stderr)
+    if len(indices) == 0:
+        return trace
+    return trace.reselect(exclude=indices)
+
+
 def run(args) -> int:
     from tqdm.auto import tqdm
 
@@ -46,6 +63,11 @@ def run(args) -> int:
     from massviz.pipeline import process
 
     recordings = collect_recordings(args.recordings, args.view)
+    exclusions = None
+    if args.exclude:
+        from massviz.failures import load_exclusions
+
+        exclusions = load_exclusions(args.exclude)
     detector, model, cache = build(args)
     rows = []
     many = len(recordings) > 1
@@ -53,6 +75,8 @@ def run(args) -> int:
         t0 = time.perf_counter()
         trace = process(rec, detector, model, k=args.k, stride=args.stride, cache=cache,
                         progress=not args.quiet)
+        if exclusions is not None:
+            trace = apply_exclusions(trace, exclusions)
         elapsed = time.perf_counter() - t0
         rows.append({"config_id": rec.config_id, "mass_g": trace.estimate, "exec_time_s": elapsed})
         if not many:
