@@ -1,0 +1,136 @@
+"""The depth detector against the synthetic samples' ground truth, plus its contract (threshold, settings, empty)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from massviz.detect.base import Detector
+from massviz.detect.depth import DepthDetector
+from massviz.types import OBJECT_CLASS_ID, Frame
+
+NAMES = ["cup_handover", "glass_handover", "box_handover"]
+CONTAINER, PITCHER = 1, 2
+
+
+def _frame(rec: Path, i: int) -> tuple[Frame, np.ndarray]:
+    name = f"{i:06d}.png"
+    rgb = cv2.cvtColor(cv2.imread(str(rec / "rgb" / name), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    depth = cv2.imread(str(rec / "depth" / name), cv2.IMREAD_UNCHANGED)
+    gt = cv2.imread(str(rec / "gt" / name), cv2.IMREAD_UNCHANGED)
+    return Frame(i, rgb, depth), gt
+
+
+def _best_iou(dets, target: np.ndarray) -> float:
+    h, w = target.shape
+    ious = [(m & target).sum() / (m | target).sum() for m in (dets.full_mask(j, h, w) for j in range(len(dets)))]
+    return float(max(ious, default=0.0))
+
+
+@pytest.fixture(scope="module", params=NAMES)
+def results(request, samples_dir):
+    """Per frame of one sample: container_nearest, best IoU with the container and with the pitcher, detections."""
+    rec = samples_dir / request.param
+    meta = json.loads((rec / "meta.json").read_text())
+    det = DepthDetector()
+    rows = []
+    for f in meta["frames"]:
+        frame, gt = _frame(rec, f["index"])
+        dets = det.detect(frame)
+        rows.append((f["container_nearest"], _best_iou(dets, gt == CONTAINER), _best_iou(dets, gt == PITCHER), dets))
+    return request.param, rows
+
+
+def test_container_found_where_it_is_nearest(results):
+    name, rows = results
+    ious = np.array([c for nearest, c, _, _ in rows if nearest])
+    good = (ious >= 0.7).mean()
+    print(f"{name}: container nearest in {len(ious)} frames, IoU>=0.7 in {good:.0%}, "
+          f"IoU min {ious.min():.2f} median {np.median(ious):.2f}")
+    assert len(ious) >= 10 and good >= 0.9
+
+
+def test_pitcher_and_container_returned_where_pitcher_is_nearer(results):
+    name, rows = results
+    pitcher_frames = [(c, p) for nearest, c, p, _ in rows if not nearest]
+    pitcher = np.array([p for _, p in pitcher_frames])
+    container = np.array([c for c, _ in pitcher_frames])
+    print(f"{name}: pitcher nearer in {len(pitcher)} frames, pitcher IoU>=0.7 in {(pitcher >= 0.7).mean():.0%}, "
+          f"container IoU>=0.5 in {(container >= 0.5).mean():.0%}")
+    assert len(pitcher) >= 10
+    assert (pitcher >= 0.7).mean() >= 0.9
+    assert (container >= 0.5).mean() >= 0.8
+
+
+def test_detections_are_well_formed(results):
+    _, rows = results
+    for _, _, _, dets in rows:
+        assert 0 < len(dets) <= 2
+        assert np.all((dets.score > 0.4) & (dets.score <= 1))
+        assert np.all(dets.class_id == OBJECT_CLASS_ID)
+        for j, (x1, y1, x2, y2) in enumerate(dets.xyxy):
+            mask = dets.mask(j)
+            assert mask.dtype == bool and mask.shape == (y2 - y1, x2 - x1)
+            # the box is tight: the mask touches all four sides
+            assert mask[0].any() and mask[-1].any() and mask[:, 0].any() and mask[:, -1].any()
+
+
+def test_threshold_keeps_scores_above_it(samples_dir):
+    frame, _ = _frame(samples_dir / "cup_handover", 8)
+    everything = DepthDetector(threshold=0.0, max_objects=4).detect(frame)
+    assert len(everything) >= 3 and everything.score.min() < 0.4 < 0.7 < everything.score.max()
+    for threshold in (0.0, 0.4, 0.7):
+        kept = DepthDetector(threshold=threshold, max_objects=4).detect(frame)
+        expected = everything[everything.score > threshold]
+        assert np.array_equal(kept.xyxy, expected.xyxy)
+        assert np.all(kept.score > threshold)
+
+
+def test_max_objects(samples_dir):
+    frame, _ = _frame(samples_dir / "box_handover", 30)
+    assert len(DepthDetector(max_objects=1, threshold=0.0).detect(frame)) == 1
+    assert len(DepthDetector(max_objects=3, threshold=0.0).detect(frame)) == 3
+
+
+@pytest.mark.parametrize("depth", [np.zeros((270, 480), np.uint16), np.full((270, 480), 5000, np.uint16),
+                                   np.zeros((0, 0), np.uint16)])
+def test_no_depth_no_detections(depth):
+    frame = Frame(3, np.zeros(depth.shape + (3,), np.uint8), depth)
+    dets = DepthDetector(threshold=0.0).detect(frame)
+    assert len(dets) == 0 and dets.xyxy.shape == (0, 4)
+
+
+def test_isolated_object_scores_one():
+    depth = np.full((120, 160), 1500, np.uint16)
+    depth[40:80, 60:90] = 600
+    dets = DepthDetector(threshold=0.0).detect(Frame(0, np.zeros((120, 160, 3), np.uint8), depth))
+    assert dets.xyxy[0].tolist() == [60, 40, 90, 80] and dets.score[0] == 1.0 and dets.frame[0] == 0
+    assert dets.mask(0).all()
+
+
+def test_settings_key_everything_but_threshold():
+    a, b = DepthDetector(threshold=0.2), DepthDetector(threshold=0.7)
+    assert isinstance(a, Detector) and a.name == "depth"
+    assert a.settings() == b.settings() and "threshold" not in a.settings()
+    assert DepthDetector(slab_mm=120).settings() != a.settings()
+    json.dumps(a.settings())  # a cache key must serialise
+
+
+def test_deterministic(samples_dir):
+    frame, _ = _frame(samples_dir / "glass_handover", 30)
+    a, b = DepthDetector().detect(frame), DepthDetector().detect(frame)
+    assert np.array_equal(a.xyxy, b.xyxy) and np.array_equal(a.score, b.score)
+
+
+def test_real_ccm_frame(shared_dir):
+    """Frame 20 of a real CCM recording: the robot gripper (bottom right) is nearer than the held box."""
+    root = shared_dir / "ccm_real"
+    depth = cv2.imread(str(root / "view1" / "depth" / "000000" / "0001.png"), cv2.IMREAD_UNCHANGED)
+    rgb = cv2.cvtColor(cv2.imread(str(root / "frame_20_rgb.png")), cv2.COLOR_BGR2RGB)
+    dets = DepthDetector().detect(Frame(20, rgb, depth))
+    assert 1 <= len(dets) <= 2
+    centres = (dets.xyxy[:, :2] + dets.xyxy[:, 2:]) / 2
+    assert np.any((centres[:, 0] > 0.75 * 1280) & (centres[:, 1] > 0.6 * 720)), "expected the gripper, bottom right"
