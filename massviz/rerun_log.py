@@ -30,6 +30,9 @@ entity                         what is logged
 ``/predictions/estimate``      ``Scalars``: the estimate (g) at the last processed frame (absent when not estimated)
 ``/predictions/ground_truth``  ``Scalars``: the container's mass from the recording's meta (``container.mass_g``), at
                                the first and the last processed frame (absent when unknown)
+``/world/detections/<id>``     ``Points3D``: detection ``id``'s cleaned Open3D cloud (chosen ones highlighted), with
+                               ``/box`` (``Boxes3D``, measured box of a chosen one) and ``/measurement`` (AnyValues);
+                               see ``massviz.geometry3d.log_clouds`` (only with intrinsics; ``clouds=False`` skips)
 ``/log``                       ``TextLog`` of the decisions (trace events, missing intrinsics, video fallback) with
                                levels, at their frames
 ``/summary``                   ``TextDocument`` (static, markdown): recording, detector, K, estimate, chosen patches
@@ -449,7 +452,7 @@ def _crop(rgb: np.ndarray, xyxy) -> np.ndarray:
 
 def log_trace(trace: Trace, recording: Recording, *, rrd: str | Path | None = None, spawn: bool = False,
               stream: rr.RecordingStream | None = None, progress: bool = False, max_points: int = MAX_POINTS,
-              step: int = POINT_STEP, video: str = "auto") -> dict:
+              step: int = POINT_STEP, video: str = "auto", clouds: bool = True) -> dict:
     """Log ``trace`` (made on ``recording``) to Rerun; the entity tree is in this module's docstring.
 
     Outputs: ``rrd`` (a file, written atomically: nothing is left at ``rrd`` if logging fails), ``spawn`` (spawn
@@ -458,6 +461,7 @@ def log_trace(trace: Trace, recording: Recording, *, rrd: str | Path | None = No
     recording of application ``massviz`` on its own ``RecordingStream`` (never the global one).
 
     ``video``: how an mp4 is logged (see ``RgbLogger``). ``step``/``max_points``: point cloud subsampling.
+    ``clouds``: also log each detection's Open3D cloud under ``/world/detections`` (``massviz.geometry3d``).
 
     Returns stats: ``recording_id``, ``frames``, ``detections``, ``chosen``, ``points``, ``rgb`` ("asset",
     "images" or "files"), ``notes`` (warnings also in /log), ``log_seconds`` (wall time of logging, flushing
@@ -474,6 +478,10 @@ def log_trace(trace: Trace, recording: Recording, *, rrd: str | Path | None = No
     def log_into(rec: rr.RecordingStream) -> dict:
         rec.send_blueprint(blueprint, make_active=True, make_default=True)
         stats = _log_all(rec, trace, recording, video=video, step=step, max_points=max_points, progress=progress)
+        if clouds:
+            from massviz.geometry3d import log_clouds
+
+            stats["clouds"] = log_clouds(trace, recording, rec)
         log_timings(rec, {**trace.timings, "log": time.perf_counter() - t0}, stats["frames"])
         try:
             rec.flush()
