@@ -1,0 +1,556 @@
+"""Training the mass CNN with the paper's protocol: patch extraction, splits, normalisation, augmentation, the loop.
+
+Two steps, each a plain function the CLI wraps:
+
+1. :func:`extract_patches` runs detection and the K-nearest selection over recordings (through the trace cache) and
+   writes a *patch set*: ``PATCHES/images/<recording>_<rank>.png`` (RGB crops) and ``PATCHES/index.csv`` (one row
+   per patch, :data:`INDEX_COLUMNS`), every patch labelled with its recording's annotation.
+2. :func:`train_run` splits a patch set by recording (:func:`split_recordings`), computes the min-max
+   :class:`~massviz.model.Ranges` on the training split only (:func:`compute_ranges`), trains :class:`MassNet`
+   (:func:`fit`) and keeps the epoch with the lowest validation loss as ``RUN/best.torch``.
+
+The protocol (Apicella et al., ICASSP 2022, "Model training" and "Experimental setup"): MSE loss on min-max
+normalised mass, batch 32, Adam at lr 0.0015 with weight decay 0.001, exponential decay 0.9985 every 20 steps;
+augmentation by horizontal and vertical flips (p = 0.5), a rotation in [0°, 180°] that does not crop
+(``expand=True``) and colour jitter (brightness, contrast, saturation in [0.8, 1.2], hue in [-0.2, 0.2]); the
+training set is multiplied 3× (folds) or 5× (random split), i.e. each patch plus 2 or 4 augmented copies, as the
+authors' ``Encoder/Dataset/augmentation.py`` does; 100 epochs for the folds, 300 for the random split; 80:20
+training/validation of the non-test recordings; the best model on validation is kept. Folds leave one container of
+each class out: F1 tests containers 3/6/9, F2 2/5/8, F3 1/4/7.
+
+Where this differs from the authors' ``Encoder/Training_CNN_encoder.py`` and ``Encoder/Models/DataExtractor.py``
+(github.com/CORSMAL/Visual, MIT licence), deliberately:
+
+- one Adam optimiser for the whole run; the original builds a new one every batch, which resets Adam's moments;
+- the learning rate decays per optimiser step, ``lr = 0.0015 · 0.9985^floor(step / 20)`` (the paper's "decay rate
+  0.9985, decay steps 20"); the original multiplies it once per epoch n by ``0.9985^(n / 20)``;
+- augmented copies are drawn afresh each time they are used instead of written to disk once; the original also
+  flips and rotates (0–90°) *every* image, validation included, once when loading it: massviz validates on the
+  untouched patches;
+- the split is by recording (patches of one recording never straddle training and validation), the ranges come
+  from the training split only, and the best epoch is the one with the lowest validation loss (as the paper says;
+  the original picks the lowest validation error in grams, which ``metrics.csv`` also reports);
+- the last incomplete batch is kept unless it holds a single patch (BatchNorm needs two); the original drops it.
+
+Kept from the original: gradient-norm clipping at 5 (``max_grad_norm`` of its ConfigurationFile.json).
+"""
+from __future__ import annotations
+
+import csv
+import math
+import os
+import random
+import shutil
+import sys
+import tempfile
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import numpy as np
+import pandas as pd
+import torch
+from PIL import Image
+from torch import nn
+from torch.utils.data import DataLoader, Dataset
+from torchvision import transforms
+from tqdm.auto import tqdm
+
+from massviz.errors import DataError, MassvizError
+from massviz.evaluate import ANN_CONTAINER, ANN_ID, ANN_MASS
+from massviz.model import MassNet, Ranges, preprocess_patch, save_checkpoint
+
+#: file name of a patch set's index, inside the PATCHES folder.
+INDEX_NAME = "index.csv"
+#: sub-folder of a patch set holding the PNG crops.
+IMAGES_DIR = "images"
+#: columns of ``index.csv``: the image (relative to the patch set), where it came from, its features and its label.
+#: ``container_id`` is -1 and a dimension NaN when the annotation does not give it.
+INDEX_COLUMNS = ("file", "recording", "config_id", "rank", "frame", "a", "b", "d", "mass_g", "container_id",
+                 "width_top_mm", "width_bottom_mm", "height_mm", "depth_mm", "capacity_ml", "class", "score",
+                 "x1", "y1", "x2", "y2", "source")
+#: container dimensions: index column -> (annotation CSV column, meta.json ``container`` key).
+DIMENSIONS = {"width_top_mm": ("width at the top", "width_top_mm"),
+              "width_bottom_mm": ("width at the bottom", "width_bottom_mm"),
+              "height_mm": ("height", "height_mm"), "depth_mm": ("depth", "depth_mm"),
+              "capacity_ml": ("container capacity", "capacity_ml")}
+
+#: test containers of each fold (one cup, one glass, one box left out).
+FOLDS = {"fold1": (3, 6, 9), "fold2": (2, 5, 8), "fold3": (1, 4, 7)}
+SPLITS = ("random", *FOLDS)
+#: how many times augmentation multiplies the training set (the patch itself + augmented copies).
+AUGMENT_FACTOR = {"random": 5, **{f: 3 for f in FOLDS}}
+DEFAULT_EPOCHS = {"random": 300, **{f: 100 for f in FOLDS}}
+
+
+# ======================================================================================================= extraction
+@dataclass(frozen=True)
+class Annotation:
+    """What a recording's patches are labelled with: empty mass (g), container id (-1 unknown), dimensions."""
+
+    mass_g: float
+    container_id: int = -1
+    dims: tuple[tuple[str, float], ...] = ()
+
+
+def annotation_for(recording, table: pd.DataFrame | None, path: str | Path | None = None) -> Annotation:
+    """The annotation of ``recording``: its row in a CCM annotation ``table`` (read from ``path`` with
+    :func:`massviz.evaluate.read_annotations`, matched on ``id`` = the recording's integer configuration id), or,
+    with no table, its ``meta.json`` ``container`` (``mass_g``, optional ``id`` and dimensions).
+    Raises :class:`DataError` naming the file when the recording is not annotated."""
+    if table is None:
+        container = recording.meta.get("container") or {}
+        mass = container.get("mass_g")
+        if not isinstance(mass, (int, float)) or not mass > 0:
+            raise DataError("no container.mass_g in meta.json (pass --annotations ANN.csv for CCM recordings)",
+                            Path(recording.path) / "meta.json")
+        dims = tuple((col, float(container.get(key, math.nan))) for col, (_, key) in DIMENSIONS.items())
+        return Annotation(float(mass), int(container.get("id", -1)), dims)
+    try:
+        rec_id = int(recording.config_id)
+    except ValueError:
+        raise DataError(f"recording {recording.id} has no integer id to look up in the annotations",
+                        path) from None
+    rows = table[table[ANN_ID] == rec_id]
+    if rows.empty:
+        raise DataError(f"no annotation for recording {recording.id} (id {rec_id}; {recording.path})", path)
+    row = rows.iloc[0]
+    dims = tuple((col, float(row[csv_col]) if csv_col in row.index else math.nan)
+                 for col, (csv_col, _) in DIMENSIONS.items())
+    return Annotation(float(row[ANN_MASS]), int(row[ANN_CONTAINER]), dims)
+
+
+def patch_rows(trace, annotation: Annotation) -> list[tuple[str, np.ndarray, dict]]:
+    """(image file name, RGB patch, index row) for each of a trace's selected patches, nearest first."""
+    rec = trace.recording
+    selected = trace.selected
+    out = []
+    for rank in range(len(selected)):
+        patch = selected.patches[rank]
+        if patch is None:
+            raise MassvizError(f"recording {rec['id']}: the trace kept no patch for its rank-{rank} detection "
+                               "(K larger than the patches a cached trace keeps); rerun with --no-cache")
+        name = f"{IMAGES_DIR}/{rec['id']}_{rank}.png"
+        x1, y1, x2, y2 = (int(v) for v in selected.xyxy[rank])
+        row = {"file": name, "recording": rec["id"], "config_id": rec["config_id"], "rank": rank,
+               "frame": int(selected.frame[rank]), "a": float(selected.a[rank]), "b": float(selected.b[rank]),
+               "d": float(selected.d[rank]), "mass_g": annotation.mass_g, "container_id": annotation.container_id,
+               **dict(annotation.dims), "class": selected.class_names()[rank],
+               "score": round(float(selected.score[rank]), 4), "x1": x1, "y1": y1, "x2": x2, "y2": y2,
+               "source": rec["path"]}
+        out.append((name, patch, row))
+    return out
+
+
+@dataclass(frozen=True)
+class ExtractResult:
+    """What :func:`extract_patches` wrote: the patch set folder, its number of patches and the recordings that
+    gave none (no detection with depth)."""
+
+    out: Path
+    n_patches: int
+    n_recordings: int
+    empty: tuple[str, ...]
+
+
+def extract_patches(recordings: Sequence, detector, model, out: str | Path, *, annotations: pd.DataFrame | None = None,
+                    annotations_path: str | Path | None = None, k: int = 5, stride: int = 1, cache=None,
+                    progress: bool = False, force: bool = False) -> ExtractResult:
+    """Write the K selected patches of every recording, with their features and annotation, as a patch set.
+
+    Every recording's annotation is looked up (:func:`annotation_for`) before anything runs. Traces come from
+    :func:`massviz.pipeline.process` with ``cache``, so recordings processed before are not detected again. The
+    set is written into a temporary folder beside ``out`` and renamed into place when complete; an existing
+    ``out`` is an error unless ``force`` (then it is replaced).
+    """
+    from massviz.pipeline import process
+
+    out = Path(out)
+    if out.exists() and not force:
+        raise MassvizError("already exists (pass --force to replace it)", out)
+    ids = [r.id for r in recordings]
+    if dup := sorted({i for i in ids if ids.count(i) > 1}):
+        raise MassvizError(f"recording id {dup[0]} appears more than once; extract each dataset on its own")
+    labels = [annotation_for(r, annotations, annotations_path) for r in recordings]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.", suffix=".part"))
+    try:
+        (tmp / IMAGES_DIR).mkdir()
+        rows, empty = [], []
+        bar = tqdm(list(zip(recordings, labels)), desc="extract", unit="rec", file=sys.stderr, disable=not progress)
+        for rec, label in bar:
+            trace = process(rec, detector, model, k=k, stride=stride, cache=cache, progress=False)
+            found = patch_rows(trace, label)
+            if not found:
+                empty.append(rec.id)
+            for name, patch, row in found:
+                Image.fromarray(patch).save(tmp / name)
+                rows.append(row)
+        pd.DataFrame(rows, columns=list(INDEX_COLUMNS)).to_csv(tmp / INDEX_NAME, index=False)
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return ExtractResult(out, len(rows), len(recordings), tuple(empty))
+
+
+def read_index(patches: str | Path) -> pd.DataFrame:
+    """The ``index.csv`` of a patch set, checked: columns, at least one row, finite a/b/d/mass and every image
+    present. Problems raise :class:`DataError` naming the file."""
+    patches = Path(patches)
+    if not patches.is_dir():
+        raise DataError("not a patch set folder (make one with massviz extract)", patches)
+    path = patches / INDEX_NAME
+    if not path.is_file():
+        raise DataError(f"missing {INDEX_NAME} (make the patch set with massviz extract)", path)
+    try:
+        table = pd.read_csv(path, dtype={"file": str, "recording": str, "config_id": str})
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as e:
+        raise DataError(f"not a readable CSV ({str(e).splitlines()[0] if str(e) else type(e).__name__})",
+                        path) from None
+    required = ("file", "recording", "a", "b", "d", "mass_g", "container_id")
+    if missing := [c for c in required if c not in table.columns]:
+        raise DataError(f"missing column(s) {', '.join(missing)} (expected the columns massviz extract writes)", path)
+    if table.empty:
+        raise DataError("no patches (only a header): no recording gave a patch", path)
+    for col in ("a", "b", "d", "mass_g"):
+        values = pd.to_numeric(table[col], errors="coerce")
+        if not np.isfinite(values).all():
+            bad = int(np.flatnonzero(~np.isfinite(values))[0])
+            raise DataError(f"row {bad + 1}, column '{col}': not a finite number ({table[col].iloc[bad]!r})", path)
+        table[col] = values.astype(np.float64)
+    table["container_id"] = pd.to_numeric(table["container_id"], errors="coerce").fillna(-1).astype(int)
+    for i, name in enumerate(table["file"]):
+        if not (patches / name).is_file():
+            raise DataError(f"row {i + 1}: image {name} is missing", patches / name)
+    return table
+
+
+# ============================================================================================ split and normalisation
+@dataclass(frozen=True)
+class Split:
+    """Recording ids of each part of a split: ``test`` is empty for the random split."""
+
+    name: str
+    train: tuple[str, ...]
+    val: tuple[str, ...]
+    test: tuple[str, ...]
+
+    def part_of(self, recording: str) -> str:
+        """"train", "val" or "test"."""
+        return next(p for p in ("train", "val", "test") if recording in getattr(self, p))
+
+
+def split_recordings(index: pd.DataFrame, split: str, seed: int, val_fraction: float = 0.2) -> Split:
+    """Split the recordings of a patch index, never a recording across parts.
+
+    ``random``: every recording is shuffled (numpy ``default_rng(seed)``) and ``round(val_fraction · n)`` (at least
+    one) go to validation. ``fold1``/``fold2``/``fold3``: the recordings of the fold's test containers
+    (:data:`FOLDS`) are the test part, the others are split as for ``random``; the container ids must be known.
+    """
+    if split not in SPLITS:
+        raise MassvizError(f"unknown split {split!r} (choose from {', '.join(SPLITS)})")
+    containers = index.groupby("recording")["container_id"].first()
+    test: list[str] = []
+    if split in FOLDS:
+        if (unknown := containers[containers < 0]).size:
+            raise DataError(f"--split {split} needs container ids, but recording {unknown.index[0]} (and "
+                            f"{unknown.size - 1} more) has none; extract with --annotations, or use --split random")
+        test = sorted(containers[containers.isin(FOLDS[split])].index)
+    rest = sorted(set(containers.index) - set(test))
+    if len(rest) < 2:
+        raise DataError(f"--split {split}: {len(rest)} recording(s) left for training and validation; need at "
+                        "least 2")
+    order = [rest[i] for i in np.random.default_rng(seed).permutation(len(rest))]
+    n_val = min(max(1, round(val_fraction * len(rest))), len(rest) - 1)
+    return Split(split, tuple(sorted(order[n_val:])), tuple(sorted(order[:n_val])), tuple(test))
+
+
+def compute_ranges(rows: pd.DataFrame) -> Ranges:
+    """Min-max normalisation ranges of d, a, b and mass over ``rows`` (the training split's patches)."""
+    values = {}
+    for col, what in (("d", "distance d"), ("a", "width ratio a"), ("b", "height ratio b"), ("mass_g", "mass")):
+        lo, hi = float(rows[col].min()), float(rows[col].max())
+        if not hi > lo:
+            raise DataError(f"every training patch has the same {what} ({lo:g}); min-max normalisation needs two "
+                            "distinct values (more recordings, or other containers, in the training split)")
+        values[col] = (lo, hi)
+    return Ranges(*values["d"], *values["a"], *values["b"], *values["mass_g"])
+
+
+# =========================================================================================== dataset and augmentation
+def make_augmentation() -> transforms.Compose:
+    """The paper's augmentation of a PIL patch: flips (p = 0.5 each), a rotation in [0°, 180°] on an expanded canvas
+    (nothing cropped, black corners), colour jitter (brightness, contrast, saturation × [0.8, 1.2], hue ± 0.2)."""
+    return transforms.Compose([
+        transforms.RandomHorizontalFlip(0.5),
+        transforms.RandomVerticalFlip(0.5),
+        transforms.RandomRotation((0, 180), expand=True),
+        transforms.ColorJitter(brightness=(0.8, 1.2), contrast=(0.8, 1.2), saturation=(0.8, 1.2), hue=(-0.2, 0.2)),
+    ])
+
+
+class PatchDataset(Dataset):
+    """Patches of a patch set as ``(image 3×112×112 in [0, 1], normalised [a, b, d], normalised mass)``.
+
+    With ``factor`` m > 1 the set is m times as long: item ``i`` is patch ``i % n``, untouched for ``i < n`` and
+    passed through ``augment`` (a fresh random draw at every access) for the m - 1 copies after it. Images are
+    read from disk when used and preprocessed exactly as at inference (:func:`massviz.model.preprocess_patch`).
+    """
+
+    def __init__(self, root: str | Path, rows: pd.DataFrame, ranges: Ranges, factor: int = 1, augment=None):
+        if factor < 1:
+            raise ValueError("factor must be >= 1")
+        if factor > 1 and augment is None:
+            raise ValueError("factor > 1 needs an augmentation")
+        self.files = [Path(root) / f for f in rows["file"]]
+        self.features = torch.from_numpy(ranges.normalise_features(rows[["a", "b", "d"]].to_numpy()))
+        mass = rows["mass_g"].to_numpy(np.float64)
+        self.targets = torch.from_numpy(((mass - ranges.min_mass) / (ranges.max_mass - ranges.min_mass))
+                                        .astype(np.float32))
+        self.factor, self.augment = factor, augment
+
+    def __len__(self) -> int:
+        return len(self.files) * self.factor
+
+    def __getitem__(self, i: int):
+        n = len(self.files)
+        j = i % n
+        image = Image.open(self.files[j]).convert("RGB")
+        if i >= n:
+            image = self.augment(image)
+        return preprocess_patch(np.asarray(image)), self.features[j], self.targets[j]
+
+
+# ===================================================================================================== training loop
+@dataclass(frozen=True)
+class TrainConfig:
+    """Hyper-parameters; ``None`` epochs / augment_factor take the split's default (:data:`DEFAULT_EPOCHS`,
+    :data:`AUGMENT_FACTOR`); ``augment_factor`` 1 trains without augmentation."""
+
+    split: str = "random"
+    epochs: int | None = None
+    batch_size: int = 32
+    lr: float = 0.0015
+    lr_decay: float = 0.9985
+    lr_decay_steps: int = 20
+    weight_decay: float = 0.001
+    max_grad_norm: float = 5.0
+    augment_factor: int | None = None
+    val_fraction: float = 0.2
+    seed: int = 0
+    device: str = "cpu"
+
+    def resolved(self) -> "TrainConfig":
+        """A copy with the split's defaults filled in, checked."""
+        if self.split not in SPLITS:
+            raise MassvizError(f"unknown split {self.split!r} (choose from {', '.join(SPLITS)})")
+        cfg = replace(self, epochs=DEFAULT_EPOCHS[self.split] if self.epochs is None else self.epochs,
+                      augment_factor=AUGMENT_FACTOR[self.split] if self.augment_factor is None else self.augment_factor)
+        if cfg.epochs < 1 or cfg.batch_size < 2 or cfg.augment_factor < 1 or not 0 < cfg.val_fraction < 1:
+            raise MassvizError("need epochs >= 1, batch size >= 2, augmentation factor >= 1 and 0 < val fraction < 1")
+        return cfg
+
+
+@dataclass(frozen=True)
+class EpochMetrics:
+    """One epoch: mean training loss, validation loss (MSE, normalised units), validation MAE (g), the learning rate
+    after the epoch and the optimiser steps so far."""
+
+    epoch: int
+    train_loss: float
+    val_loss: float
+    val_mae_g: float
+    lr: float
+    steps: int
+
+
+def seed_everything(seed: int) -> None:
+    """Seed python's, numpy's and torch's generators."""
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+@contextmanager
+def deterministic():
+    """Make torch use deterministic algorithms inside the block (restoring the previous setting after it)."""
+    before = torch.are_deterministic_algorithms_enabled()
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(before)
+
+
+def resolve_device(name: str = "auto") -> torch.device:
+    """``auto`` → CUDA when available, else CPU; otherwise the named device (checked)."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError as e:
+        raise MassvizError(f"--device {name}: {e}") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise MassvizError(f"--device {name}: CUDA is not available here (use --device cpu)")
+    return device
+
+
+@torch.no_grad()
+def evaluate(model: MassNet, data: Dataset, ranges: Ranges, device: torch.device,
+             batch_size: int = 64) -> tuple[float, float]:
+    """(MSE in normalised units, mean absolute error in grams after denormalising and clamping) over ``data``."""
+    model.eval()
+    sq, ab, n = 0.0, 0.0, 0
+    for images, feats, target in DataLoader(data, batch_size=batch_size, shuffle=False, num_workers=0):
+        y = model(images.to(device), feats.to(device))[:, 0].float().cpu()
+        sq += float(((y - target) ** 2).sum())
+        grams = ranges.denormalise_mass(y.numpy())
+        truth = target.numpy() * (ranges.max_mass - ranges.min_mass) + ranges.min_mass
+        ab += float(np.abs(grams - truth).sum())
+        n += len(target)
+    return sq / n, ab / n
+
+
+def fit(model: MassNet, train_set: Dataset, val_set: Dataset, ranges: Ranges, config: TrainConfig,
+        progress: bool = False) -> Iterator[EpochMetrics]:
+    """Train ``model`` in place for ``config.epochs`` epochs, yielding each epoch's metrics (the model then holds
+    that epoch's weights; the caller keeps what it wants). ``config`` must be :meth:`TrainConfig.resolved`.
+
+    Adam (lr, weight decay), StepLR(step_size=lr_decay_steps, gamma=lr_decay) stepped after every batch, MSE loss,
+    gradient norm clipped to ``max_grad_norm``. Batches are shuffled by a generator seeded with ``config.seed``.
+    """
+    device = torch.device(config.device)
+    model.to(device)
+    generator = torch.Generator().manual_seed(config.seed)
+    loader = DataLoader(train_set, batch_size=config.batch_size, shuffle=True, generator=generator, num_workers=0,
+                        drop_last=len(train_set) % config.batch_size == 1)
+    optimiser = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    schedule = torch.optim.lr_scheduler.StepLR(optimiser, step_size=config.lr_decay_steps, gamma=config.lr_decay)
+    loss_fn = nn.MSELoss()
+    steps = 0
+    bar = tqdm(total=config.epochs * len(loader), desc="train", unit="batch", file=sys.stderr, disable=not progress)
+    try:
+        for epoch in range(1, config.epochs + 1):
+            model.train()
+            total, seen = 0.0, 0
+            for images, feats, target in loader:
+                y = model(images.to(device), feats.to(device))[:, 0]
+                loss = loss_fn(y, target.to(device))
+                optimiser.zero_grad()
+                loss.backward()
+                nn.utils.clip_grad_norm_(model.parameters(), config.max_grad_norm)
+                optimiser.step()
+                schedule.step()
+                steps += 1
+                total += float(loss.detach()) * len(target)
+                seen += len(target)
+                bar.update(1)
+            val_loss, val_mae = evaluate(model, val_set, ranges, device)
+            metrics = EpochMetrics(epoch, total / seen, val_loss, val_mae, schedule.get_last_lr()[0], steps)
+            bar.set_postfix(epoch=epoch, train=f"{metrics.train_loss:.4f}", val=f"{val_loss:.4f}",
+                            mae=f"{val_mae:.1f}g")
+            yield metrics
+    finally:
+        bar.close()
+
+
+# ========================================================================================================= a full run
+@dataclass(frozen=True)
+class TrainResult:
+    """What :func:`train_run` wrote and found."""
+
+    out: Path
+    best: Path
+    best_epoch: int
+    best_val_loss: float
+    best_val_mae_g: float
+    ranges: Ranges
+    split: Split
+    metrics: tuple[EpochMetrics, ...]  # epoch 0 (before training) first
+
+
+def _log_scalars(stream, m: EpochMetrics) -> None:
+    import rerun as rr
+
+    stream.set_time("epoch", sequence=m.epoch)
+    for name, value in (("loss/train", m.train_loss), ("loss/val", m.val_loss), ("val_mae_g", m.val_mae_g),
+                        ("lr", m.lr)):
+        if math.isfinite(value):
+            stream.log(name, rr.Scalars(value))
+
+
+def train_run(patches: str | Path, out: str | Path, config: TrainConfig, *, init: str | Path | None = None,
+              keep_ranges: bool = False, force: bool = False, progress: bool = False) -> TrainResult:
+    """Train on a patch set with the paper's protocol and write a run folder.
+
+    ``out`` gets ``best.torch`` (the lowest validation loss so far, a massviz checkpoint that ``massviz estimate
+    --weights`` reads), ``metrics.csv`` (one row per epoch, appended as training goes; row 0 is the model before
+    training, without a training loss, and never becomes the best), ``train.rrd`` (the same
+    metrics as Rerun scalars on an ``epoch`` timeline) and ``split.csv`` (each recording's part). ``init``
+    fine-tunes from a checkpoint's weights; its ranges are kept with ``keep_ranges``, else recomputed from the
+    training split. A non-empty ``out`` is an error unless ``force``. The same ``config.seed`` on the CPU gives the
+    same checkpoint.
+    """
+    import rerun as rr
+
+    cfg = config.resolved()
+    patches, out = Path(patches), Path(out)
+    index = read_index(patches)
+    if out.exists() and any(out.iterdir()) and not force:
+        raise MassvizError("run folder is not empty (pass --force to overwrite)", out)
+    split = split_recordings(index, cfg.split, cfg.seed, cfg.val_fraction)
+    train_rows = index[index["recording"].isin(split.train)]
+    val_rows = index[index["recording"].isin(split.val)]
+    if keep_ranges and init is None:
+        raise MassvizError("--keep-ranges needs --init CKPT (the ranges to keep come from it)")
+    with deterministic():
+        seed_everything(cfg.seed)
+        ranges = None if keep_ranges else compute_ranges(train_rows)
+        if init is None:
+            model = MassNet(ranges=ranges)
+        else:
+            model = MassNet.from_checkpoint(init, ranges=ranges)
+            ranges = model.ranges
+        augment = make_augmentation() if cfg.augment_factor > 1 else None
+        train_set = PatchDataset(patches, train_rows, ranges, cfg.augment_factor, augment)
+        val_set = PatchDataset(patches, val_rows, ranges)
+
+        out.mkdir(parents=True, exist_ok=True)
+        pd.DataFrame({"recording": sorted(index["recording"].unique())}).assign(
+            part=lambda t: t["recording"].map(split.part_of)).to_csv(out / "split.csv", index=False)
+        stream = rr.RecordingStream("massviz_train")
+        stream.save(out / "train.rrd")
+        best, history = None, []
+        extra = {"split": cfg.split, "seed": cfg.seed, "patches": str(patches.resolve()),
+                 "init": None if init is None else str(init), "config": asdict(cfg),
+                 "n_train_patches": len(train_rows), "n_val_patches": len(val_rows)}
+        device = torch.device(cfg.device)
+        start = EpochMetrics(0, math.nan, *evaluate(model.to(device), val_set, ranges, device), cfg.lr, 0)
+        with open(out / "metrics.csv", "w", newline="") as f:
+            writer = csv.writer(f)
+            writer.writerow(["epoch", "train_loss", "val_loss", "val_mae_g", "lr", "steps"])
+            for m in (start, *fit(model, train_set, val_set, ranges, cfg, progress=progress)):
+                history.append(m)
+                writer.writerow([m.epoch, "" if m.epoch == 0 else f"{m.train_loss:.6g}", f"{m.val_loss:.6g}", f"{m.val_mae_g:.4f}",
+                                 f"{m.lr:.6g}", m.steps])
+                f.flush()
+                _log_scalars(stream, m)
+                if m.epoch > 0 and (best is None or m.val_loss < best.val_loss):
+                    best = m
+                    save_checkpoint(out / "best.torch", model, ranges,
+                                    extra={**extra, "epoch": m.epoch, "val_loss": m.val_loss,
+                                           "val_mae_g": m.val_mae_g})
+        stream.flush()
+        stream.disconnect()
+    return TrainResult(out, out / "best.torch", best.epoch, best.val_loss, best.val_mae_g, ranges, split,
+                       tuple(history))
+
+
+__all__ = ["INDEX_NAME", "IMAGES_DIR", "INDEX_COLUMNS", "FOLDS", "SPLITS", "AUGMENT_FACTOR", "DEFAULT_EPOCHS",
+           "Annotation", "annotation_for", "patch_rows", "ExtractResult", "extract_patches", "read_index", "Split",
+           "split_recordings", "compute_ranges", "make_augmentation", "PatchDataset", "TrainConfig", "EpochMetrics",
+           "seed_everything", "deterministic", "resolve_device", "evaluate", "fit", "TrainResult", "train_run"]
