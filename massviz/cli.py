@@ -41,7 +41,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _quiet_native_logs() -> None:
+    """OpenCV and its FFmpeg backend print their own warnings about unreadable files straight to stderr; massviz
+    reports those files itself (one line), so silence them unless MASSVIZ_DEBUG is set. Must run before cv2 loads."""
+    if not os.environ.get("MASSVIZ_DEBUG"):
+        os.environ.setdefault("OPENCV_LOG_LEVEL", "OFF")
+        os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
+
+
 def main(argv: list[str] | None = None) -> int:
+    _quiet_native_logs()
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
