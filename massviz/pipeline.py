@@ -82,28 +82,30 @@ def run(recording: Recording, detector: Detector, model, *, k: int = 5, stride: 
                leave=False)
     t_start = time.perf_counter()
     t0 = time.perf_counter()
-    for frame in recording.frames(stride=stride):
-        t1 = time.perf_counter()
-        timings["read"] += t1 - t0
-        dets = detector.detect(frame)
-        t2 = time.perf_counter()
-        compute_features(dets, frame.depth)
-        t3 = time.perf_counter()
-        dets.pred, patches = predict_detections(model, frame.rgb, dets)
-        t4 = time.perf_counter()
-        timings["detect"] += t2 - t1
-        timings["features"] += t3 - t2
-        timings["predict"] += t4 - t3
-        for i in range(len(dets)):
-            if not np.isfinite(dets.d[i]):
-                events.append((frame.index, f"skipped {_describe(dets, i)}: its mask has no depth"))
-            nearest.offer(offset + i, float(dets.d[i]), patches[i])
-        frames.append(frame.index)
-        parts.append(dets)
-        offset += len(dets)
-        bar.update(1)
-        t0 = time.perf_counter()
-    bar.close()
+    try:  # the bar is cleared before any error is reported, so the error line stands alone
+        for frame in recording.frames(stride=stride):
+            t1 = time.perf_counter()
+            timings["read"] += t1 - t0
+            dets = detector.detect(frame)
+            t2 = time.perf_counter()
+            compute_features(dets, frame.depth)
+            t3 = time.perf_counter()
+            dets.pred, patches = predict_detections(model, frame.rgb, dets)
+            t4 = time.perf_counter()
+            timings["detect"] += t2 - t1
+            timings["features"] += t3 - t2
+            timings["predict"] += t4 - t3
+            for i in range(len(dets)):
+                if not np.isfinite(dets.d[i]):
+                    events.append((frame.index, f"skipped {_describe(dets, i)}: its mask has no depth"))
+                nearest.offer(offset + i, float(dets.d[i]), patches[i])
+            frames.append(frame.index)
+            parts.append(dets)
+            offset += len(dets)
+            bar.update(1)
+            t0 = time.perf_counter()
+    finally:
+        bar.close()
     detections = Detections.concat(parts)
     for i, patch in nearest.patches.items():
         detections.patches[i] = patch
