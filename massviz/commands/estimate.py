@@ -18,7 +18,7 @@ def register(sub) -> None:
         "REC may be a massviz recording folder, a CCM video (ROOT/viewN/rgb/NNNNNN.mp4), a CCM dataset root "
         "(all recordings of --view), or a folder of massviz recordings. Interrupted runs resume: finished "
         "recordings come back from the trace cache.",
-        epilog="example:\n  massviz estimate data_samples/* --detector depth --out preds.csv\n"
+        epilog="example:\n  massviz estimate data_samples --detector depth --out preds.csv\n"
         "  massviz estimate /data/CCM/train --view 3 --out train.csv\n" + PIPELINE_HELP)
     p.add_argument("recordings", nargs="+", metavar="REC", help="recordings or dataset roots")
     p.add_argument("--out", required=True, metavar="CSV", help="output CSV (written when every recording is done)")

@@ -16,7 +16,7 @@ def register(sub) -> None:
         "already carries its mass prediction. Recordings missing from the cache are processed once (at the "
         "lowest threshold) first, unless --cached-only.",
         epilog="examples:\n"
-        "  massviz sweep data_samples/* --detector depth --threshold 0.3:0.9:0.05 --k 1:10 --plot heatmap.png\n"
+        "  massviz sweep data_samples --detector depth --threshold 0.3:0.9:0.05 --k 1:10 --plot heatmap.png\n"
         "  massviz sweep /data/CCM/train --annotations Val_annotations.csv --csv sweep.csv\n" + PIPELINE_HELP)
     p.add_argument("datasets", nargs="+", metavar="DATASET", help="recordings or dataset roots")
     p.add_argument("--annotations", metavar="ANN.csv",
