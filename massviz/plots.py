@@ -76,9 +76,9 @@ def depth_figure(frame: Frame, width: float = 7.0) -> Figure:
 
 
 def point_cloud_figure(trace: Trace, frame: Frame, intrinsics: Intrinsics, step: int = 3,
-                       width: float = 7.0) -> Figure:
-    """The frame's depth back-projected to 3D (metres, camera frame; RGB colours), chosen patches' masks in yellow.
-    A matplotlib 3D scatter, viewed from slightly above the camera."""
+                       max_depth_m: float = 1.8, width: float = 7.0) -> Figure:
+    """The frame's depth back-projected to 3D (metres, camera frame; RGB colours), chosen patches' masks in yellow,
+    points farther than ``max_depth_m`` (the room's wall) left out. A matplotlib 3D scatter, seen from above left."""
     from massviz.rerun_log import depth_to_points
 
     points, colours = depth_to_points(frame.depth, intrinsics, frame.rgb, step)
@@ -90,6 +90,8 @@ def point_cloud_figure(trace: Trace, frame: Frame, intrinsics: Intrinsics, step:
     highlight = chosen[::step, ::step][sub]
     cols = colours.astype(np.float32) / 255.0
     cols[highlight] = [1.0, 0.83, 0.0]
+    near = points[:, 2] <= max_depth_m
+    points, cols = points[near], cols[near]
     fig = Figure(figsize=(width, width * 0.75))
     ax = fig.add_subplot(projection="3d")
     # camera frame is x right, y down, z forward: plot x, z (depth), -y (up)
