@@ -1,0 +1,109 @@
+"""The three notebooks: stored without outputs, and executed top to bottom (headless, offline) on the bundled samples.
+
+Execution uses the venv's ``python3`` kernel spec (ipykernel), cwd ``notebooks/``, the published weights by path
+(``MASSVIZ_WEIGHTS`` from the ``shared_dir`` fixture) and the session's trace cache of the samples
+(``sample_traces.py``), so the notebooks read cached traces as a user's second run does.
+"""
+from __future__ import annotations
+
+import os
+import sys
+import time
+from pathlib import Path
+
+import nbformat
+import pytest
+from sample_traces import WEIGHTS, sample_cache
+
+ROOT = Path(__file__).resolve().parents[1]
+NOTEBOOKS = ROOT / "notebooks"
+NAMES = ["01_inspect_recording.ipynb", "02_tune_threshold_and_k.ipynb", "03_failure_cases.ipynb"]
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_notebook_is_stored_without_outputs(name):
+    book = nbformat.read(NOTEBOOKS / name, as_version=4)
+    nbformat.validate(book)
+    code = [c for c in book.cells if c.cell_type == "code"]
+    assert code, name
+    for cell in code:
+        assert cell.outputs == [], f"{name}: a code cell has stored outputs (clear them before committing)"
+        assert cell.execution_count is None, f"{name}: a code cell has an execution count"
+
+
+def _kernel_env(weights: Path, cache: Path) -> dict:
+    env = dict(os.environ)
+    env.update(MASSVIZ_WEIGHTS=str(weights), MASSVIZ_CACHE_DIR=str(cache), PYTHONWARNINGS="ignore")
+    # the kernel must be the venv's python (its kernel spec lives in sys.prefix/share/jupyter/kernels)
+    env["JUPYTER_PATH"] = os.pathsep.join(filter(None, [str(Path(sys.prefix) / "share" / "jupyter"),
+                                                         env.get("JUPYTER_PATH")]))
+    env["PATH"] = os.pathsep.join([str(Path(sys.executable).parent), env.get("PATH", "")])
+    return env
+
+
+def _outputs_text(book) -> str:
+    parts = []
+    for cell in book.cells:
+        for out in cell.get("outputs", []):
+            if out.get("output_type") == "stream":
+                parts.append(out.get("text", ""))
+            elif "data" in out:
+                parts.append(str(out["data"].get("text/plain", "")))
+                parts.append(str(out["data"].get("text/html", "")))
+    return "\n".join(parts)
+
+
+@pytest.fixture(scope="module")
+def executed(shared_dir, samples_dir, tmp_path_factory):
+    """Run the three notebooks once (in order, sharing one trace cache); returns {name: executed notebook}."""
+    from jupyter_client.kernelspec import KernelSpecManager
+    from nbclient import NotebookClient
+
+    cache = sample_cache(tmp_path_factory, shared_dir, samples_dir)
+    env = _kernel_env(shared_dir / WEIGHTS, cache)
+    spec = KernelSpecManager().get_kernel_spec("python3")
+    assert Path(spec.argv[0]).resolve().parent == Path(sys.executable).resolve().parent or spec.argv[0] in (
+        "python", "python3", sys.executable), f"python3 kernel spec is not the venv's python: {spec.argv}"
+    out, seconds = {}, {}
+    for name in NAMES:
+        book = nbformat.read(NOTEBOOKS / name, as_version=4)
+        t0 = time.perf_counter()
+        client = NotebookClient(book, timeout=300, kernel_name="python3",
+                                resources={"metadata": {"path": str(NOTEBOOKS)}})
+        client.execute(env=env)
+        seconds[name] = time.perf_counter() - t0
+        out[name] = book
+    print("notebook execution times (s):", {k: round(v, 1) for k, v in seconds.items()})
+    return out
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_notebook_runs_top_to_bottom(executed, name):
+    book = executed[name]
+    for cell in book.cells:
+        if cell.cell_type == "code":
+            errors = [o for o in cell.outputs if o.get("output_type") == "error"]
+            assert not errors, f"{name}: {errors[0]['ename']}: {errors[0]['evalue']}"
+            assert cell.execution_count is not None
+
+
+def test_notebook_01_shows_each_stage(executed):
+    book = executed["01_inspect_recording.ipynb"]
+    text = _outputs_text(book)
+    assert "estimate" in text and "ground truth" in text
+    images = sum("image/png" in o.get("data", {}) for c in book.cells for o in c.get("outputs", []))
+    assert images >= 6, f"expected the frame, depth, point cloud, patches, estimate and timings figures, got {images}"
+    widgets = sum("application/vnd.jupyter.widget-view+json" in o.get("data", {})
+                  for c in book.cells for o in c.get("outputs", []))
+    assert widgets >= 1, "the inline Rerun viewer was not displayed"
+
+
+def test_notebook_02_scores(executed):
+    text = _outputs_text(executed["02_tune_threshold_and_k.ipynb"])
+    assert "score" in text and "cup" in text and "glass" in text and "box" in text
+
+
+def test_notebook_03_flags_the_pitcher(executed):
+    text = _outputs_text(executed["03_failure_cases.ipynb"])
+    assert "FLAGGED" in text and "pitcher" in text
+    assert "after excluding the pitcher" in text
