@@ -38,7 +38,9 @@ def _mass_text(mass_g: float | None, exact: bool) -> str:
 def write_challenge_csv(path: str | Path, rows: Iterable[Any], *, exact: bool = False) -> Path:
     """Write ``rows`` as a CORSMAL challenge prediction CSV at ``path`` (atomically: temp file, then rename).
 
-    Each row is a mapping or an object with ``config_id`` (int, the recording id), ``mass_g`` (grams; ``-1``, any
+    Each row is a mapping or an object with ``config_id`` (the recording id: an int for CCM recordings; a massviz
+    folder without a numeric ``config_id`` in its meta.json is written by name, which ``massviz score`` cannot
+    match against CCM annotations), ``mass_g`` (grams; ``-1``, any
     negative value or ``None`` means not estimated) and ``exec_time_s`` (seconds, written with 2 decimals).
 
     Faithful to the paper's code, which writes ``int(pred)``: an estimated mass is written *truncated* to an integer
@@ -47,9 +49,13 @@ def write_challenge_csv(path: str | Path, rows: Iterable[Any], *, exact: bool = 
     Returns ``path``.
     """
     lines = []
-    seen: set[int] = set()
+    seen: set[str] = set()
     for row in rows:
-        config_id = int(_field(row, "config_id"))
+        config_id = str(_field(row, "config_id")).strip()
+        if config_id.lstrip("-").isdigit():
+            config_id = str(int(config_id))
+        elif not config_id or any(c in config_id for c in ',"\n\r'):
+            raise ValueError(f"recording id {config_id!r} cannot be written in a CSV field")
         if config_id in seen:
             raise ValueError(f"recording {config_id} appears twice")
         seen.add(config_id)

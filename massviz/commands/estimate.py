@@ -14,7 +14,8 @@ def register(sub) -> None:
         "estimate", help="estimate container masses and write the CORSMAL challenge CSV",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Run the pipeline over recordings and write one CSV row per recording (CORSMAL challenge "
-        "columns; properties massviz does not estimate are -1; 'Execution time' in seconds).\n\n"
+        "columns; properties massviz does not estimate are -1; 'Execution time' is the pipeline's wall time in "
+        "seconds, for a cached trace that of the run which made it).\n\n"
         "REC may be a massviz recording folder, a CCM video (ROOT/viewN/rgb/NNNNNN.mp4), a CCM dataset root "
         "(all recordings of --view), or a folder of massviz recordings. Interrupted runs resume: finished "
         "recordings come back from the trace cache.",
@@ -78,7 +79,10 @@ def run(args) -> int:
         if exclusions is not None:
             trace = apply_exclusions(trace, exclusions)
         elapsed = time.perf_counter() - t0
-        rows.append({"config_id": rec.config_id, "mass_g": trace.estimate, "exec_time_s": elapsed})
+        # Execution time: the pipeline's wall time for this recording; for a trace reused from the cache, the time
+        # of the run that made it (recorded in the trace) plus the time spent reusing it.
+        exec_time = elapsed + (trace.timings.get("total", 0.0) if "cache" in trace.timings else 0.0)
+        rows.append({"config_id": rec.config_id, "mass_g": trace.estimate, "exec_time_s": exec_time})
         if not many:
             print(f"{rec.id}: {'not estimated' if trace.estimate < 0 else f'{trace.estimate:.1f} g'} "
                   f"(K={len(trace.selection)}, {len(trace.detections)} detections, {elapsed:.1f} s)",
