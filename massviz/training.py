@@ -154,25 +154,31 @@ class ExtractResult:
     empty: tuple[str, ...]
 
 
-def extract_patches(recordings: Sequence, detector, model, out: str | Path, *, annotations: pd.DataFrame | None = None,
-                    annotations_path: str | Path | None = None, k: int = 5, stride: int = 1, cache=None,
-                    progress: bool = False, force: bool = False) -> ExtractResult:
-    """Write the K selected patches of every recording, with their features and annotation, as a patch set.
-
-    Every recording's annotation is looked up (:func:`annotation_for`) before anything runs. Traces come from
-    :func:`massviz.pipeline.process` with ``cache``, so recordings processed before are not detected again. The
-    set is written into a temporary folder beside ``out`` and renamed into place when complete; an existing
-    ``out`` is an error unless ``force`` (then it is replaced).
-    """
-    from massviz.pipeline import process
-
-    out = Path(out)
-    if out.exists() and not force:
+def check_extract(recordings: Sequence, out: str | Path, annotations: pd.DataFrame | None = None,
+                  annotations_path: str | Path | None = None, force: bool = False) -> list[Annotation]:
+    """The cheap checks to make before anything runs: ``out`` is free (or ``force``), recording ids are unique and
+    every recording is annotated (:func:`annotation_for`). Returns the recordings' annotations, in order."""
+    if Path(out).exists() and not force:
         raise MassvizError("already exists (pass --force to replace it)", out)
     ids = [r.id for r in recordings]
     if dup := sorted({i for i in ids if ids.count(i) > 1}):
         raise MassvizError(f"recording id {dup[0]} appears more than once; extract each dataset on its own")
-    labels = [annotation_for(r, annotations, annotations_path) for r in recordings]
+    return [annotation_for(r, annotations, annotations_path) for r in recordings]
+
+
+def extract_patches(recordings: Sequence, labels: Sequence[Annotation], detector, model, out: str | Path, *,
+                    k: int = 5, stride: int = 1, cache=None, progress: bool = False) -> ExtractResult:
+    """Write the K selected patches of every recording, labelled with its annotation, as a patch set.
+
+    ``labels`` come from :func:`check_extract`. Traces come from :func:`massviz.pipeline.process` with ``cache``,
+    so recordings processed before are not detected again. The set is written into a temporary folder beside
+    ``out`` and renamed into place when complete, replacing an existing ``out``.
+    """
+    from massviz.pipeline import process
+
+    if len(labels) != len(recordings):
+        raise ValueError(f"{len(recordings)} recordings but {len(labels)} labels")
+    out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.", suffix=".part"))
     try:
@@ -188,9 +194,11 @@ def extract_patches(recordings: Sequence, detector, model, out: str | Path, *, a
                 Image.fromarray(patch).save(tmp / name)
                 rows.append(row)
         pd.DataFrame(rows, columns=list(INDEX_COLUMNS)).to_csv(tmp / INDEX_NAME, index=False)
+        old = tmp.with_suffix(".old")
         if out.exists():
-            shutil.rmtree(out)
+            os.replace(out, old)
         os.replace(tmp, out)
+        shutil.rmtree(old, ignore_errors=True)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -551,6 +559,6 @@ def train_run(patches: str | Path, out: str | Path, config: TrainConfig, *, init
 
 
 __all__ = ["INDEX_NAME", "IMAGES_DIR", "INDEX_COLUMNS", "FOLDS", "SPLITS", "AUGMENT_FACTOR", "DEFAULT_EPOCHS",
-           "Annotation", "annotation_for", "patch_rows", "ExtractResult", "extract_patches", "read_index", "Split",
+           "Annotation", "annotation_for", "patch_rows", "ExtractResult", "check_extract", "extract_patches", "read_index", "Split",
            "split_recordings", "compute_ranges", "make_augmentation", "PatchDataset", "TrainConfig", "EpochMetrics",
            "seed_everything", "deterministic", "resolve_device", "evaluate", "fit", "TrainResult", "train_run"]

@@ -33,14 +33,14 @@ def run(args) -> int:
     from massviz.commands._common import build
     from massviz.commands.estimate import collect_recordings
     from massviz.evaluate import read_annotations
-    from massviz.training import extract_patches
+    from massviz.training import check_extract, extract_patches
 
     recordings = collect_recordings(args.recordings, args.view)
     table = read_annotations(args.annotations) if args.annotations else None
+    labels = check_extract(recordings, args.out, table, args.annotations, force=args.force)
     detector, model, cache = build(args)
-    result = extract_patches(recordings, detector, model, args.out, annotations=table,
-                             annotations_path=args.annotations, k=args.k, stride=args.stride, cache=cache,
-                             progress=not args.quiet, force=args.force)
+    result = extract_patches(recordings, labels, detector, model, args.out, k=args.k, stride=args.stride,
+                             cache=cache, progress=not args.quiet)
     if result.empty:
         print(f"no patch (no detection with depth) in {len(result.empty)} recording(s): "
               f"{', '.join(result.empty[:10])}{' ...' if len(result.empty) > 10 else ''}", file=sys.stderr)
