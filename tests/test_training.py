@@ -191,3 +191,54 @@ def test_annotation_mismatch_names_the_csv(shared_dir):
     train = shared_dir / "ccm" / "annotations" / "ccm_train_annotation.csv"
     label = annotation_for(rec, read_annotations(train), train)
     assert (label.mass_g, label.container_id) == (2.0, 2) and dict(label.dims)["height_mm"] == 72.0
+
+
+# ------------------------------------------------------------------------------ extract → train → estimate, by CLI
+def test_extract_train_estimate_on_the_samples(samples_dir, shared_dir, tmp_path, capsys):
+    import json
+
+    from massviz.evaluate import read_predictions
+
+    recordings = sorted(p for p in samples_dir.iterdir() if (p / "meta.json").is_file())
+    if not recordings:
+        pytest.skip("no bundled samples in data_samples/")
+    pipeline = ["--detector", "depth", "--stride", "4", "--cache", str(tmp_path / "cache"), "--quiet"]
+    patches = tmp_path / "patches"
+    assert main(["extract", str(samples_dir), "--out", str(patches), "--weights", str(shared_dir / WEIGHTS),
+                 *pipeline]) == 0, capsys.readouterr().err
+    index = read_index(patches)
+    assert list(index.columns) == list(INDEX_COLUMNS)
+    assert set(index["recording"]) == {p.name for p in recordings} and index["rank"].max() == 4
+    for rec in recordings:
+        mass = json.loads((rec / "meta.json").read_text())["container"]["mass_g"]
+        assert (index.loc[index["recording"] == rec.name, "mass_g"] == mass).all()
+    assert np.isfinite(index["d"]).all() and (index["d"] > 0).all()
+    first = Image.open(patches / index["file"][0])
+    assert first.mode == "RGB" and first.size == (index["x2"][0] - index["x1"][0], index["y2"][0] - index["y1"][0])
+    assert not list(tmp_path.glob(".patches.*"))  # the temporary folder was moved into place
+    assert main(["extract", str(samples_dir), "--out", str(patches), *pipeline]) == 2  # exists: no --force
+    assert "already exists" in capsys.readouterr().err
+
+    run = tmp_path / "run"
+    assert main(["train", str(patches), "--out", str(run), "--epochs", "3", "--seed", "0", "--quiet"]) == 0, \
+        capsys.readouterr().err
+    metrics = pd.read_csv(run / "metrics.csv")
+    assert metrics["val_loss"][metrics["epoch"] > 0].min() < metrics["val_loss"][0]  # training lowered it
+
+    preds = tmp_path / "preds.csv"
+    ccm = shared_dir / "ccm_real" / "view1" / "rgb" / "000000.mp4"
+    assert main(["estimate", str(ccm), "--weights", str(run / "best.torch"), "--out", str(preds), *pipeline]) == 0, \
+        capsys.readouterr().err
+    table = read_predictions(preds)
+    assert list(table["Configuration ID"]) == [0] and np.isfinite(table["Container mass"]).all()
+
+
+def test_extract_with_an_annotation_csv_missing_a_recording(shared_dir, tmp_path, capsys):
+    ann = shared_dir / "ccm" / "annotations" / "test_annotations_fold0.csv"  # recording 0 is in fold 1's test set
+    ccm = shared_dir / "ccm_real" / "view1" / "rgb" / "000000.mp4"
+    out = tmp_path / "patches"
+    assert main(["extract", str(ccm), "--annotations", str(ann), "--out", str(out), "--detector", "depth",
+                 "--weights", str(shared_dir / WEIGHTS), "--no-cache", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{ann}: no annotation for recording 000000" in err
+    assert not out.exists() and not list(tmp_path.iterdir())
