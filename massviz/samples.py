@@ -3,7 +3,10 @@
 Each sample is a short RGB-D recording from a fixed frontal camera (a RealSense-like camera scaled to 480×270): a
 person walks towards the camera and hands over a container (cup, glass or box) while a pitcher stands on the table
 between them. Early in the hand-over the pitcher is nearer to the camera than the container — the failure case of
-"the manipulated container is the nearest object" — and late in it the container is the nearest object.
+"the manipulated container is the nearest object" — and late in it the container is the nearest object. The person
+holds the container from behind, so the camera sees all of it (``container_occluded`` in meta.json). In
+``cup_handover`` a hand lifts the pitcher towards the camera for a few frames, nearer than the cup ever comes: there
+the K nearest detections include pitcher patches.
 
 Everything is built from a handful of primitives (surfaces of revolution, cuboids). Per frame one ray per pixel is
 cast (``cast_rays`` → ``t_hit``, ``geometry_ids``, ``primitive_ids``, ``primitive_normals``); RGB is shaded here
@@ -82,7 +85,16 @@ class SampleSpec:
     end: tuple[float, float, float]  # ... and when it is handed to the robot
     yaw_deg: tuple[float, float]  # container rotation about the vertical, start and end
     shirt: tuple[int, int, int]
+    #: ``(t_start, t_end, (x, y, z))``: between hand-over times ``t_start`` and ``t_end`` a hand (behind the pitcher,
+    #: hidden by it) lifts the pitcher from the table towards the camera, its base up to ``(x, y, z)`` (m) half-way,
+    #: and puts it back. None: the pitcher stays on the table.
+    pitcher_lift: tuple[float, float, tuple[float, float, float]] | None = None
 
+
+#: Hand-over times (strictly between frames 6 and 12 of 36, so every 6th frame shows it on the table) and peak base
+#: position of the lifted pitcher: in frames 8-10 it is nearer than the container ever comes, so the K = 5 nearest
+#: detections of the whole recording include three pitcher patches.
+PITCHER_LIFT = (6 / 35, 12 / 35, (-0.16, 0.13, 0.42))
 
 SAMPLES: dict[str, SampleSpec] = {
     spec.name: spec
@@ -91,7 +103,7 @@ SAMPLES: dict[str, SampleSpec] = {
             "cup_handover",
             Container("cup", 9.0, 92.0, 60.0, 110.0, -1.0, 480.0, (236, 232, 222), (196, 64, 52)),
             seed=101, pitcher_xz=(-0.20, 0.86), start=(0.13, 0.02, 1.45), end=(0.04, 0.0, 0.56),
-            yaw_deg=(0.0, 0.0), shirt=(54, 84, 140)),
+            yaw_deg=(0.0, 0.0), shirt=(54, 84, 140), pitcher_lift=PITCHER_LIFT),
         SampleSpec(
             "glass_handover",
             Container("glass", 118.0, 78.0, 62.0, 128.0, -1.0, 400.0, (215, 228, 235), (215, 228, 235)),
@@ -219,16 +231,27 @@ def container_parts(c: Container, centre: np.ndarray, yaw_deg: float) -> list[Pa
     return [_part(v, f, albedo, CONTAINER, rot, origin, glass=c.cls == "glass")]
 
 
-def pitcher_parts(x: float, z: float, table_y: float) -> list[Part]:
-    """A 21 cm plastic pitcher standing on the table, handle on its left."""
+def pitcher_parts(x: float, z: float, base_y: float) -> list[Part]:
+    """A 21 cm plastic pitcher with its base at height ``base_y`` (the table top when it stands), handle on its left."""
     profile = [(0, 0), (0.058, 0), (0.066, 0.06), (0.062, 0.14), (0.052, 0.19), (0.058, 0.21), (0, 0.21)]
     v, f, _ = lathe(profile, segments=48)
-    body = _part(v, f, (120, 170, 205), PITCHER, _UPRIGHT, (x, table_y, z))
-    handle = _capsule((x - 0.05, table_y - 0.17, z + 0.01), (x - 0.095, table_y - 0.11, z + 0.01), 0.011,
+    body = _part(v, f, (120, 170, 205), PITCHER, _UPRIGHT, (x, base_y, z))
+    handle = _capsule((x - 0.05, base_y - 0.17, z + 0.01), (x - 0.095, base_y - 0.11, z + 0.01), 0.011,
                       (100, 150, 190), PITCHER)
-    grip = _capsule((x - 0.095, table_y - 0.11, z + 0.01), (x - 0.06, table_y - 0.04, z + 0.01), 0.011,
+    grip = _capsule((x - 0.095, base_y - 0.11, z + 0.01), (x - 0.06, base_y - 0.04, z + 0.01), 0.011,
                     (100, 150, 190), PITCHER)
     return [body, handle, grip]
+
+
+def lifting_hand_parts(x: float, z: float, base_y: float, shirt) -> list[Part]:
+    """The hand lifting the pitcher at (``x``, ``base_y``, ``z``): its palm on the back of the pitcher and its forearm
+    straight back along the line of sight, so the pitcher hides both (like the container, it is seen whole)."""
+    palm = np.array([x, base_y - 0.1, z + 0.066 + 0.018])
+    ray = palm / np.linalg.norm(palm)
+    return [
+        _ellipsoid((0.036, 0.045, 0.016), (214, 168, 140), HAND, np.eye(3), palm),
+        _capsule(palm + 0.03 * ray, palm + 0.3 * ray, 0.03, shirt, PERSON),
+    ]
 
 
 def _elbow(shoulder: np.ndarray, wrist: np.ndarray, upper: float, fore: float) -> np.ndarray:
@@ -243,15 +266,16 @@ def _elbow(shoulder: np.ndarray, wrist: np.ndarray, upper: float, fore: float) -
     return shoulder + along * u + off * bend / np.linalg.norm(bend)
 
 
-def person_parts(grip: np.ndarray, side: float, shoulder: np.ndarray, shirt) -> list[Part]:
-    """Hand at ``grip`` holding the container from its right side, arm to ``shoulder``, torso and head."""
+def person_parts(palm: np.ndarray, shoulder: np.ndarray, shirt) -> list[Part]:
+    """Hand holding the container from behind (palm centred at ``palm``, just behind the container's back as seen
+    from the camera, so the camera sees all of the container), arm to ``shoulder``, torso and head."""
     skin = (214, 168, 140)
-    wrist = grip + np.array([0.025, 0.02, 0.08])
+    wrist = palm + np.array([0.015, 0.03, 0.065])
     elbow = _elbow(shoulder, wrist, 0.30, 0.27)
     torso_c = shoulder + np.array([-0.19, 0.26, 0.06])
     parts = [
-        _ellipsoid((0.02, 0.045, 0.036), skin, HAND, _rot_y(-20), grip + np.array([side, 0.0, 0.035])),
-        _ellipsoid((0.012, 0.03, 0.012), skin, HAND, _rot_x(30), grip + np.array([side - 0.012, -0.035, -0.01])),
+        _ellipsoid((0.036, 0.045, 0.016), skin, HAND, np.eye(3), palm),
+        _ellipsoid((0.011, 0.025, 0.011), skin, HAND, _rot_x(-25), palm + np.array([0.02, -0.025, 0.006])),
         _capsule(wrist, elbow, 0.036, shirt, PERSON),
         _capsule(elbow, shoulder, 0.045, shirt, PERSON),
         _ellipsoid((0.2, 0.3, 0.11), shirt, PERSON, np.eye(3), torso_c),
@@ -260,15 +284,14 @@ def person_parts(grip: np.ndarray, side: float, shoulder: np.ndarray, shirt) -> 
     return parts
 
 
-def static_parts(spec: SampleSpec, table_y: float) -> list[Part]:
-    """Table (top at ``table_y``), pitcher on it and the back wall."""
+def static_parts(table_y: float) -> list[Part]:
+    """Table (top at ``table_y``) and the back wall."""
     v, f, face = cuboid((1.6, 0.04, 1.6))
     table_albedo = np.where((face == 2)[:, None], (150, 112, 76), (120, 86, 58))  # -y: the top
     wall_v, wall_f, _ = cuboid((6.0, 4.0, 0.02))
     return [
         _part(v, f, table_albedo, TABLE, np.eye(3), (0.0, table_y + 0.02, 1.5)),
         _part(wall_v, wall_f, (190, 196, 188), 0, np.eye(3), (0.0, 0.0, 2.6)),
-        *pitcher_parts(spec.pitcher_xz[0], spec.pitcher_xz[1], table_y),
     ]
 
 
@@ -283,11 +306,26 @@ def frame_parts(spec: SampleSpec, t: float) -> list[Part]:
     centre = start + s * (end - start) + np.array([0.0, -0.05 * np.sin(np.pi * s), 0.0])
     yaw = spec.yaw_deg[0] + s * (spec.yaw_deg[1] - spec.yaw_deg[0])
     c = spec.container
-    half_w = (c.width_top_mm + c.width_bottom_mm) / 4000 if c.cls != "box" else c.width_top_mm / 2000
+    if c.cls == "box":  # half its extent along the line of sight, turned by yaw
+        back = (c.width_top_mm * abs(np.sin(np.radians(yaw))) + c.depth_mm * abs(np.cos(np.radians(yaw)))) / 2000
+    else:
+        back = max(c.width_top_mm, c.width_bottom_mm) / 2000
     shoulder = np.array([0.22, -0.17, 1.9 + s * (1.02 - 1.9)])
-    grip = centre + np.array([half_w * np.cos(np.radians(yaw)), -0.01, 0.0])
-    return [*container_parts(c, centre, yaw), *person_parts(grip, 0.012, shoulder, spec.shirt),
-            *static_parts(spec, _TABLE_Y)]
+    # 2 cm behind the back of the container (depth cannot tell a hand touching it from the container)
+    palm = centre + np.array([0.005, 0.0, back + 0.036])
+    return [*container_parts(c, centre, yaw), *person_parts(palm, shoulder, spec.shirt),
+            *static_parts(_TABLE_Y), *pitcher_at(spec, t)]
+
+
+def pitcher_at(spec: SampleSpec, t: float) -> list[Part]:
+    """The pitcher at hand-over time ``t``: on the table, or lifted (with the hand lifting it) during ``pitcher_lift``."""
+    x, z = spec.pitcher_xz
+    if spec.pitcher_lift is None or not spec.pitcher_lift[0] < t < spec.pitcher_lift[1]:
+        return pitcher_parts(x, z, _TABLE_Y)
+    t0, t1, peak = spec.pitcher_lift
+    u = np.sin(np.pi * (t - t0) / (t1 - t0)) ** 2  # 0 → 1 → 0, smoothly
+    px, py, pz = np.array([x, _TABLE_Y, z]) + u * (np.asarray(peak) - np.array([x, _TABLE_Y, z]))
+    return [*pitcher_parts(px, pz, py), *lifting_hand_parts(px, pz, py, spec.shirt)]
 
 
 # --------------------------------------------------------------------------------------------------- rendering
@@ -402,6 +440,7 @@ class RenderedFrame:
     container_visible_fraction: float
     container_distance_mm: float
     pitcher_distance_mm: float
+    container_occluded: bool  # some pixel of the container's own silhouette shows another instance
 
 
 def render_frame(parts: list[Part], rays: o3d.core.Tensor, k: Intrinsics, rng: np.random.Generator) -> RenderedFrame:
@@ -419,8 +458,10 @@ def render_frame(parts: list[Part], rays: o3d.core.Tensor, k: Intrinsics, rng: n
         glint = (1 - cos)[..., None] ** 3
         tinted = 0.82 * seen + 0.18 * np.array([225.0, 240.0, 245.0]) + 90 * glint
         rgb = np.where(glass[..., None], tinted, rgb)
-    # The projector and second camera see past the glass: shadows come from the opaque scene.
-    valid = ~stereo_shadow(behind.z) & (~glass | glass_returns(parts, hits, k, rng))
+    # The projector and second camera see past the glass: the glass casts no stereo shadow, shadows come from the
+    # opaque scene. Where the glass itself returns depth, what is nearer than the glass can shadow it (what is behind
+    # it, e.g. the hand holding it, cannot).
+    valid = np.where(glass, glass_returns(parts, hits, k, rng) & ~stereo_shadow(hits.z), ~stereo_shadow(behind.z))
     depth = sensor_depth(hits.z, valid, rng)
 
     alone = cast([p for p in parts if p.instance == CONTAINER], rays)
@@ -434,6 +475,7 @@ def render_frame(parts: list[Part], rays: o3d.core.Tensor, k: Intrinsics, rng: n
         container_visible_fraction=round(float(visible.sum()) / silhouette, 4) if silhouette else 0.0,
         container_distance_mm=round(1000 * float(hits.z[visible].mean()), 1) if visible.any() else -1.0,
         pitcher_distance_mm=round(1000 * float(hits.z[pitcher].mean()), 1) if pitcher.any() else -1.0,
+        container_occluded=bool((np.isfinite(alone.z) & ~visible).any()),
     )
 
 
@@ -500,6 +542,7 @@ def write_sample(spec: SampleSpec, out_dir: Path, progress: Callable[[int], None
                                                or r.container_distance_mm < r.pitcher_distance_mm)),
                 "container_visible_fraction": r.container_visible_fraction,
                 "container_distance_mm": r.container_distance_mm,
+                "container_occluded": r.container_occluded,
             })
             progress(1)
         INTRINSICS.save(tmp / "intrinsics.json")

@@ -18,7 +18,8 @@ def register(subparsers) -> None:
         help="generate the synthetic sample recordings (data_samples/)",
         description="Render small synthetic RGB-D hand-over recordings with ground truth, deterministically (the same "
         "code writes the same bytes). A person hands over a cup, a transparent glass or a box while a pitcher stands "
-        "on the table, nearer to the camera than the container early in the hand-over. Each recording has "
+        "on the table, nearer to the camera than the container early in the hand-over (in cup_handover it is lifted "
+        "towards the camera for a few frames, nearer than the cup ever comes). Each recording has "
         f"{N_FRAMES} frames at 480x270: rgb/, depth/ (16-bit mm), gt/ (instance ids), intrinsics.json, meta.json. "
         "A recording is written to a temporary folder and renamed into place, replacing the previous one.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
