@@ -50,10 +50,14 @@ def test_meta_schema(rec):
     frames = meta["frames"]
     assert [f["index"] for f in frames] == list(range(len(frames))) and 30 <= len(frames) <= 45
     for f in frames:
-        assert set(f) == {"index", "container_nearest", "container_visible_fraction", "container_distance_mm"}
+        assert set(f) == {"index", "container_nearest", "container_visible_fraction", "container_distance_mm",
+                          "container_occluded"}
         assert 0 < f["container_visible_fraction"] <= 1 and 400 <= f["container_distance_mm"] <= 1600
+        assert f["container_occluded"] == (f["container_visible_fraction"] < 1)
     nearest = [f["container_nearest"] for f in frames]
     assert any(nearest) and not all(nearest), "the pitcher must be nearer than the container in some frames"
+    # the hand holds the container from behind: fully visible while it is handed over (issue 5)
+    assert sum(f["container_nearest"] and not f["container_occluded"] for f in frames) >= 6
 
 
 def test_images_match_layout_and_ground_truth(rec):
