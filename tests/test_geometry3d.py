@@ -51,12 +51,11 @@ def sample(samples_dir, name):
     return path
 
 
-def best_frames(rec_dir, n=3) -> tuple[list[int], float]:
-    """The ``n`` nearest frames where the container is at least 98 % visible, and their lowest visible fraction."""
+def best_frames(rec_dir, n=3) -> list[int]:
+    """The ``n`` nearest frames where no pixel of the container is hidden (meta.json ``container_occluded``)."""
     frames = json.loads((rec_dir / "meta.json").read_text())["frames"]
-    seen = [f for f in frames if f["container_visible_fraction"] >= 0.98]
-    top = sorted(seen, key=lambda f: f["container_distance_mm"])[:n]
-    return sorted(f["index"] for f in top), min(f["container_visible_fraction"] for f in top)
+    seen = [f for f in frames if not f["container_occluded"]]
+    return sorted(f["index"] for f in sorted(seen, key=lambda f: f["container_distance_mm"])[:n])
 
 
 def tiny_recording(tmp_path, intrinsics: bool):
@@ -122,29 +121,36 @@ def test_measured_box_axes_follow_a_turned_cuboid():
 # ----------------------------------------------------------------------------------------------------- samples
 @pytest.mark.parametrize("name", ["box_handover", "cup_handover", "glass_handover"])
 def test_sample_container_size_from_gt_mask(samples_dir, name):
-    """Height and width of the container from its ground-truth mask's cloud, on its most visible frames.
+    """Height and width of the container from its ground-truth mask's cloud, within 10 % of the annotation on the six
+    nearest frames where it is unoccluded (issue 5).
 
-    Fully unoccluded (visible fraction >= 0.995, the box): both within 10 %. The cup and the glass are held at their
-    right edge, and the hand hides 5-10 mm of their silhouette (visible fraction ~0.98-0.99): the height is still
-    within 10 %, the width as seen within 15 % of the annotated top width."""
+    The hand holds the container from behind, so in the hand-over phase (the container nearest) no pixel of it is
+    hidden. The width is compared with ``ground_truth_size``'s ``width_mm``, the larger of the top and bottom widths:
+    what the width *as seen* of a cup or glass measures is its widest diameter, the rim. On the round cup it comes out
+    about 8-10 % short: the statistical outlier removal drops the points at its grazing silhouette and the pixel
+    centres span a pixel less than the silhouette."""
     rec_dir = sample(samples_dir, name)
     rec = open_recording(rec_dir)
     gt = G.ground_truth_size(rec.meta)
-    frames, visible = best_frames(rec_dir)
+    meta_frames = rec.meta["frames"]
+    assert sum(f["container_nearest"] and not f["container_occluded"] for f in meta_frames) >= 6
+    frames = best_frames(rec_dir, 6)
+    assert all(meta_frames[f]["container_nearest"] for f in frames)
     trace = make_trace(rec, gt_detections(rec_dir, frames), k=len(frames))
     ms = G.measure(trace, rec)
     assert [m.rank for m in ms] == list(range(len(frames)))
-    width_tol = 0.10 if visible >= 0.995 else 0.15
     for m in ms:
+        print(f"{name} frame {m.frame}: height {m.height_mm:.1f} mm (true {gt['height_mm']:.0f}), width "
+              f"{m.width_mm:.1f} mm (true {gt['width_mm']:.0f})")
         assert m.height_mm == pytest.approx(gt["height_mm"], rel=0.10), m
-        assert m.width_mm == pytest.approx(gt["width_mm"], rel=width_tol), m
+        assert m.width_mm == pytest.approx(gt["width_mm"], rel=0.10), m
         assert m.n_points > 50
 
 
 def test_measurements_stored_in_trace_and_ply_files(samples_dir, tmp_path):
     rec_dir = sample(samples_dir, "box_handover")
     rec = open_recording(rec_dir)
-    frames, _ = best_frames(rec_dir, 2)
+    frames = best_frames(rec_dir, 2)
     trace = G.with_measurements(make_trace(rec, gt_detections(rec_dir, frames), k=2), rec)
     assert len(trace.measurements) == 2 and "measure3d" in trace.timings
     assert any("measured chosen patch 0" in e[1] for e in trace.events)
@@ -166,7 +172,7 @@ def test_measurements_stored_in_trace_and_ply_files(samples_dir, tmp_path):
 def test_render_headless_png_not_blank(samples_dir, tmp_path):
     rec_dir = sample(samples_dir, "cup_handover")
     rec = open_recording(rec_dir)
-    frames, _ = best_frames(rec_dir, 1)
+    frames = best_frames(rec_dir, 1)
     trace = G.with_measurements(make_trace(rec, gt_detections(rec_dir, frames), k=1), rec)
     info = G.render_png(trace, rec, tmp_path / "view.png", width=480, height=270)
     assert info["frame"] == frames[0]
