@@ -1,8 +1,9 @@
 """Widget state and callbacks of the notebooks, tested directly on the bundled samples with the published weights.
 
-On the samples the container ends the hand-over nearer than the pitcher, so with every frame and the paper's K = 5
-the pitcher is never chosen (it is from K >= 18 on). With every 6th frame (stride 6) only two processed frames show
-the container nearer than the pitcher, and K = 5 takes three pitcher patches: the failure tests use that.
+In cup_handover a hand lifts the pitcher nearer than the cup in frames 8-10, so with every frame and the paper's K = 5
+the selection takes pitcher patches (the failure users hunt). With every 6th frame (stride 6) the lifted frames are
+skipped, yet only two processed frames show the cup nearer than the pitcher standing on the table, so K = 5 takes
+pitcher patches there too: a second, different case (a pitcher track standing still).
 """
 from __future__ import annotations
 
@@ -89,7 +90,10 @@ def test_flagging_marks_the_pitcher(traces):
     cup = _pos(traces, "cup_handover")
     frames = traces[cup].recording["meta"]["frames"]
     assert any(not f["container_nearest"] for f in frames), "the pitcher is nearer than the cup in some frames"
-    assert chosen_table(retune(traces[cup], k=5))["flagged"].sum() == 0  # stride 1: only the cup is chosen
+    every = chosen_table(retune(traces[cup], k=5))  # every frame, the paper's K: the lifted pitcher is chosen
+    assert (every["gt_overlaps"] == "pitcher").sum() >= 1
+    assert every[every["gt_overlaps"] == "pitcher"]["flagged"].all()
+    assert not every[every["gt_overlaps"] == "container"]["flagged"].any()
     table = chosen_table(retune(traces[cup], k=5, stride=6))
     pitcher = table[table["gt_overlaps"] == "pitcher"]
     assert len(pitcher) >= 1 and pitcher["flagged"].all()
