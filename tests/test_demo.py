@@ -1,0 +1,47 @@
+"""The README's first set-up command ends with `massviz log` on a bundled sample: its .rrd must hold every entity of the
+documented tree, as `rerun rrd print -v` shows it."""
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+from sample_traces import WEIGHTS, sample_cache
+
+ROOT = Path(__file__).resolve().parents[1]
+CONTRACT = ["/camera", "/camera/rgb", "/camera/depth", "/camera/detections", "/camera/masks", "/world/points",
+            "/log", "/predictions/estimate", "/predictions/ground_truth"]
+
+
+def demo_command() -> list[str]:
+    """The `massviz log ...` line of scripts/setup.sh's demo job, as arguments."""
+    line = next(ln for ln in (ROOT / "scripts" / "setup.sh").read_text().splitlines()
+                if "massviz log data_samples/" in ln)
+    return line.split()[1:]  # drop ".venv/bin/massviz"
+
+
+def test_readme_demo_rrd_holds_the_entity_tree(tmp_path, tmp_path_factory, shared_dir, samples_dir):
+    readme = (ROOT / "README.md").read_text()
+    assert "bash scripts/setup.sh demo" in readme and "bash scripts/setup.sh test" in readme
+    args = demo_command()
+    out = tmp_path / "demo.rrd"
+    args[args.index("--rrd") + 1] = str(out)
+    cache = sample_cache(tmp_path_factory, shared_dir, samples_dir)  # same settings: the detector need not run
+    env = {**os.environ, "MASSVIZ_WEIGHTS": str(shared_dir / WEIGHTS)}
+    run = subprocess.run([sys.executable, "-m", "massviz", *args, "--cache", str(cache), "--quiet"], cwd=ROOT,
+                         env=env, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    assert "cup_handover:" in run.stderr and "ground truth" in run.stderr
+    rerun = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun")
+    printed = subprocess.run([rerun, "rrd", "print", "-v", str(out)], capture_output=True, text=True, timeout=300)
+    assert printed.returncode == 0, printed.stderr
+    entities = set(re.findall(r" - (/[A-Za-z0-9_/]+) - data columns", printed.stdout))
+    k = 5
+    expected = CONTRACT + [f"/patches/{r}" for r in range(k)] + [f"/predictions/patch_{r}" for r in range(k)]
+    missing = [e for e in expected if e not in entities]
+    assert not missing, f"missing from the demo .rrd: {missing}"
+    assert "/camera/rgb@EncodedImage:blob" in printed.stdout  # a frame folder: compressed images
+    assert "/camera/depth@DepthImage:buffer" in printed.stdout
