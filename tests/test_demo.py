@@ -43,5 +43,6 @@ def test_readme_demo_rrd_holds_the_entity_tree(tmp_path, tmp_path_factory, share
     expected = CONTRACT + [f"/patches/{r}" for r in range(k)] + [f"/predictions/patch_{r}" for r in range(k)]
     missing = [e for e in expected if e not in entities]
     assert not missing, f"missing from the demo .rrd: {missing}"
+    assert any(e.startswith("/world/detections/") for e in entities)  # Open3D clouds of the detections
     assert "/camera/rgb@EncodedImage:blob" in printed.stdout  # a frame folder: compressed images
     assert "/camera/depth@DepthImage:buffer" in printed.stdout

@@ -20,6 +20,10 @@ def register(sub) -> None:
     out = p.add_argument_group("output (one of them is required)")
     out.add_argument("--rrd", metavar="OUT.rrd", help="write the Rerun recording to this file")
     out.add_argument("--spawn", action="store_true", help="spawn (or connect to) a Rerun viewer")
+    p.add_argument("--video", choices=["auto", "asset", "images"], default="auto",
+                   help="how an mp4 input is logged: 'asset' = the file once as a Rerun video asset with per-frame "
+                   "references (not re-encoded); 'images' = a JPEG per processed frame; 'auto' (default) = asset "
+                   "when Rerun can decode the codec, else images (CCM's MPEG-4 Part 2 'mp4v' it cannot)")
     p.add_argument("--ply", metavar="DIR", help="also write the chosen frames' point clouds (.ply) into DIR "
                    "(as 'massviz cloud' does)")
     add_pipeline_args(p)
@@ -43,7 +47,7 @@ def run(args) -> int:
     detector, model, cache = build(args)
     trace = process(rec, detector, model, k=args.k, stride=args.stride, cache=cache, progress=not args.quiet)
     stats = log_trace(trace, rec, rrd=Path(args.rrd) if args.rrd else None, spawn=args.spawn,
-                      progress=not args.quiet)
+                      progress=not args.quiet, video=args.video)
     if args.ply:
         from massviz.geometry3d import write_ply_or_skip
 
