@@ -21,7 +21,7 @@ entity                         what is logged
                                get class id ``CHOSEN_ID + rank`` and the label suffix "★rank"
 ``/camera/masks``              ``SegmentationImage`` of the same class ids (chosen masks drawn on top)
 ``/world``                     ``ViewCoordinates.RDF`` (static): the 3D world is the camera frame
-``/world/points``              ``Points3D``: depth back-projected to metres in the camera frame, every ``step``-th pixel,
+``/world/points``              ``Points3D``: depth back-projected (Open3D) to metres in the camera frame, every ``step``-th pixel,
                                at most ``max_points``, coloured by RGB (only with intrinsics)
 ``/patches/<rank>``            ``Image`` of chosen patch ``rank`` (0 = nearest) as the model saw it (zero-padded
                                square, 112×112) at its source frame, with ``AnyValues`` a, b, d_mm, frame, class,
@@ -175,16 +175,18 @@ def log_depth(rec: rr.RecordingStream, depth: np.ndarray) -> None:
 
 def depth_to_points(depth: np.ndarray, intrinsics: Intrinsics, rgb: np.ndarray | None = None,
                     step: int = POINT_STEP) -> tuple[np.ndarray, np.ndarray | None]:
-    """Back-project every ``step``-th pixel with depth: (N×3 float32 metres in the RDF camera frame, N×3 uint8 RGB
-    colours or None). Pixels without depth (0) are dropped."""
-    z = depth[::step, ::step].astype(np.float32) / 1000.0
-    v, u = np.mgrid[0:depth.shape[0]:step, 0:depth.shape[1]:step]
-    valid = z > 0
-    z = z[valid]
-    x = (u[valid].astype(np.float32) - intrinsics.cx) * z / intrinsics.fx
-    y = (v[valid].astype(np.float32) - intrinsics.cy) * z / intrinsics.fy
-    points = np.stack([x, y, z], axis=1).astype(np.float32)
-    colours = None if rgb is None else rgb[::step, ::step][valid]
+    """Back-project every ``step``-th pixel with depth through Open3D (``massviz.geometry3d.rgbd_cloud``, the same
+    back-projection as the 3D stage, within its ``DEPTH_TRUNC_M``): (N×3 float32 metres in the RDF camera frame,
+    N×3 uint8 RGB colours or None). Subsampling scales the intrinsics, so a point is exactly its full-size pixel's."""
+    from massviz.geometry3d import rgbd_cloud
+
+    sub = depth[::step, ::step]
+    intr = Intrinsics(intrinsics.fx / step, intrinsics.fy / step, intrinsics.cx / step, intrinsics.cy / step,
+                      sub.shape[1], sub.shape[0])
+    colour = np.zeros((*sub.shape, 3), np.uint8) if rgb is None else rgb[::step, ::step]
+    pcd = rgbd_cloud(colour, sub, intr)
+    points = np.asarray(pcd.points, dtype=np.float32)
+    colours = None if rgb is None else np.round(np.asarray(pcd.colors) * 255).astype(np.uint8)
     return points, colours
 
 
