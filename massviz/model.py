@@ -25,8 +25,6 @@ from __future__ import annotations
 import json
 import math
 import numbers
-import os
-import tempfile
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Sequence
@@ -40,6 +38,7 @@ from torchvision import transforms
 from torchvision.transforms import InterpolationMode
 from torchvision.transforms import functional as TF
 
+from massviz.atomic import atomic_path
 from massviz.errors import WeightsError
 from massviz.weights import RANGE_KEYS, PUBLISHED, published_by_sha256, sha256_file
 
@@ -292,14 +291,8 @@ def save_checkpoint(path: str | Path, model: MassNet, ranges: Ranges, extra: dic
         "ranges": ranges.to_dict(),
         "extra": dict(extra or {}),
     }
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(payload, f)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as tmp:
+        torch.save(payload, tmp)
     return path
 
 

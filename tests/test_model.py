@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -257,7 +258,10 @@ def test_unreadable_or_mismatched_checkpoint(weights_dir, tmp_path):
 def test_save_checkpoint_round_trip(model158, tmp_path, golden_inputs):
     ranges = Ranges(*README_RANGES["Encoder_pool_aug_fold2_86.torch"])
     path = save_checkpoint(tmp_path / "sub" / "trained.pt", model158, ranges, extra={"epoch": 3, "split": "F3"})
-    assert not list(path.parent.glob("*.part"))
+    assert [p.name for p in path.parent.iterdir()] == ["trained.pt"]  # no temporary file left behind
+    umask = os.umask(0)
+    os.umask(umask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask  # the usual permissions, not mkstemp's private 0600
     raw = torch.load(path, map_location="cpu", weights_only=True)
     assert raw["ranges"] == ranges.to_dict() and raw["extra"] == {"epoch": 3, "split": "F3"}
     loaded = MassNet.from_checkpoint(path)
