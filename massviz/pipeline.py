@@ -23,8 +23,8 @@ from tqdm.auto import tqdm
 from massviz.detect.base import Detector
 from massviz.recording import Recording
 from massviz.selection import compute_features, estimate_mass, select_k_nearest
-from massviz.trace import Trace
-from massviz.types import Detections, class_name
+from massviz.trace import Trace, describe_detection, describe_selection, is_selection_event
+from massviz.types import Detections
 
 #: how many of the nearest detections keep their RGB patch in the trace (>= any K you will reselect with).
 KEEP_PATCHES = 32
@@ -63,11 +63,6 @@ class _NearestPatches:
             self.patches.pop(-neg, None)
 
 
-def _describe(dets: Detections, i: int) -> str:
-    return (f"{class_name(dets.class_id[i])} {dets.score[i]:.2f} box {dets.xyxy[i].tolist()} "
-            f"d={dets.d[i]:.0f}mm pred={dets.pred[i]:.1f}g")
-
-
 def run(recording: Recording, detector: Detector, model, *, k: int = 5, stride: int = 1,
         keep_patches: int = KEEP_PATCHES, progress: bool = False) -> Trace:
     """Run detection, features and prediction over ``recording`` and select the ``k`` nearest patches."""
@@ -97,7 +92,7 @@ def run(recording: Recording, detector: Detector, model, *, k: int = 5, stride: 
             timings["predict"] += t4 - t3
             for i in range(len(dets)):
                 if not np.isfinite(dets.d[i]):
-                    events.append((frame.index, f"skipped {_describe(dets, i)}: its mask has no depth"))
+                    events.append((frame.index, f"skipped {describe_detection(dets, i)}: its mask has no depth"))
                 nearest.offer(offset + i, float(dets.d[i]), patches[i])
             frames.append(frame.index)
             parts.append(dets)
@@ -121,17 +116,6 @@ def run(recording: Recording, detector: Detector, model, *, k: int = 5, stride: 
                  stride=stride, frames=np.asarray(frames, dtype=np.int32), detections=detections,
                  selection=selection, estimate=estimate, weights_id=getattr(model, "weights_id", ""),
                  timings=dict(timings), events=events)
-
-
-def describe_selection(dets: Detections, selection: np.ndarray, estimate: float, k: int) -> list[tuple[int, str]]:
-    """Readable decisions of the selection stage, as (frame, message)."""
-    out = [(int(dets.frame[i]), f"chose patch {r} (of K={k}): {_describe(dets, i)}") for r, i in enumerate(selection)]
-    last = int(dets.frame.max()) if len(dets) else 0
-    if len(selection):
-        out.append((last, f"estimate {estimate:.1f} g = mean of {len(selection)} patch predictions"))
-    else:
-        out.append((last, "no detection with depth: mass not estimated (-1)"))
-    return out
 
 
 def repredict(trace: Trace, recording: Recording, model, progress: bool = False) -> Trace:
@@ -166,9 +150,9 @@ def process(recording: Recording, detector: Detector, model, *, k: int = 5, stri
             cache.save(trace, recording, info)
             note += "; predictions recomputed for this model"
         trace = trace.reselect(k=k, threshold=detector.threshold, exclude=exclude)
-        events = [e for e in trace.events if not e[1].startswith(("chose patch", "estimate ", "no detection"))]
+        events = [e for e in trace.events if not is_selection_event(e)]
         events.append((-1, note))
-        events.extend(describe_selection(trace.detections, trace.selection, trace.estimate, k))
+        events.extend(e for e in trace.events if is_selection_event(e))
         timings = {"cache": time.perf_counter() - t0}
         return dataclasses.replace(trace, events=events, timings={**trace.timings, **timings})
     trace = run(recording, detector, model, k=k, stride=stride, progress=progress)

@@ -1,7 +1,7 @@
 """The trace: everything one pipeline run computed, with each stage's wall time.
 
 Every consumer (Rerun logger, Open3D sink, notebooks, evaluation, training extraction) only *reads* a ``Trace``.
-``reselect`` recomputes the selection and the estimate for another K, threshold or set of excluded detections
+``reselect`` recomputes the selection, the estimate and their events for another K, threshold or set of excluded detections
 without running the detector or the model again (every detection already carries its prediction).
 
 A trace saves to a single ``.npz`` (no pickle): JSON header + parallel arrays + packed masks + PNG-encoded patches.
@@ -20,7 +20,7 @@ import numpy as np
 from massviz.atomic import atomic_path
 from massviz.errors import MassvizError
 from massviz.selection import estimate_mass, select_k_nearest
-from massviz.types import Detections, PackedMask
+from massviz.types import Detections, PackedMask, class_name
 
 TRACE_FORMAT = 1
 
@@ -108,9 +108,11 @@ class Trace:
             ex = np.asarray(exclude)
             excluded = np.flatnonzero(ex) if ex.dtype == bool else ex.astype(np.int64).reshape(-1)
         selection = select_k_nearest(self.detections.d, self.detections.score, k, threshold, excluded)
-        return dataclasses.replace(self, k=k, threshold=threshold, selection=selection,
-                                   estimate=estimate_mass(self.detections.pred, selection), excluded=excluded,
-                                   measurements=[])
+        estimate = estimate_mass(self.detections.pred, selection)
+        events = [e for e in self.events if not is_selection_event(e)]
+        events.extend(describe_selection(self.detections, selection, estimate, k))
+        return dataclasses.replace(self, k=k, threshold=threshold, selection=selection, estimate=estimate,
+                                   excluded=excluded, events=events, measurements=[])
 
     # -- persistence -----------------------------------------------------------------------------------------------
     def save(self, path: str | Path) -> Path:
@@ -168,6 +170,32 @@ class Trace:
                    estimate=header["estimate"], weights_id=header["weights_id"], timings=header["timings"],
                    events=[tuple(e) for e in header["events"]], excluded=data["excluded"],
                    measurements=header.get("measurements", []))
+
+
+def describe_detection(dets: Detections, i: int) -> str:
+    """One detection in a line: class, score, box, d and prediction."""
+    return (f"{class_name(dets.class_id[i])} {dets.score[i]:.2f} box {dets.xyxy[i].tolist()} "
+            f"d={dets.d[i]:.0f}mm pred={dets.pred[i]:.1f}g")
+
+
+_SELECTION_EVENTS = ("chose patch", "estimate ", "no detection with depth")
+
+
+def is_selection_event(event) -> bool:
+    """True for the events ``describe_selection`` writes (they belong to one selection and are replaced with it)."""
+    return str(event[1]).startswith(_SELECTION_EVENTS)
+
+
+def describe_selection(dets: Detections, selection: np.ndarray, estimate: float, k: int) -> list[tuple[int, str]]:
+    """Readable decisions of the selection stage, as (frame, message)."""
+    out = [(int(dets.frame[i]), f"chose patch {r} (of K={k}): {describe_detection(dets, i)}")
+           for r, i in enumerate(selection)]
+    last = int(dets.frame.max()) if len(dets) else 0
+    if len(selection):
+        out.append((last, f"estimate {estimate:.1f} g = mean of {len(selection)} patch predictions"))
+    else:
+        out.append((last, "no detection with depth: mass not estimated (-1)"))
+    return out
 
 
 def _encode_png(rgb: np.ndarray) -> np.ndarray:

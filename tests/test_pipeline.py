@@ -135,6 +135,7 @@ def test_reselect_equals_a_fresh_run(rec, fast):
         assert same_selection(again, fresh), (k, t)
         assert again.estimate == pytest.approx(fresh.estimate, rel=1e-6), (k, t)
         assert again.estimate == pytest.approx(expected(model, t, k)[2], rel=1e-5), (k, t)
+        assert [m for _, m in again.events] == [m for _, m in fresh.events], (k, t)  # the log describes the new selection
     with pytest.raises(MassvizError, match="below the detection threshold"):
         base.reselect(threshold=0.3)
 
