@@ -154,8 +154,16 @@ class Trace:
             header = json.loads(data["header"].tobytes().decode())
         except Exception as err:  # noqa: BLE001 - any read problem is a corrupt trace file
             raise MassvizError(f"not a massviz trace ({type(err).__name__}: {err})", path) from None
-        if header.get("format") != TRACE_FORMAT:
-            raise MassvizError(f"trace format {header.get('format')} is not supported (expected {TRACE_FORMAT})", path)
+        if not isinstance(header, dict) or header.get("format") != TRACE_FORMAT:
+            found = header.get("format") if isinstance(header, dict) else None
+            raise MassvizError(f"trace format {found} is not supported (expected {TRACE_FORMAT})", path)
+        try:
+            return cls._from_arrays(header, data)
+        except (KeyError, IndexError, TypeError, ValueError) as err:  # a field missing or of the wrong shape
+            raise MassvizError(f"not a complete massviz trace ({type(err).__name__}: {err})", path) from None
+
+    @classmethod
+    def _from_arrays(cls, header: dict, data: dict) -> "Trace":
         offsets = np.concatenate([[0], np.cumsum(data["mask_sizes"])])
         masks = [PackedMask(shape=tuple(s), bits=data["mask_bits"][offsets[i]:offsets[i + 1]])
                  for i, s in enumerate(data["mask_shapes"])]

@@ -126,6 +126,15 @@ def test_trace_save_load_round_trip(rec, model, tmp_path):
     assert back.recording == trace.recording and back.detector == trace.detector
 
 
+def test_trace_load_of_an_incomplete_file_names_it(rec, fast, tmp_path):
+    path = run(rec, ListDetector(DETECTIONS), fast, k=2).save(tmp_path / "t.npz")
+    with np.load(path) as z:
+        arrays = {name: z[name] for name in z.files if name != "mask_sizes"}
+    np.savez(path, **arrays)  # a valid header without one of the arrays
+    with pytest.raises(MassvizError, match=r"t\.npz: not a complete massviz trace \(KeyError"):
+        Trace.load(path)
+
+
 def test_reselect_equals_a_fresh_run(rec, fast):
     model = fast
     base = run(rec, ListDetector(DETECTIONS, threshold=0.4), model, k=5)
