@@ -257,3 +257,10 @@ def test_replay_json_detections(rec, fast, tmp_path):
     with pytest.raises(DataError, match=r"box \[50, 30, 70, 50\] lies outside the 64x48 frame") as info:
         run(rec, ReplayDetector(tmp_path / "d.json"), fast)
     assert str(info.value).startswith(f"{tmp_path / 'd.json'}: ")
+
+    # a mask PNG that is neither box-sized nor a full frame holding the box is a data error, not a silent empty mask
+    cv2.imwrite(str(tmp_path / "small.png"), np.full((20, 20), 255, np.uint8))
+    rows = [{"frame": 1, "box": [5, 10, 30, 40], "score": 0.9, "mask": "small.png"}]
+    (tmp_path / "d.json").write_text(json.dumps({"detections": rows}))
+    with pytest.raises(DataError, match=r"detection 0: mask small.png is 20x20, neither the box's 25x30"):
+        ReplayDetector(tmp_path / "d.json")

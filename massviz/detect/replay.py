@@ -2,7 +2,7 @@
 
 ``--replay PATH`` is either
 
-* a trace saved by an earlier run (``.npz``: the trace cache, or ``massviz estimate --save-trace``), or
+* a trace saved by an earlier run (any ``.npz`` of the trace cache), or
 * a JSON file (documented format)::
 
       {"detections": [
@@ -63,7 +63,11 @@ def _load_json(path: Path) -> Detections:
             img = cv2.imread(str(mpath), cv2.IMREAD_GRAYSCALE)
             if img is None:
                 raise DataError(f"detection {row}: cannot read mask {det['mask']}", path)
-            mask = img[y1:y2, x1:x2] > 0 if img.shape != mask.shape else img > 0
+            crop = img if img.shape == mask.shape else img[y1:y2, x1:x2]
+            if crop.shape != mask.shape:
+                raise DataError(f"detection {row}: mask {det['mask']} is {img.shape[1]}x{img.shape[0]}, neither the "
+                                f"box's {x2 - x1}x{y2 - y1} nor a full frame holding the box", path)
+            mask = crop > 0
         frames.append(frame), boxes.append([x1, y1, x2, y2]), scores.append(score)
         classes.append(_class_id(det.get("class", "object"), path, row)), masks.append(mask)
     return Detections(frame=frames, xyxy=boxes, score=scores, class_id=classes, masks=masks)
