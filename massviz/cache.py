@@ -57,11 +57,12 @@ class TraceCache:
         if path is None:
             return None
         try:
-            return Trace.load(path)
+            trace = Trace.load(path)
         except MassvizError:
             path.unlink(missing_ok=True)  # a corrupt entry is dropped and recomputed
             return None
+        return trace if trace.detect_threshold <= threshold else None
 
     def save(self, trace: Trace, recording: Recording, detector_info: dict) -> Path:
         entry = self.entry(recording, detector_info, trace.stride)
-        return trace.save(entry / f"t{trace.detect_threshold:.4f}.npz")
+        return trace.save(entry / f"t{float(trace.detect_threshold)!r}.npz")  # exact: t0.4.npz, t0.40005.npz

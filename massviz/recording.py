@@ -271,7 +271,10 @@ def _open_folder(folder: Path) -> Recording:
     _check_counts(depth_dir, len(depth_files), n_rgb)
     _read_depth(depth_files[0], width, height)
     meta = _load_json(folder / "meta.json") if (folder / "meta.json").is_file() else {}
-    fps = float(meta.get("fps", fps))
+    try:
+        fps = float(meta.get("fps", fps))
+    except (TypeError, ValueError):
+        raise RecordingError(f"'fps' must be a number, got {meta['fps']!r}", folder / "meta.json") from None
     intr = _intrinsics_json(folder / "intrinsics.json") if (folder / "intrinsics.json").is_file() else None
     if intr is not None and (intr.width, intr.height) != (width, height):
         raise RecordingError(f"intrinsics are for {intr.width}x{intr.height} but the frames are {width}x{height}",

@@ -33,7 +33,10 @@ def box_ratios(xyxy: np.ndarray, width: int, height: int) -> tuple[np.ndarray, n
 def mask_distance(depth: np.ndarray, xyxy, mask: np.ndarray) -> float:
     """Mean depth (mm) over the mask pixels that have depth; NaN when none has."""
     x1, y1, x2, y2 = (int(v) for v in xyxy)
-    values = depth[y1:y2, x1:x2][mask]
+    box = depth[y1:y2, x1:x2]
+    if mask.shape != box.shape:
+        raise ValueError(f"mask of shape {mask.shape} does not fit box {[x1, y1, x2, y2]} ({box.shape} in frame)")
+    values = box[mask]
     valid = np.count_nonzero(values)
     if valid == 0:
         return float("nan")

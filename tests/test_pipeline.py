@@ -264,3 +264,25 @@ def test_replay_json_detections(rec, fast, tmp_path):
     (tmp_path / "d.json").write_text(json.dumps({"detections": rows}))
     with pytest.raises(DataError, match=r"detection 0: mask small.png is 20x20, neither the box's 25x30"):
         ReplayDetector(tmp_path / "d.json")
+
+
+def test_cache_keeps_thresholds_exact(rec, fast, tmp_path):
+    """Entries are named by their exact threshold: one made at 0.40005 serves 0.40005 but never 0.40001."""
+    cache = TraceCache(tmp_path / "cache")
+    made = ListDetector(DETECTIONS, threshold=0.40005)
+    process(rec, made, fast, k=5, cache=cache)
+    again = ListDetector(DETECTIONS, threshold=0.40005)
+    process(rec, again, fast, k=5, cache=cache)
+    assert made.calls == N and again.calls == 0
+    lower = ListDetector(DETECTIONS, threshold=0.40001)
+    trace = process(rec, lower, fast, k=5, cache=cache)
+    assert lower.calls == N and trace.detect_threshold == 0.40001
+
+
+def test_mask_that_does_not_fit_its_box_is_refused():
+    from massviz.selection import mask_distance
+
+    depth = np.full((10, 10), 1000, np.uint16)
+    assert mask_distance(depth, (2, 2, 6, 5), np.ones((3, 4), bool)) == 1000.0
+    with pytest.raises(ValueError, match="does not fit box"):
+        mask_distance(depth, (2, 2, 6, 5), np.ones((4, 3), bool))

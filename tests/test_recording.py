@@ -227,10 +227,16 @@ def bad_meta_json(root: Path):
     return root, root / "meta.json", "not valid JSON"
 
 
+def bad_meta_fps(root: Path):
+    write_recording(root, rgb_frames(2), depth_frames(2))
+    (root / "meta.json").write_text('{"fps": "thirty"}')
+    return root, root / "meta.json", "'fps' must be a number"
+
+
 #: each builder writes a broken recording under a root and returns (path to open, file the error must name, what).
 OPEN_ERRORS = [bad_missing_depth, bad_fewer_depth, bad_depth_8bit, bad_depth_size, bad_depth_rgb, bad_video_garbage,
                bad_video_empty, bad_empty_folder, bad_missing_path, bad_intrinsics_json, bad_intrinsics_keys,
-               bad_meta_json]
+               bad_meta_json, bad_meta_fps]
 
 
 def corrupt_middle_depth(root: Path):
