@@ -17,7 +17,6 @@ from __future__ import annotations
 import hashlib
 import os
 import sys
-import tempfile
 import urllib.error
 import urllib.request
 from dataclasses import dataclass
@@ -26,6 +25,7 @@ from pathlib import Path
 import platformdirs
 from tqdm import tqdm
 
+from massviz.atomic import atomic_path
 from massviz.errors import WeightsError
 
 #: the authors' repository commit the published checkpoints are pinned to.
@@ -126,31 +126,22 @@ def download(name: str = DEFAULT_NAME, dest_dir: str | Path | None = None, *, ba
     except OSError as e:
         raise WeightsError(f"cannot create the weights cache folder ({e.strerror or e}); {OFFLINE_HINT}",
                            dest_dir) from e
-    tmp = None
     try:
-        with urllib.request.urlopen(url, timeout=60) as resp:
+        with urllib.request.urlopen(url, timeout=60) as resp, atomic_path(target) as tmp, open(tmp, "wb") as out:
             total = int(resp.headers.get("Content-Length") or 0) or None
             h = hashlib.sha256()
-            with tempfile.NamedTemporaryFile("wb", dir=dest_dir, prefix=f".{name}.", suffix=".part",
-                                             delete=False) as out, \
-                    tqdm(total=total, unit="B", unit_scale=True, desc=f"downloading {name}", file=sys.stderr,
-                         disable=not progress, leave=False) as bar:
-                tmp = Path(out.name)
+            with tqdm(total=total, unit="B", unit_scale=True, desc=f"downloading {name}", file=sys.stderr,
+                      disable=not progress, leave=False) as bar:
                 for chunk in iter(lambda: resp.read(1 << 16), b""):
                     out.write(chunk)
                     h.update(chunk)
                     bar.update(len(chunk))
-        if h.hexdigest() != expected:
-            raise WeightsError(f"downloaded file has sha256 {h.hexdigest()}, expected {expected}; "
-                               f"nothing was kept; {OFFLINE_HINT}", url)
-        os.replace(tmp, target)
-        tmp = None
+            if h.hexdigest() != expected:  # raised inside atomic_path: the temporary file is removed
+                raise WeightsError(f"downloaded file has sha256 {h.hexdigest()}, expected {expected}; "
+                                   f"nothing was kept; {OFFLINE_HINT}", url)
     except (urllib.error.URLError, OSError, ValueError) as e:
         reason = getattr(e, "reason", None) or getattr(e, "strerror", None) or e
         raise WeightsError(f"cannot download ({reason}); {OFFLINE_HINT}", url) from e
-    finally:
-        if tmp is not None:
-            tmp.unlink(missing_ok=True)
     return target
 
 
