@@ -16,6 +16,16 @@ new K, a higher threshold or another model reuses the detections without running
 """
 
 
+def add_dataset_args(p: argparse.ArgumentParser, metavar: str = "REC") -> None:
+    """Positional recordings / dataset roots (-> ``args.recordings``) and ``--view`` for CCM roots; expand them with
+    ``massviz.commands.estimate.collect_recordings(args.recordings, args.view)``."""
+    p.add_argument("recordings", nargs="+", metavar=metavar,
+                   help="recording folders, CCM videos (ROOT/viewN/rgb/NNNNNN.mp4), CCM dataset roots or folders of "
+                   "recordings")
+    p.add_argument("--view", type=int, default=3, choices=[1, 2, 3, 4],
+                   help="camera view of a CCM dataset root (default: 3, the paper's fixed frontal view)")
+
+
 def add_pipeline_args(p: argparse.ArgumentParser, selection: bool = True) -> None:
     """The pipeline options; ``selection=False`` leaves --threshold and --k to the command (e.g. sweeps)."""
     g = p.add_argument_group("pipeline")

@@ -6,7 +6,7 @@ import sys
 import time
 from pathlib import Path
 
-from massviz.commands._common import PIPELINE_HELP, add_pipeline_args
+from massviz.commands._common import PIPELINE_HELP, add_dataset_args, add_pipeline_args
 
 
 def register(sub) -> None:
@@ -21,10 +21,8 @@ def register(sub) -> None:
         "recordings come back from the trace cache.",
         epilog="example:\n  massviz estimate data_samples --detector depth --out preds.csv\n"
         "  massviz estimate /data/CCM/train --view 3 --out train.csv\n" + PIPELINE_HELP)
-    p.add_argument("recordings", nargs="+", metavar="REC", help="recordings or dataset roots")
+    add_dataset_args(p, metavar="REC")
     p.add_argument("--out", required=True, metavar="CSV", help="output CSV (written when every recording is done)")
-    p.add_argument("--view", type=int, default=3, choices=[1, 2, 3, 4],
-                   help="camera view of a CCM dataset root (default: 3, the fixed frontal view)")
     p.add_argument("--exact", action="store_true",
                    help="write masses with 2 decimals (default: truncated to int, as the paper's code)")
     p.add_argument("--exclude", metavar="FILE",

@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from massviz.commands._common import PIPELINE_HELP, add_pipeline_args
+from massviz.commands._common import PIPELINE_HELP, add_dataset_args, add_pipeline_args
 
 
 def register(sub) -> None:
@@ -19,11 +19,9 @@ def register(sub) -> None:
         "place when complete.",
         epilog="examples:\n  massviz extract /data/CCM/train --annotations ccm_train_annotation.csv --out patches/\n"
         "  massviz extract data_samples --detector depth --out patches/\n" + PIPELINE_HELP)
-    p.add_argument("recordings", nargs="+", metavar="DATASET", help="recordings or dataset roots (as for estimate)")
+    add_dataset_args(p, metavar="DATASET")
     p.add_argument("--out", required=True, metavar="PATCHES", help="output folder (must not exist unless --force)")
     p.add_argument("--annotations", metavar="CSV", help="CCM annotation CSV (default: each recording's meta.json)")
-    p.add_argument("--view", type=int, default=3, choices=[1, 2, 3, 4],
-                   help="camera view of a CCM dataset root (default: 3, the paper's)")
     p.add_argument("--force", action="store_true", help="replace an existing PATCHES folder")
     add_pipeline_args(p)
     p.set_defaults(func=run)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from massviz.commands._common import PIPELINE_HELP, add_pipeline_args
+from massviz.commands._common import PIPELINE_HELP, add_dataset_args, add_pipeline_args
 
 
 def register(sub) -> None:
@@ -18,13 +18,12 @@ def register(sub) -> None:
         epilog="examples:\n"
         "  massviz sweep data_samples --detector depth --threshold 0.3:0.9:0.05 --k 1:10 --plot heatmap.png\n"
         "  massviz sweep /data/CCM/train --annotations Val_annotations.csv --csv sweep.csv\n" + PIPELINE_HELP)
-    p.add_argument("datasets", nargs="+", metavar="DATASET", help="recordings or dataset roots")
+    add_dataset_args(p, metavar="DATASET")
     p.add_argument("--annotations", metavar="ANN.csv",
                    help="CCM annotation CSV (default: ground truth from each recording's meta.json)")
     p.add_argument("--threshold", default="0.4:0.9:0.05", metavar="A:B:STEP",
                    help="detection thresholds (default: 0.4:0.9:0.05; a list a,b,c or one value also works)")
     p.add_argument("--k", default="1:10", metavar="A:B", help="K values (default: 1:10)")
-    p.add_argument("--view", type=int, default=3, choices=[1, 2, 3, 4], help="camera view of a CCM root (default 3)")
     p.add_argument("--classes", metavar="MAP", help="container→class mapping (as massviz score --classes)")
     p.add_argument("--plot", metavar="PNG", help="write a threshold × K heatmap")
     p.add_argument("--csv", metavar="OUT", help="write the table as CSV")
@@ -53,7 +52,7 @@ def run(args) -> int:
         raise MassvizError("thresholds must lie in [0, 1) and K values be >= 1")
     ann = read_annotations(args.annotations) if args.annotations else None
     class_of = parse_class_map(args.classes) if args.classes else default_class_of
-    recordings = collect_recordings(args.datasets, args.view)
+    recordings = collect_recordings(args.recordings, args.view)
     args.k = 1
     detector, model, cache = build(args, threshold=min(thresholds))
     if args.cached_only:
