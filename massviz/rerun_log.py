@@ -32,7 +32,7 @@ entity                         what is logged
                                the first and the last processed frame (absent when unknown)
 ``/world/detections/<id>``     ``Points3D``: detection ``id``'s cleaned Open3D cloud (chosen ones highlighted), with
                                ``/box`` (``Boxes3D``, measured box of a chosen one) and ``/measurement`` (AnyValues);
-                               see ``massviz.geometry3d.log_clouds`` (only with intrinsics; ``clouds=False`` skips)
+                               see ``massviz.geometry3d.log_frame_clouds`` (only with intrinsics; ``clouds=False`` skips)
 ``/log``                       ``TextLog`` of the decisions (trace events, missing intrinsics, video fallback) with
                                levels, at their frames
 ``/summary``                   ``TextDocument`` (static, markdown): recording, detector, K, estimate, chosen patches
@@ -390,7 +390,7 @@ def _check_match(trace: Trace, recording: Recording) -> None:
 
 
 def _log_all(rec: rr.RecordingStream, trace: Trace, recording: Recording, *, video: str, step: int,
-             max_points: int, progress: bool) -> dict:
+             max_points: int, progress: bool, clouds: bool) -> dict:
     dets, frames = trace.detections, [int(f) for f in trace.frames]
     first = frames[0] if frames else 0
     rank_of = {int(i): r for r, i in enumerate(trace.selection)}
@@ -416,7 +416,10 @@ def _log_all(rec: rr.RecordingStream, trace: Trace, recording: Recording, *, vid
     for note in notes:
         rec.log("/log", rr.TextLog(note, level=rr.TextLogLevel.WARN))
 
-    n_points = 0
+    log_frame_clouds = None
+    if clouds and intr is not None:
+        from massviz.geometry3d import log_frame_clouds
+    n_points, n_clouds, shown = 0, 0, []
     bar = tqdm(recording.frames(indices=frames), total=len(frames), desc=f"{recording.id} → rerun", unit="frame",
                file=sys.stderr, disable=not progress, leave=False)
     for frame in bar:
@@ -438,13 +441,18 @@ def _log_all(rec: rr.RecordingStream, trace: Trace, recording: Recording, *, vid
             if i in rank_of:
                 patch = dets.patches[i] if dets.patches[i] is not None else _crop(frame.rgb, dets.xyxy[i])
                 log_patch(rec, rank_of[i], dets, i, patch, preprocess)
+        if log_frame_clouds is not None:  # in this same pass, so the frames are decoded once
+            for path in shown:
+                rec.log(path, rr.Clear(recursive=True))
+            shown = log_frame_clouds(trace, frame, intr, rec)
+            n_clouds += len(shown)
     bar.close()
     rec.reset_time()
     log_predictions(rec, trace)
     log_events(rec, trace.events, first)
     rec.reset_time()
     return {"frames": len(frames), "detections": len(dets), "chosen": len(rank_of), "points": n_points,
-            "rgb": rgb.mode, "notes": notes}
+            "clouds": n_clouds, "rgb": rgb.mode, "notes": notes}
 
 
 def _crop(rgb: np.ndarray, xyxy) -> np.ndarray:
@@ -479,11 +487,8 @@ def log_trace(trace: Trace, recording: Recording, *, rrd: str | Path | None = No
 
     def log_into(rec: rr.RecordingStream) -> dict:
         rec.send_blueprint(blueprint, make_active=True, make_default=True)
-        stats = _log_all(rec, trace, recording, video=video, step=step, max_points=max_points, progress=progress)
-        if clouds:
-            from massviz.geometry3d import log_clouds
-
-            stats["clouds"] = log_clouds(trace, recording, rec)
+        stats = _log_all(rec, trace, recording, video=video, step=step, max_points=max_points, progress=progress,
+                         clouds=clouds)
         log_timings(rec, {**trace.timings, "log": time.perf_counter() - t0}, stats["frames"])
         try:
             rec.flush()
