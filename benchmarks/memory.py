@@ -83,9 +83,9 @@ def build_recording(folder: Path, n: int, layout: str, size: tuple[int, int]) ->
 def child(args) -> None:
     """Run the pipeline once and print one JSON line with this process's peak RSS."""
     from massviz.detect import make_detector
-    from massviz.model import MassNet
-    from massviz.pipeline import process
-    from massviz.recording import open_recording
+    from massviz.core.model import MassNet
+    from massviz.core.pipeline import process
+    from massviz.io.recording import open_recording
 
     t0 = time.perf_counter()
     rec = open_recording(args.child)

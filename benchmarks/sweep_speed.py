@@ -3,7 +3,7 @@
     python benchmarks/sweep_speed.py [--cache DIR] [--weights PATH] [--plot heatmap.png]
 
 The traces come from the trace cache (made once with the depth detector at threshold 0.4 if missing); the timed part
-is only ``massviz.sweep.sweep`` over 10 thresholds × 10 K values, which runs no detector and no model.
+is only ``massviz.evaluation.sweep.sweep`` over 10 thresholds × 10 K values, which runs no detector and no model.
 """
 from __future__ import annotations
 
@@ -23,13 +23,14 @@ def main() -> int:
     p.add_argument("--repeat", type=int, default=5, help="timed repetitions (default: 5)")
     args = p.parse_args()
 
-    from massviz.cache import TraceCache
+    from massviz.io.cache import TraceCache
     from massviz.detect import make_detector
-    from massviz.model import MassNet
-    from massviz.pipeline import process
-    from massviz.recording import find_recordings, open_recording
-    from massviz.sweep import best_pair, parse_range, plot_heatmap, sweep
-    from massviz.weights import resolve_weights
+    from massviz.core.model import MassNet
+    from massviz.core.pipeline import process
+    from massviz.io.recording import find_recordings, open_recording
+    from massviz.evaluation.sweep import best_pair, parse_range, sweep
+    from massviz.views.score_plot import plot_heatmap
+    from massviz.io.weights import resolve_weights
 
     model = MassNet.from_checkpoint(resolve_weights(args.weights))
     detector = make_detector("depth", 0.4)

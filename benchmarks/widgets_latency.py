@@ -10,6 +10,7 @@ when the max is over the budget.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -20,7 +21,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def main(argv=None) -> int:
-    from massviz.widgets import Tuner, TuningPanel, load_traces, notebook_weights, open_samples
+    import massviz as mv
+    from massviz.views.widgets import Tuner, TuningPanel
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--weights", help="mass-CNN checkpoint (default: $MASSVIZ_WEIGHTS, ../shared/..., or download)")
@@ -28,10 +30,11 @@ def main(argv=None) -> int:
     p.add_argument("--recordings", type=int, default=10)
     p.add_argument("--budget-ms", type=float, default=200.0)
     args = p.parse_args(argv)
-    weights = Path(args.weights) if args.weights else notebook_weights(
-        [ROOT.parent / "shared" / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch"])
+    reference = ROOT.parent / "shared" / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch"
+    weights = args.weights or os.environ.get("MASSVIZ_WEIGHTS") or (str(reference) if reference.is_file() else None)
     t0 = time.perf_counter()
-    samples = load_traces(open_samples(ROOT / "data_samples"), weights=weights, cache_dir=args.cache)
+    samples = mv.process_recordings(mv.collect_recordings([ROOT / "data_samples"]), detector="depth",
+                                    weights=weights, cache=args.cache, quiet=True)
     print(f"{len(samples)} sample traces in {time.perf_counter() - t0:.1f} s (cached after the first run)")
     traces = [samples[i % len(samples)] for i in range(args.recordings)]
     panel = TuningPanel(Tuner(traces))

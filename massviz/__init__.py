@@ -1,4 +1,66 @@
-"""massviz: container empty-mass estimation from one RGB-D camera, every stage traced and visible."""
+"""massviz: container empty-mass estimation from one RGB-D camera, every stage traced and visible.
+
+``import massviz as mv`` gives the few things notebooks and scripts use; each is imported on first use, so
+``import massviz`` (and the CLI) start fast::
+
+    rec = mv.open_recording("data_samples/cup_handover")
+    trace = mv.process(rec, mv.make_detector("depth"), mv.MassNet.from_checkpoint(weights))
+    mv.log_trace(trace, rec, rrd="cup.rrd")
+
+The packages: ``massviz.core`` (types, trace, selection, model, the per-frame step, the builder), ``massviz.detect``,
+``massviz.io`` (recordings, cache, weights, CSV), ``massviz.views`` (Rerun, Open3D, figures, widgets),
+``massviz.evaluation``, ``massviz.training``, ``massviz.samples``, ``massviz.runners``, ``massviz.commands``.
+"""
 from __future__ import annotations
 
+import importlib
+
 __version__ = "0.1.0"
+
+#: public name -> module that defines it
+_API = {
+    "open_recording": "massviz.io.recording",
+    "find_recordings": "massviz.io.recording",
+    "collect_recordings": "massviz.io.recording",
+    "Recording": "massviz.io.recording",
+    "make_detector": "massviz.detect",
+    "MassNet": "massviz.core.model",
+    "process": "massviz.core.pipeline",
+    "run": "massviz.core.pipeline",
+    "FramePipeline": "massviz.core.pipeline",
+    "FrameResult": "massviz.core.pipeline",
+    "PipelineOptions": "massviz.core.build",
+    "build_pipeline": "massviz.core.build",
+    "process_recordings": "massviz.core.build",
+    "Trace": "massviz.core.trace",
+    "Event": "massviz.core.trace",
+    "Detections": "massviz.core.types",
+    "Frame": "massviz.core.types",
+    "Intrinsics": "massviz.core.types",
+    "GroundTruth": "massviz.core.types",
+    "RecordingInfo": "massviz.core.types",
+    "TraceCache": "massviz.io.cache",
+    "resolve_weights": "massviz.io.weights",
+    "log_trace": "massviz.views.rerun_log",
+    "default_blueprint": "massviz.views.rerun_log",
+    "score": "massviz.evaluation.metrics",
+    "read_annotations": "massviz.evaluation.metrics",
+    "read_predictions": "massviz.evaluation.metrics",
+    "sweep": "massviz.evaluation.sweep",
+    "MassvizError": "massviz.errors",
+}
+
+__all__ = ["__version__", *_API]
+
+
+def __getattr__(name: str):
+    module = _API.get(name)
+    if module is None:
+        raise AttributeError(f"module 'massviz' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)

@@ -11,12 +11,14 @@ def sample_cache(tmp_path_factory, shared_dir: Path, samples_dir: Path) -> Path:
     """The session's trace cache folder, filled with the samples' traces on first use."""
     import pytest
 
-    from massviz.widgets import load_traces, open_samples
+    from massviz.core.build import process_recordings
+    from massviz.io.recording import collect_recordings
 
     if not (samples_dir / "cup_handover" / "meta.json").is_file():
         pytest.skip("the bundled samples (data_samples/) are missing")
     root = tmp_path_factory.getbasetemp() / "massviz-sample-traces"
     if not (root / "complete").is_file():
-        load_traces(open_samples(samples_dir), weights=shared_dir / WEIGHTS, cache_dir=root)
+        process_recordings(collect_recordings([samples_dir]), detector="depth", weights=str(shared_dir / WEIGHTS), cache=str(root),
+                           quiet=True)
         (root / "complete").write_text("ok\n")
     return root

@@ -114,7 +114,7 @@ def readme_columns(shared_dir: Path) -> list[str]:
 
 def held_box_prediction(shared_dir: Path, weights: Path) -> float:
     """The mass CNN's prediction for the held box, with d, a, b computed here from the frame and its depth."""
-    from massviz.model import MassNet
+    from massviz.core.model import MassNet
 
     cap = cv2.VideoCapture(str(shared_dir / CCM_VIDEO))
     for _ in range(2):

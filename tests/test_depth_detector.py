@@ -10,7 +10,7 @@ import pytest
 
 from massviz.detect.base import Detector
 from massviz.detect.depth import DepthDetector
-from massviz.types import OBJECT_CLASS_ID, Frame
+from massviz.core.types import OBJECT_CLASS_ID, Frame
 
 NAMES = ["cup_handover", "glass_handover", "box_handover"]
 CONTAINER, PITCHER = 1, 2

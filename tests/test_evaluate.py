@@ -14,11 +14,11 @@ from pathlib import Path
 
 import pytest
 
-from massviz.atomic import atomic_path
-from massviz.challenge_csv import write_challenge_csv
+from massviz.io.atomic import atomic_path
+from massviz.io.challenge_csv import write_challenge_csv
 from massviz.cli import main
 from massviz.errors import DataError
-from massviz.evaluate import (
+from massviz.evaluation.metrics import (
     default_class_of,
     parse_class_map,
     read_annotations,

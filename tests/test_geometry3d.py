@@ -1,4 +1,4 @@
-"""massviz.geometry3d and the cloud / render / view3d commands: clouds, measured sizes, .ply files, headless render."""
+"""massviz.core.geometry and the cloud / render / view3d commands: clouds, measured sizes, .ply files, headless render."""
 from __future__ import annotations
 
 import json
@@ -9,12 +9,14 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from massviz import geometry3d as G
+from massviz.core import geometry as G
+from massviz.views import open3d_view as O3
+from massviz.views import rerun_log as RL
 from massviz.cli import main
 from massviz.errors import MassvizError
-from massviz.recording import open_recording
-from massviz.trace import Trace
-from massviz.types import Detections
+from massviz.io.recording import open_recording
+from massviz.core.trace import Trace
+from massviz.core.types import Detections
 
 CCM_BOX = (672, 262, 776, 408)  # x1, y1, x2, y2 of the held pasta box in frame index 1 of ccm_real
 
@@ -110,12 +112,6 @@ def test_measured_box_axes_follow_a_turned_cuboid():
     R = size.R
     assert np.allclose(R.T @ R, np.eye(3), atol=1e-9) and np.linalg.det(R) == pytest.approx(1)
     assert R[1, 1] > 0.99 and R[0, 0] > 0.9 and R[2, 2] > 0.9  # width ~ +x, height ~ +y (down), depth ~ +z
-    q = G._quaternion_xyzw(R)
-    x, y, z, qw = q
-    Rq = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * qw), 2 * (x * z + y * qw)],
-                   [2 * (x * y + z * qw), 1 - 2 * (x * x + z * z), 2 * (y * z - x * qw)],
-                   [2 * (x * z - y * qw), 2 * (y * z + x * qw), 1 - 2 * (x * x + y * y)]])
-    assert np.allclose(Rq, R, atol=1e-9)
 
 
 # ----------------------------------------------------------------------------------------------------- samples
@@ -153,11 +149,11 @@ def test_measurements_stored_in_trace_and_ply_files(samples_dir, tmp_path):
     frames = best_frames(rec_dir, 2)
     trace = G.with_measurements(make_trace(rec, gt_detections(rec_dir, frames), k=2), rec)
     assert len(trace.measurements) == 2 and "measure3d" in trace.timings
-    assert any("measured chosen patch 0" in e[1] for e in trace.events)
+    assert any("measured chosen patch 0" in e.message and e.kind == "measured" for e in trace.events)
     back = Trace.load(trace.save(tmp_path / "t.npz"))
     assert G.measurements_of(back) == G.measurements_of(trace)
 
-    written = G.write_ply(tmp_path / "ply", trace, rec)
+    written = O3.write_ply(tmp_path / "ply", trace, rec)
     assert set(written) == ({f"scene_{f:06d}.ply" for f in frames} | {"detection_0.ply", "detection_1.ply",
                                                                       "chosen_0.ply", "chosen_1.ply"})
     for name, n in written.items():
@@ -174,7 +170,7 @@ def test_render_headless_png_not_blank(samples_dir, tmp_path):
     rec = open_recording(rec_dir)
     frames = best_frames(rec_dir, 1)
     trace = G.with_measurements(make_trace(rec, gt_detections(rec_dir, frames), k=1), rec)
-    info = G.render_png(trace, rec, tmp_path / "view.png", width=480, height=270)
+    info = O3.render_png(trace, rec, tmp_path / "view.png", width=480, height=270)
     assert info["frame"] == frames[0]
     img = cv2.cvtColor(cv2.imread(str(tmp_path / "view.png")), cv2.COLOR_BGR2RGB)
     assert img.shape == (270, 480, 3)
@@ -223,11 +219,12 @@ def test_no_intrinsics_skips_3d_with_one_line(tmp_path):
     reason = G.skip_reason(rec)
     assert reason and "\n" not in reason and "intrinsics" in reason
     assert G.measure(trace, rec) == []
-    assert G.write_ply(tmp_path / "out", trace, rec) == {} and not (tmp_path / "out").exists()
-    assert G.write_ply_or_skip(tmp_path / "out", trace, rec) == reason
-    assert G.with_measurements(trace, rec).events[-1] == (-1, reason)
+    assert O3.write_ply(tmp_path / "out", trace, rec) == {} and not (tmp_path / "out").exists()
+    assert O3.write_ply_or_skip(tmp_path / "out", trace, rec) == reason
+    last = G.with_measurements(trace, rec).events[-1]
+    assert (last.frame, last.message, last.kind, last.level) == (-1, reason, "warning", "warn")
     with pytest.raises(MassvizError, match="intrinsics"):
-        G.render_png(trace, rec, tmp_path / "v.png")
+        O3.render_png(trace, rec, tmp_path / "v.png")
 
 
 # ----------------------------------------------------------------------------------------------------- commands
@@ -295,8 +292,12 @@ def test_log_clouds_entities(ccm_real, tmp_path):
     trace = G.with_measurements(trace, ccm_real)
     stream = rr.RecordingStream("massviz_test_geometry3d")
     stream.save(tmp_path / "t.rrd")
-    assert G.log_clouds(trace, ccm_real, stream) == 1
+    assert RL.log_clouds(trace, ccm_real, stream) == 1
     stream.flush()
     del stream
     paths = {c.entity_path for c in RrdReader(tmp_path / "t.rrd").stream()}
     assert {"/world/detections/0", "/world/detections/0/box", "/world/detections/0/measurement"} <= paths
+    # the measured box's rotation travels as a Transform3D (the measured R), its size as Boxes3D half sizes
+    components = RL.rrd_contents(tmp_path / "t.rrd")["/world/detections/0/box"]
+    assert any("mat3x3" in c.lower() for c in components), components
+    assert any("half_size" in c.lower() for c in components), components

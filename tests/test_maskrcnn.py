@@ -17,7 +17,7 @@ import torch
 from massviz.detect import make_detector
 from massviz.detect.maskrcnn import MASK_THRESHOLD, MaskRCNNDetector, build_model
 from massviz.errors import WeightsError
-from massviz.types import COCO_KEEP, Frame
+from massviz.core.types import COCO_KEEP, Frame
 
 THRESHOLD = 0.4
 CUP, PERSON = COCO_KEEP["cup"], 1

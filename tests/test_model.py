@@ -1,4 +1,4 @@
-"""massviz.model / massviz.weights: parity with the original code, checkpoint formats, ranges, download."""
+"""massviz.core.model / massviz.io.weights: parity with the original code, checkpoint formats, ranges, download."""
 from __future__ import annotations
 
 import json
@@ -12,11 +12,11 @@ from PIL import Image
 from torchvision import transforms
 from torchvision.transforms import InterpolationMode
 
-from massviz import weights as W
+from massviz.io import weights as W
 from massviz.errors import WeightsError
-from massviz.model import (MassNet, Ranges, preprocess_patch, preprocess_patches, save_checkpoint, square_pad)
+from massviz.core.model import (MassNet, Ranges, preprocess_patch, preprocess_patches, save_checkpoint, square_pad)
 
-# The README's table (shared/weights/corsmal_visual/README.md), written out independently of massviz.weights.
+# The README's table (shared/weights/corsmal_visual/README.md), written out independently of massviz.io.weights.
 README_RANGES = {
     "Encoder_pool_aug_158.torch": (291.53, 1533.87, 0.01, 0.46, 0.03, 0.90, 2.0, 134.0),
     "Encoder_pool_aug_fold0_94.torch": (276.0, 1534.06, 0.01, 0.45, 0.03, 0.96, 2.0, 134.0),

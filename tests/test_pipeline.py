@@ -1,4 +1,4 @@
-"""massviz.pipeline / trace / cache: a run's trace against values computed by hand, persistence, reselection and
+"""massviz.core.pipeline / trace / cache: a run's trace against values computed by hand, persistence, reselection and
 the trace cache (which must never run the detector again for another K, a higher threshold or another model)."""
 from __future__ import annotations
 
@@ -7,12 +7,12 @@ import json
 import numpy as np
 import pytest
 
-from massviz.cache import TraceCache
+from massviz.io.cache import TraceCache
 from massviz.errors import MassvizError
-from massviz.model import MassNet
-from massviz.pipeline import process, run
-from massviz.recording import open_recording
-from massviz.trace import Trace
+from massviz.core.model import MassNet
+from massviz.core.pipeline import process, run
+from massviz.io.recording import open_recording
+from massviz.core.trace import Trace
 from test_recording import write_recording
 from test_selection import DistanceModel, ListDetector
 
@@ -96,7 +96,7 @@ def test_run_builds_the_trace(rec, model):
     assert trace.estimate == pytest.approx(est, rel=1e-5)
     assert trace.estimate == pytest.approx(float(np.mean(dets.pred[trace.selection])), rel=1e-6)
     assert (trace.k, trace.threshold, trace.detect_threshold, trace.stride) == (3, 0.4, 0.4, 1)
-    assert trace.weights_id == model.weights_id and trace.recording["id"] == "scene"
+    assert trace.weights_id == model.weights_id and trace.recording.id == "scene"
     assert {"read", "detect", "features", "predict", "select", "total"} <= set(trace.timings)
 
 
@@ -144,7 +144,7 @@ def test_reselect_equals_a_fresh_run(rec, fast):
         assert same_selection(again, fresh), (k, t)
         assert again.estimate == pytest.approx(fresh.estimate, rel=1e-6), (k, t)
         assert again.estimate == pytest.approx(expected(model, t, k)[2], rel=1e-5), (k, t)
-        assert [m for _, m in again.events] == [m for _, m in fresh.events], (k, t)  # the log describes the new selection
+        assert [(e.kind, e.message) for e in again.events] == [(e.kind, e.message) for e in fresh.events], (k, t)  # the log describes the new selection
     with pytest.raises(MassvizError, match="below the detection threshold"):
         base.reselect(threshold=0.3)
 
@@ -177,7 +177,7 @@ def test_cache_reuses_detections(rec, fast, tmp_path):
     assert det.calls == N
     fresh = run(rec, ListDetector(DETECTIONS), model, k=2)
     assert same_selection(second, fresh) and second.estimate == pytest.approx(fresh.estimate, rel=1e-6)
-    assert any("reused cached detections" in e[1] for e in second.events)
+    assert any("reused cached detections" in e.message and e.kind == "cache" and e.level == "debug" for e in second.events)
     assert first.estimate != second.estimate
 
     # a higher threshold reuses the entry made at the lower one
@@ -280,9 +280,72 @@ def test_cache_keeps_thresholds_exact(rec, fast, tmp_path):
 
 
 def test_mask_that_does_not_fit_its_box_is_refused():
-    from massviz.selection import mask_distance
+    from massviz.core.selection import mask_distance
 
     depth = np.full((10, 10), 1000, np.uint16)
     assert mask_distance(depth, (2, 2, 6, 5), np.ones((3, 4), bool)) == 1000.0
     with pytest.raises(ValueError, match="does not fit box"):
         mask_distance(depth, (2, 2, 6, 5), np.ones((4, 3), bool))
+
+
+# ---------------------------------------------------------------------------------------------- the per-frame step
+def test_frame_step_running_selection_equals_a_selection_over_the_frames_so_far(rec, fast):
+    from massviz.core.pipeline import FramePipeline
+    from massviz.core.selection import estimate_mass, select_k_nearest
+
+    det = ListDetector(DETECTIONS, threshold=0.5)
+    fp = FramePipeline(det, fast, k=3, recording=rec.info())
+    results = [fp.step(frame) for frame in rec.frames()]
+    trace = fp.finish()
+    d, score = trace.detections.d, trace.detections.score
+    for r in results:
+        so_far = r.offset + len(r.detections)
+        expected = select_k_nearest(d[:so_far], score[:so_far], 3, 0.5)
+        assert r.selection.tolist() == expected.tolist(), r.frame.index
+        assert r.running_estimate == estimate_mass(trace.detections.pred, expected)
+        assert set(r.timings) == {"read", "detect", "features", "predict", "select"}
+    assert results[-1].selection.tolist() == trace.selection.tolist()
+    assert results[-1].running_estimate == trace.estimate
+
+
+def test_run_is_a_loop_over_the_step(rec, fast):
+    from massviz.core.pipeline import FramePipeline
+
+    det = ListDetector(DETECTIONS, threshold=0.4)
+    fp = FramePipeline(det, fast, k=5, stride=2, recording=rec.info())
+    for frame in rec.frames(stride=2):
+        fp.step(frame)
+    stepped, ran = fp.finish(), run(rec, det, fast, k=5, stride=2)
+    assert stepped.frames.tolist() == ran.frames.tolist() == [0, 2, 4]
+    assert same_selection(stepped, ran) and stepped.estimate == ran.estimate
+    assert np.array_equal(stepped.detections.d, ran.detections.d, equal_nan=True)
+    assert [(e.kind, e.message) for e in stepped.events] == [(e.kind, e.message) for e in ran.events]
+
+
+def test_step_takes_detections_from_a_batched_detector(rec, fast):
+    from massviz.core.pipeline import FramePipeline
+
+    det = ListDetector(DETECTIONS, threshold=0.4)
+    plain, given = (FramePipeline(det, fast, k=5, recording=rec.info()) for _ in range(2))
+    for frame in rec.frames():
+        plain.step(frame)
+        given.step(frame, detections=det.detect(frame))
+    a, b = plain.finish(), given.finish()
+    assert same_selection(a, b) and a.estimate == b.estimate
+
+
+def test_builder_makes_the_pipeline_the_cli_uses(tmp_path, shared_dir):
+    import massviz as mv
+
+    weights = shared_dir / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch"
+    p = mv.build_pipeline(mv.PipelineOptions(detector="depth", k=3, weights=str(weights), cache=str(tmp_path)))
+    assert (p.detector.name, p.options.k, p.model.weights_id) == ("depth", 3, MassNet.from_checkpoint(weights).weights_id)
+    assert isinstance(p.cache, TraceCache) and p.cache.root == tmp_path
+    with pytest.raises(MassvizError, match="--k must be >= 1"):
+        mv.build_pipeline(detector="depth", k=0, weights=str(weights))
+    import argparse
+
+    args = argparse.Namespace(detector="depth", threshold=0.6, k=2, stride=3, weights=weights, detector_weights=None,
+                              replay=None, cache=None, no_cache=True, quiet=True, view=3)
+    opts = mv.PipelineOptions.from_args(args)
+    assert (opts.threshold, opts.k, opts.stride, opts.weights, opts.no_cache) == (0.6, 2, 3, str(weights), True)

@@ -1,4 +1,4 @@
-"""massviz.recording: the two layouts, streaming, stride, and every malformed input as one RecordingError.
+"""massviz.io.recording: the two layouts, streaming, stride, and every malformed input as one RecordingError.
 
 Recordings are built in tmp_path from numpy arrays, so every expected pixel is known. ``write_recording`` and
 ``write_video`` are also used by test_selection / test_pipeline / test_cli.
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from massviz.errors import RecordingError
-from massviz.recording import find_recordings, open_recording
+from massviz.io.recording import find_recordings, open_recording
 
 W, H = 32, 24
 
@@ -108,7 +108,7 @@ def test_stride_and_read_frame(folder):
 
 def test_frames_are_streamed(folder, monkeypatch):
     """Frames are read one at a time as the generator advances, never all up front."""
-    import massviz.recording as R
+    import massviz.io.recording as R
 
     rec = open_recording(folder)
     reads = []

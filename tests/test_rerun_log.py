@@ -1,7 +1,7 @@
-"""massviz.rerun_log: log traces of tiny synthetic recordings to .rrd files and read the files back.
+"""massviz.views.rerun_log: log traces of tiny synthetic recordings to .rrd files and read the files back.
 
 Recordings are drawn in tmp_path in massviz's folder layout (rgb/*.png or rgb.mp4, depth/*.png uint16 mm,
-intrinsics.json, meta.json); traces come from ``massviz.pipeline.run`` with a fake detector (finds the red square)
+intrinsics.json, meta.json); traces come from ``massviz.core.pipeline.run`` with a fake detector (finds the red square)
 and a fake model. The .rrd files are read back with Rerun's own reader (``rrd_contents``) and checked with
 ``rerun rrd verify``.
 """
@@ -17,12 +17,14 @@ import numpy as np
 import pytest
 import rerun as rr
 
-from massviz import rerun_log
+from massviz.views import rerun_log
+from massviz.core.patches import model_view
 from massviz.errors import MassvizError
-from massviz.pipeline import run
-from massviz.recording import open_recording
-from massviz.rerun_log import depth_to_points, log_trace, rrd_contents, rrd_entities
-from massviz.types import COCO_KEEP, Detections, Intrinsics
+from massviz.core.pipeline import run
+from massviz.io.recording import open_recording
+from massviz.core.geometry import depth_to_points
+from massviz.views.rerun_log import log_trace, rrd_contents, rrd_entities
+from massviz.core.types import COCO_KEEP, Detections, Intrinsics
 
 W, H, N = 64, 48, 4
 CONTRACT = {"/camera", "/camera/rgb", "/camera/depth", "/camera/detections", "/camera/masks", "/world/points",
@@ -304,7 +306,7 @@ def test_point_cloud_is_capped(tmp_path):
 
 def test_patch_is_logged_as_the_model_saw_it():
     patch = np.full((10, 30, 3), 200, np.uint8)
-    image = rerun_log.model_view(patch, rerun_log.model_input_preprocessor())
+    image = model_view(patch)
     assert image.shape == (112, 112, 3) and image.dtype == np.uint8
     assert image[0, 56].max() == 0 and image[56, 56].min() > 150  # zero padding above, the patch in the middle
 

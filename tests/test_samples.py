@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from massviz.samples import INSTANCES, SAMPLES, write_sample
+from massviz.samples.generator import INSTANCES, SAMPLES, write_sample
 
 NAMES = sorted(SAMPLES)
 
@@ -105,7 +105,7 @@ def test_regenerating_reproduces_the_committed_bytes(samples_dir, tmp_path):
 
 
 def test_failed_generation_leaves_previous_recording(tmp_path, monkeypatch):
-    import massviz.samples as samples
+    import massviz.samples.generator as samples
 
     spec = SAMPLES["box_handover"]
     (tmp_path / spec.name).mkdir()
@@ -125,7 +125,7 @@ def test_cli_only_one(tmp_path, monkeypatch):
     from massviz.cli import main
 
     written = []
-    monkeypatch.setattr("massviz.samples.write_sample", lambda spec, out, progress: written.append((spec.name, out)))
+    monkeypatch.setattr("massviz.samples.generator.write_sample", lambda spec, out, progress: written.append((spec.name, out)))
     assert main(["samples", "--out", str(tmp_path), "--only", "glass_handover"]) == 0
     assert written == [("glass_handover", tmp_path)]
     with pytest.raises(SystemExit):

@@ -1,4 +1,4 @@
-"""massviz.selection: the per-detection features (d, a, b) and the K-nearest selection, from first principles.
+"""massviz.core.selection: the per-detection features (d, a, b) and the K-nearest selection, from first principles.
 
 ``ListDetector`` and ``DistanceModel`` (a stand-in mass model whose prediction is a known function of the features)
 are also used by test_pipeline.
@@ -8,10 +8,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from massviz.pipeline import run
-from massviz.recording import open_recording
-from massviz.selection import box_ratios, compute_features, estimate_mass, mask_distance, select_k_nearest
-from massviz.types import COCO_KEEP, Detections
+from massviz.core.pipeline import run
+from massviz.io.recording import open_recording
+from massviz.core.selection import box_ratios, compute_features, estimate_mass, mask_distance, select_k_nearest
+from massviz.core.types import COCO_KEEP, Detections
 from test_recording import write_recording
 
 
@@ -174,6 +174,6 @@ def test_mask_without_depth_is_skipped_and_reported(tmp_path):
     assert trace.estimate == pytest.approx((110.0 + 120.0) / 2)
     assert np.isnan(dets.pred[1])  # and never predicted
     assert sum(len(p) for p, _ in model.seen) == 2
-    skipped = [e for e in trace.events if "no depth" in e[1]]
+    skipped = [e for e in trace.events if "no depth" in e.message and e.kind == "skipped" and e.level == "warn"]
     assert len(skipped) == 1 and skipped[0][0] == 1 and "[0, 0, 8, 8]" in skipped[0][1]
     assert trace.reselect(k=1, threshold=0.9).estimate == -1.0  # only the no-depth one scores > 0.9

@@ -8,10 +8,11 @@ import pandas as pd
 import pytest
 
 from massviz.errors import MassvizError
-from massviz.evaluate import score_from_estimates
-from massviz.sweep import SweepTable, annotations_from_meta, best_pair, parse_range, plot_heatmap, sweep
-from massviz.trace import Trace
-from massviz.types import Detections
+from massviz.evaluation.metrics import score_from_estimates
+from massviz.evaluation.sweep import SweepTable, annotations_from_meta, best_pair, parse_range, sweep
+from massviz.views.score_plot import plot_heatmap
+from massviz.core.trace import Trace
+from massviz.core.types import Detections
 
 
 def make_trace(rng, n, mass, cls="cup", detect_threshold=0.3, rec_id="r"):
@@ -81,7 +82,7 @@ def test_sweep_scores_equal_evaluate(traces):
 
 def test_sweep_with_annotation_file_matches_ids(traces):
     for i, t in enumerate(traces):
-        t.recording["config_id"] = str(100 + i)
+        t.recording.config_id = str(100 + i)
     ann = pd.DataFrame({"id": [100, 101, 999], "container id": [1, 7, 4], "container mass": [20.0, 80.0, 9.0]})
     table = sweep(traces, [0.3], [5], ann)
     est = {100: traces[0].reselect(k=5).estimate, 101: traces[1].reselect(k=5).estimate}

@@ -11,8 +11,8 @@ from PIL import Image
 
 from massviz.cli import main
 from massviz.errors import DataError, MassvizError
-from massviz.model import MassNet, Ranges
-from massviz.training import (
+from massviz.core.model import MassNet, Ranges
+from massviz.training.train import (
     AUGMENT_FACTOR, FOLDS, INDEX_COLUMNS, INDEX_NAME, PatchDataset, TrainConfig, annotation_for, compute_ranges,
     fit, make_augmentation, read_index, split_recordings, train_run)
 
@@ -181,8 +181,8 @@ def test_missing_image_and_non_empty_run_folder(patch_set, tmp_path):
 
 
 def test_annotation_mismatch_names_the_csv(shared_dir):
-    from massviz.evaluate import read_annotations
-    from massviz.recording import open_recording
+    from massviz.evaluation.metrics import read_annotations
+    from massviz.io.recording import open_recording
 
     ann = shared_dir / "ccm" / "annotations" / "Val_annotations.csv"
     rec = open_recording(shared_dir / "ccm_real" / "view1" / "rgb" / "000000.mp4")  # recording 0 is not in VAL
@@ -197,7 +197,7 @@ def test_annotation_mismatch_names_the_csv(shared_dir):
 def test_extract_train_estimate_on_the_samples(samples_dir, shared_dir, tmp_path, capsys):
     import json
 
-    from massviz.evaluate import read_predictions
+    from massviz.evaluation.metrics import read_predictions
 
     recordings = sorted(p for p in samples_dir.iterdir() if (p / "meta.json").is_file())
     if not recordings:

@@ -19,13 +19,15 @@ import numpy as np
 import pytest
 from sample_traces import WEIGHTS, sample_cache
 
-from massviz.evaluate import score_from_estimates
-from massviz.failures import (Exclusion, chosen_table, exclusion_of, load_exclusions, match_exclusions, same_object,
+from massviz.evaluation.metrics import score_from_estimates
+from massviz.evaluation.failures import (Exclusion, chosen_table, exclusion_of, load_exclusions, match_exclusions, same_object,
                               save_exclusions)
 from massviz.errors import DataError
-from massviz.sweep import annotations_from_meta
-from massviz.tuning import kept_indices, retune, subsample
-from massviz.widgets import FailurePanel, Tuner, TuningPanel, load_traces, open_samples
+from massviz.evaluation.sweep import annotations_from_meta
+from massviz.evaluation.tuning import kept_indices, retune, subsample
+from massviz.core.build import process_recordings
+from massviz.io.recording import collect_recordings
+from massviz.views.widgets import FailurePanel, Tuner, TuningPanel
 
 
 @pytest.fixture(scope="module")
@@ -35,11 +37,12 @@ def cache(tmp_path_factory, shared_dir, samples_dir):
 
 @pytest.fixture(scope="module")
 def traces(cache, shared_dir, samples_dir):
-    return load_traces(open_samples(samples_dir), weights=shared_dir / WEIGHTS, cache_dir=cache)
+    return process_recordings(collect_recordings([samples_dir]), detector="depth", weights=str(shared_dir / WEIGHTS),
+                              cache=str(cache), quiet=True)
 
 
 def _pos(traces, name):
-    return next(i for i, t in enumerate(traces) if t.recording["id"] == name)
+    return next(i for i, t in enumerate(traces) if t.recording.id == name)
 
 
 def test_k_and_threshold_change_selection_as_reselect_says(traces):
@@ -88,7 +91,7 @@ def test_score_table_updates(traces):
 
 def test_flagging_marks_the_pitcher(traces):
     cup = _pos(traces, "cup_handover")
-    frames = traces[cup].recording["meta"]["frames"]
+    frames = traces[cup].recording.meta["frames"]
     assert any(not f["container_nearest"] for f in frames), "the pitcher is nearer than the cup in some frames"
     every = chosen_table(retune(traces[cup], k=5))  # every frame, the paper's K: the lifted pitcher is chosen
     assert (every["gt_overlaps"] == "pitcher").sum() >= 1

@@ -15,13 +15,11 @@ def measured_trace(args):
     """(recording, trace with measurements) for ``args.recording``; a recording without intrinsics gets one line on
     stderr and a trace without measurements."""
     from massviz.commands._common import build
-    from massviz.geometry3d import skip_reason, with_measurements
-    from massviz.pipeline import process
-    from massviz.recording import open_recording
+    from massviz.core.geometry import skip_reason, with_measurements
+    from massviz.io.recording import open_recording
 
     rec = open_recording(args.recording)
-    detector, model, cache = build(args)
-    trace = process(rec, detector, model, k=args.k, stride=args.stride, cache=cache, progress=not args.quiet)
+    trace = build(args).process(rec)
     reason = skip_reason(rec)
     if reason:
         print(reason, file=sys.stderr)

@@ -47,28 +47,10 @@ def add_pipeline_args(p: argparse.ArgumentParser, selection: bool = True) -> Non
     g.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
-def check_pipeline_args(args) -> None:
-    from massviz.errors import MassvizError
-
-    if not 0.0 <= args.threshold < 1.0:
-        raise MassvizError(f"--threshold must be in [0, 1), got {args.threshold}")
-    if args.k < 1:
-        raise MassvizError(f"--k must be >= 1, got {args.k}")
-    if args.stride < 1:
-        raise MassvizError(f"--stride must be >= 1, got {args.stride}")
-
-
 def build(args, threshold: float | None = None):
-    """(detector, model, cache) from parsed args (``threshold`` overrides ``args.threshold``)."""
-    from massviz.cache import TraceCache
-    from massviz.detect import make_detector
-    from massviz.model import MassNet
-    from massviz.weights import resolve_weights
+    """The pipeline (``massviz.core.build.Pipeline``: detector, model, cache) from parsed args (``threshold``
+    overrides ``args.threshold``)."""
+    from massviz.core.build import PipelineOptions, build_pipeline
 
-    threshold = args.threshold if threshold is None else threshold
-    check_pipeline_args(argparse.Namespace(threshold=threshold, k=getattr(args, "k", 1), stride=args.stride))
-    model = MassNet.from_checkpoint(resolve_weights(args.weights))
-    detector = make_detector(args.detector, threshold, detector_weights=args.detector_weights,
-                             replay=args.replay)
-    cache = None if args.no_cache else TraceCache(args.cache)
-    return detector, model, cache
+    overrides = {} if threshold is None else {"threshold": threshold}
+    return build_pipeline(PipelineOptions.from_args(args, **overrides))

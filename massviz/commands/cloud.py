@@ -33,7 +33,7 @@ def register(sub) -> None:
 
 def measurement_rows(trace, gt: dict | None) -> list[dict]:
     """One flat row per measurement, with the annotated size and relative errors when known."""
-    from massviz.geometry3d import compare, measurements_of
+    from massviz.core.geometry import compare, measurements_of
 
     rows = []
     for m in measurements_of(trace):
@@ -52,10 +52,11 @@ def run(args) -> int:
 
     import pandas as pd
 
-    from massviz.atomic import atomic_path
+    from massviz.io.atomic import atomic_path
     from massviz.commands._3d import measured_trace
     from massviz.errors import MassvizError
-    from massviz.geometry3d import annotation_size, ground_truth_size, measurements_of, skip_reason, write_ply
+    from massviz.core.geometry import annotation_size, ground_truth_size, measurements_of, skip_reason
+    from massviz.views.open3d_view import write_ply
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -67,7 +68,7 @@ def run(args) -> int:
         return 0
     gt = ground_truth_size(rec.meta)
     if args.annotations:
-        from massviz.evaluate import read_annotations
+        from massviz.evaluation.metrics import read_annotations
 
         gt = annotation_size(read_annotations(args.annotations), rec.config_id) or gt
     frames = [int(f) for f in trace.frames] if args.all_frames else None

@@ -32,22 +32,14 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def collect_recordings(paths, view: int):
-    """Expand dataset roots and open (check) every recording before any work starts."""
-    from massviz.recording import find_recordings, open_recording
-
-    found = [p for path in paths for p in find_recordings(path, view=view)]
-    return [open_recording(p) for p in found]
-
-
 def apply_exclusions(trace, exclusions):
     """The trace re-selected without the detections the exclusion entries name (matched by recording id, frame and
-    box; ``massviz.failures.match_exclusions``); entries of this recording that match nothing are reported."""
-    from massviz.failures import match_exclusions
+    box; ``massviz.evaluation.failures.match_exclusions``); entries of this recording that match nothing are reported."""
+    from massviz.evaluation.failures import match_exclusions
 
     indices, unmatched = match_exclusions(trace, exclusions)
     if unmatched:
-        print(f"massviz estimate: {trace.recording.get('id')}: {len(unmatched)} exclusion(s) match no detection "
+        print(f"massviz estimate: {trace.recording.id}: {len(unmatched)} exclusion(s) match no detection "
               f"(first: frame {unmatched[0].frame}, box {list(unmatched[0].box)})", file=sys.stderr)
     if len(indices) == 0:
         return trace
@@ -57,23 +49,22 @@ def apply_exclusions(trace, exclusions):
 def run(args) -> int:
     from tqdm.auto import tqdm
 
-    from massviz.challenge_csv import write_challenge_csv
+    from massviz.io.challenge_csv import write_challenge_csv
     from massviz.commands._common import build
-    from massviz.pipeline import process
+    from massviz.io.recording import collect_recordings
 
     recordings = collect_recordings(args.recordings, args.view)
     exclusions = None
     if args.exclude:
-        from massviz.failures import load_exclusions
+        from massviz.evaluation.failures import load_exclusions
 
         exclusions = load_exclusions(args.exclude)
-    detector, model, cache = build(args)
+    pipeline = build(args)
     rows = []
     many = len(recordings) > 1
     for rec in tqdm(recordings, desc="recordings", unit="rec", file=sys.stderr, disable=args.quiet or not many):
         t0 = time.perf_counter()
-        trace = process(rec, detector, model, k=args.k, stride=args.stride, cache=cache,
-                        progress=not args.quiet)
+        trace = pipeline.process(rec)
         if exclusions is not None:
             trace = apply_exclusions(trace, exclusions)
         elapsed = time.perf_counter() - t0

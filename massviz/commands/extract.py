@@ -29,16 +29,14 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from massviz.commands._common import build
-    from massviz.commands.estimate import collect_recordings
-    from massviz.evaluate import read_annotations
-    from massviz.training import check_extract, extract_patches
+    from massviz.io.recording import collect_recordings
+    from massviz.evaluation.metrics import read_annotations
+    from massviz.training.train import check_extract, extract_patches
 
     recordings = collect_recordings(args.recordings, args.view)
     table = read_annotations(args.annotations) if args.annotations else None
     labels = check_extract(recordings, args.out, table, args.annotations, force=args.force)
-    detector, model, cache = build(args)
-    result = extract_patches(recordings, labels, detector, model, args.out, k=args.k, stride=args.stride,
-                             cache=cache, progress=not args.quiet)
+    result = extract_patches(recordings, labels, build(args), args.out, progress=not args.quiet)
     if result.empty:
         print(f"no patch (no detection with depth) in {len(result.empty)} recording(s): "
               f"{', '.join(result.empty[:10])}{' ...' if len(result.empty) > 10 else ''}", file=sys.stderr)

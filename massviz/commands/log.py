@@ -35,21 +35,19 @@ def run(args) -> int:
 
     from massviz.commands._common import build
     from massviz.errors import MassvizError
-    from massviz.pipeline import process
-    from massviz.recording import open_recording
-    from massviz.rerun_log import log_trace
+    from massviz.io.recording import open_recording
+    from massviz.views.rerun_log import log_trace
 
     if not args.rrd and not args.spawn:
         raise MassvizError("say where to log: --rrd OUT.rrd and/or --spawn")
     if args.rrd and Path(args.rrd).is_dir():
         raise MassvizError("is a directory; --rrd needs a file path", args.rrd)
     rec = open_recording(args.recording)
-    detector, model, cache = build(args)
-    trace = process(rec, detector, model, k=args.k, stride=args.stride, cache=cache, progress=not args.quiet)
+    trace = build(args).process(rec)
     stats = log_trace(trace, rec, rrd=Path(args.rrd) if args.rrd else None, spawn=args.spawn,
                       progress=not args.quiet, video=args.video)
     if args.ply:
-        from massviz.geometry3d import write_ply_or_skip
+        from massviz.views.open3d_view import write_ply_or_skip
 
         print(write_ply_or_skip(Path(args.ply), trace, rec), file=sys.stderr)
     est = "not estimated" if trace.estimate < 0 else f"{trace.estimate:.1f} g"

@@ -43,7 +43,8 @@ def run(args) -> int:
 
     from massviz.commands._3d import measured_trace
     from massviz.errors import MassvizError
-    from massviz.geometry3d import render_png, require_intrinsics
+    from massviz.core.geometry import require_intrinsics
+    from massviz.views.open3d_view import render_png
 
     out = Path(args.out)
     if out.suffix.lower() != ".png":

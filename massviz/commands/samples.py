@@ -11,7 +11,7 @@ from massviz.errors import MassvizError
 
 
 def register(subparsers) -> None:
-    from massviz.samples import N_FRAMES, SAMPLES
+    from massviz.samples.specs import N_FRAMES, SAMPLES
 
     parser = subparsers.add_parser(
         "samples",
@@ -31,7 +31,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from massviz.samples import N_FRAMES, SAMPLES, write_sample
+    from massviz.samples.generator import N_FRAMES, SAMPLES, write_sample
 
     names = args.only or list(SAMPLES)
     if args.out.exists() and not args.out.is_dir():

@@ -6,9 +6,7 @@ import json
 import textwrap
 from pathlib import Path
 
-from massviz.atomic import atomic_path
 from massviz.errors import MassvizError
-from massviz.evaluate import default_class_of, parse_class_map, read_annotations, read_predictions, score
 
 
 def register(subparsers) -> None:
@@ -59,6 +57,9 @@ def _pairs(args: argparse.Namespace) -> list[tuple[str, str, str]]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from massviz.evaluation.metrics import default_class_of, parse_class_map, read_annotations, read_predictions, score
+    from massviz.io.atomic import atomic_path
+
     class_of = parse_class_map(args.classes) if args.classes else default_class_of
     pairs = _pairs(args)
     annotations = {path: read_annotations(path) for path in dict.fromkeys(ann for _, _, ann in pairs)}
@@ -77,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
             tmp.write_text(json.dumps(docs[0] if len(docs) == 1 else docs, indent=1) + "\n")
         print(f"wrote {args.json}")
     if args.plot:
-        from massviz.score_plot import plot_score_analysis, save_figure  # matplotlib only when plotting
+        from massviz.views.score_plot import plot_score_analysis, save_figure  # matplotlib only when plotting
 
         save_figure(plot_score_analysis(reports, [label for label, _, _ in pairs]), args.plot)
         print(f"wrote {args.plot}")

@@ -38,13 +38,13 @@ def run(args) -> int:
 
     from tqdm.auto import tqdm
 
-    from massviz.atomic import atomic_path
+    from massviz.io.atomic import atomic_path
     from massviz.commands._common import build
-    from massviz.commands.estimate import collect_recordings
+    from massviz.io.recording import collect_recordings
     from massviz.errors import MassvizError
-    from massviz.evaluate import default_class_of, parse_class_map, read_annotations
-    from massviz.pipeline import process
-    from massviz.sweep import best_pair, parse_range, plot_heatmap, sweep
+    from massviz.evaluation.metrics import default_class_of, parse_class_map, read_annotations
+    from massviz.evaluation.sweep import best_pair, parse_range, sweep
+    from massviz.views.score_plot import plot_heatmap
 
     thresholds = parse_range(args.threshold, float)
     ks = parse_range(args.k, int)
@@ -54,7 +54,8 @@ def run(args) -> int:
     class_of = parse_class_map(args.classes) if args.classes else default_class_of
     recordings = collect_recordings(args.recordings, args.view)
     args.k = 1
-    detector, model, cache = build(args, threshold=min(thresholds))
+    pipeline = build(args, threshold=min(thresholds))
+    detector, cache = pipeline.detector, pipeline.cache
     if args.cached_only:
         info = {"name": detector.name, **detector.settings()}
         missing = [r.id for r in recordings if cache is None or
@@ -62,7 +63,7 @@ def run(args) -> int:
         if missing:
             raise MassvizError(f"{len(missing)} recording(s) not in the cache at threshold <= {min(thresholds)} "
                                f"(first: {missing[0]}); run without --cached-only")
-    traces = [process(r, detector, model, k=1, stride=args.stride, cache=cache, progress=not args.quiet)
+    traces = [pipeline.process(r)
               for r in tqdm(recordings, desc="traces", unit="rec", file=sys.stderr, disable=args.quiet)]
     table = sweep(traces, thresholds, ks, ann, class_of)
     grid = table.pivot(index="threshold", columns="k", values="score")

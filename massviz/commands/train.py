@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-# Literal here so that building the CLI does not import torch; massviz.training.SPLITS checks it again.
+# Literal here so that building the CLI does not import torch; massviz.training.train.SPLITS checks it again.
 _SPLITS = ("random", "fold1", "fold2", "fold3")
 
 
@@ -45,7 +45,7 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from massviz.training import TrainConfig, resolve_device, train_run
+    from massviz.training.train import TrainConfig, resolve_device, train_run
 
     config = TrainConfig(split=args.split, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
                          augment_factor=args.augment, seed=args.seed, device=str(resolve_device(args.device)))

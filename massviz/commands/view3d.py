@@ -22,7 +22,8 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from massviz.commands._3d import measured_trace
-    from massviz.geometry3d import require_display, require_intrinsics, show
+    from massviz.core.geometry import require_intrinsics
+    from massviz.views.open3d_view import require_display, show
 
     require_display()  # say so before running anything
     rec, trace = measured_trace(args)

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from typing import Protocol, runtime_checkable
 
-from massviz.types import Detections, Frame
+from massviz.core.types import Detections, Frame
 
 
 @runtime_checkable

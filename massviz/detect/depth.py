@@ -38,7 +38,7 @@ from dataclasses import asdict, dataclass
 import cv2
 import numpy as np
 
-from massviz.types import OBJECT_CLASS_ID, Detections, Frame
+from massviz.core.types import OBJECT_CLASS_ID, Detections, Frame
 
 
 @dataclass

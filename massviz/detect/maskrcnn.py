@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from massviz.errors import WeightsError
-from massviz.types import COCO_KEEP, Detections, Frame
+from massviz.core.types import COCO_KEEP, Detections, Frame
 
 MASK_THRESHOLD = 0.5
 

@@ -25,8 +25,8 @@ import cv2
 import numpy as np
 
 from massviz.errors import DataError
-from massviz.trace import Trace
-from massviz.types import COCO_KEEP, OBJECT_CLASS_ID, Detections, Frame
+from massviz.core.trace import Trace
+from massviz.core.types import COCO_KEEP, OBJECT_CLASS_ID, Detections, Frame
 
 
 def _class_id(value, path: Path, row: int) -> int:

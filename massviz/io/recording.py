@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 from massviz.errors import RecordingError
-from massviz.types import Frame, Intrinsics
+from massviz.core.types import Frame, Intrinsics, RecordingInfo
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
@@ -71,15 +71,12 @@ class Recording:
             h.update(f"{p.resolve()}|{st.st_size}|{st.st_mtime_ns}\n".encode())
         return h.hexdigest()
 
-    def info(self) -> dict:
-        """JSON-able summary stored in traces."""
-        return {
-            "id": self.id, "config_id": self.config_id, "path": str(self.path), "kind": self.kind,
-            "width": self.width, "height": self.height, "num_frames": self.num_frames, "fps": self.fps,
-            "rgb": str(self.rgb_video) if self.rgb_video else "frames",
-            "intrinsics": self.intrinsics.to_dict() if self.intrinsics else None,
-            "meta": self.meta,
-        }
+    def info(self) -> RecordingInfo:
+        """What a trace keeps of this recording."""
+        return RecordingInfo(id=self.id, config_id=self.config_id, path=str(self.path), kind=self.kind,
+                             width=self.width, height=self.height, num_frames=self.num_frames, fps=self.fps,
+                             rgb=str(self.rgb_video) if self.rgb_video else "frames", intrinsics=self.intrinsics,
+                             meta=self.meta)
 
     # -- frames ----------------------------------------------------------------------------------------------------
     def read_depth(self, index: int) -> np.ndarray:
@@ -282,6 +279,12 @@ def _open_folder(folder: Path) -> Recording:
     return Recording(path=folder, kind="folder", id=str(meta.get("id", folder.name)), depth_files=depth_files,
                      width=width, height=height, num_frames=n_rgb, fps=fps, rgb_video=video, rgb_files=rgb_files,
                      intrinsics=intr, meta=meta)
+
+
+def collect_recordings(paths, view: int = 3) -> list[Recording]:
+    """Expand dataset roots (``find_recordings``) and open (check) every recording before any work starts."""
+    found = [p for path in paths for p in find_recordings(path, view=view)]
+    return [open_recording(p) for p in found]
 
 
 def find_recordings(root: str | Path, view: int = 3) -> list[Path]:

@@ -6,7 +6,7 @@ Two steps, each a plain function the CLI wraps:
    writes a *patch set*: ``PATCHES/images/<recording>_<rank>.png`` (RGB crops) and ``PATCHES/index.csv`` (one row
    per patch, :data:`INDEX_COLUMNS`), every patch labelled with its recording's annotation.
 2. :func:`train_run` splits a patch set by recording (:func:`split_recordings`), computes the min-max
-   :class:`~massviz.model.Ranges` on the training split only (:func:`compute_ranges`), trains :class:`MassNet`
+   :class:`~massviz.core.model.Ranges` on the training split only (:func:`compute_ranges`), trains :class:`MassNet`
    (:func:`fit`) and keeps the epoch with the lowest validation loss as ``RUN/best.torch``.
 
 The protocol (Apicella et al., ICASSP 2022, "Model training" and "Experimental setup"): MSE loss on min-max
@@ -38,11 +38,8 @@ from __future__ import annotations
 
 import csv
 import math
-import os
 import random
-import shutil
 import sys
-import tempfile
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -58,8 +55,10 @@ from torchvision import transforms
 from tqdm.auto import tqdm
 
 from massviz.errors import DataError, MassvizError
-from massviz.evaluate import ANN_CONTAINER, ANN_ID, ANN_MASS
-from massviz.model import MassNet, Ranges, preprocess_patch, save_checkpoint
+from massviz.io.atomic import atomic_dir
+from massviz.evaluation.metrics import ANN_CONTAINER, ANN_ID, ANN_MASS
+from massviz.core.types import GroundTruth
+from massviz.core.model import MassNet, Ranges, preprocess_patch, save_checkpoint
 
 #: file name of a patch set's index, inside the PATCHES folder.
 INDEX_NAME = "index.csv"
@@ -96,17 +95,17 @@ class Annotation:
 
 def annotation_for(recording, table: pd.DataFrame | None, path: str | Path | None = None) -> Annotation:
     """The annotation of ``recording``: its row in a CCM annotation ``table`` (read from ``path`` with
-    :func:`massviz.evaluate.read_annotations`, matched on ``id`` = the recording's integer configuration id), or,
+    :func:`massviz.evaluation.metrics.read_annotations`, matched on ``id`` = the recording's integer configuration id), or,
     with no table, its ``meta.json`` ``container`` (``mass_g``, optional ``id`` and dimensions).
     Raises :class:`DataError` naming the file when the recording is not annotated."""
     if table is None:
-        container = recording.meta.get("container") or {}
-        mass = container.get("mass_g")
-        if not isinstance(mass, (int, float)) or not mass > 0:
+        gt = GroundTruth.from_meta(recording.meta)
+        if gt is None or gt.mass_g is None:
             raise DataError("no container.mass_g in meta.json (pass --annotations ANN.csv for CCM recordings)",
                             Path(recording.path) / "meta.json")
-        dims = tuple((col, float(container.get(key, math.nan))) for col, (_, key) in DIMENSIONS.items())
-        return Annotation(float(mass), int(container.get("id", -1)), dims)
+        dims = tuple((col, math.nan if getattr(gt, key) is None else float(getattr(gt, key)))
+                     for col, (_, key) in DIMENSIONS.items())
+        return Annotation(gt.mass_g, gt.container_id, dims)
     try:
         rec_id = int(recording.config_id)
     except ValueError:
@@ -129,16 +128,16 @@ def patch_rows(trace, annotation: Annotation) -> list[tuple[str, np.ndarray, dic
     for rank in range(len(selected)):
         patch = selected.patches[rank]
         if patch is None:
-            raise MassvizError(f"recording {rec['id']}: the trace kept no patch for its rank-{rank} detection "
+            raise MassvizError(f"recording {rec.id}: the trace kept no patch for its rank-{rank} detection "
                                "(K larger than the patches a cached trace keeps); rerun with --no-cache")
-        name = f"{IMAGES_DIR}/{rec['id']}_{rank}.png"
+        name = f"{IMAGES_DIR}/{rec.id}_{rank}.png"
         x1, y1, x2, y2 = (int(v) for v in selected.xyxy[rank])
-        row = {"file": name, "recording": rec["id"], "config_id": rec["config_id"], "rank": rank,
+        row = {"file": name, "recording": rec.id, "config_id": rec.config_id, "rank": rank,
                "frame": int(selected.frame[rank]), "a": float(selected.a[rank]), "b": float(selected.b[rank]),
                "d": float(selected.d[rank]), "mass_g": annotation.mass_g, "container_id": annotation.container_id,
                **dict(annotation.dims), "class": selected.class_names()[rank],
                "score": round(float(selected.score[rank]), 4), "x1": x1, "y1": y1, "x2": x2, "y2": y2,
-               "source": rec["path"]}
+               "source": rec.path}
         out.append((name, patch, row))
     return out
 
@@ -166,27 +165,24 @@ def check_extract(recordings: Sequence, out: str | Path, annotations: pd.DataFra
     return [annotation_for(r, annotations, annotations_path) for r in recordings]
 
 
-def extract_patches(recordings: Sequence, labels: Sequence[Annotation], detector, model, out: str | Path, *,
-                    k: int = 5, stride: int = 1, cache=None, progress: bool = False) -> ExtractResult:
+def extract_patches(recordings: Sequence, labels: Sequence[Annotation], pipeline, out: str | Path, *,
+                    progress: bool = False) -> ExtractResult:
     """Write the K selected patches of every recording, labelled with its annotation, as a patch set.
 
-    ``labels`` come from :func:`check_extract`. Traces come from :func:`massviz.pipeline.process` with ``cache``,
-    so recordings processed before are not detected again. The set is written into a temporary folder beside
-    ``out`` and renamed into place when complete, replacing an existing ``out``.
+    ``labels`` come from :func:`check_extract`. Traces come from ``pipeline.process`` (a
+    ``massviz.core.build.Pipeline``, with its cache), so recordings processed before are not detected again. The set
+    is written into a temporary folder beside ``out`` and renamed into place when complete, replacing an existing
+    ``out`` (``massviz.io.atomic.atomic_dir``).
     """
-    from massviz.pipeline import process
-
     if len(labels) != len(recordings):
         raise ValueError(f"{len(recordings)} recordings but {len(labels)} labels")
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.", suffix=".part"))
-    try:
+    with atomic_dir(out) as tmp:
         (tmp / IMAGES_DIR).mkdir()
         rows, empty = [], []
         bar = tqdm(list(zip(recordings, labels)), desc="extract", unit="rec", file=sys.stderr, disable=not progress)
         for rec, label in bar:
-            trace = process(rec, detector, model, k=k, stride=stride, cache=cache, progress=False)
+            trace = pipeline.process(rec, progress=False)
             found = patch_rows(trace, label)
             if not found:
                 empty.append(rec.id)
@@ -194,14 +190,6 @@ def extract_patches(recordings: Sequence, labels: Sequence[Annotation], detector
                 Image.fromarray(patch).save(tmp / name)
                 rows.append(row)
         pd.DataFrame(rows, columns=list(INDEX_COLUMNS)).to_csv(tmp / INDEX_NAME, index=False)
-        old = tmp.with_suffix(".old")
-        if out.exists():
-            os.replace(out, old)
-        os.replace(tmp, out)
-        shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return ExtractResult(out, len(rows), len(recordings), tuple(empty))
 
 
@@ -306,7 +294,7 @@ class PatchDataset(Dataset):
 
     With ``factor`` m > 1 the set is m times as long: item ``i`` is patch ``i % n``, untouched for ``i < n`` and
     passed through ``augment`` (a fresh random draw at every access) for the m - 1 copies after it. Images are
-    read from disk when used and preprocessed exactly as at inference (:func:`massviz.model.preprocess_patch`).
+    read from disk when used and preprocessed exactly as at inference (:func:`massviz.core.model.preprocess_patch`).
     """
 
     def __init__(self, root: str | Path, rows: pd.DataFrame, ranges: Ranges, factor: int = 1, augment=None):

@@ -13,23 +13,54 @@ import io
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
 
-from massviz.atomic import atomic_path
+from massviz.io.atomic import atomic_path
 from massviz.errors import MassvizError
-from massviz.selection import estimate_mass, select_k_nearest
-from massviz.types import Detections, PackedMask, class_name
+from massviz.core.selection import estimate_mass, select_k_nearest
+from massviz.core.types import Detections, GroundTruth, PackedMask, RecordingInfo, class_name
 
-TRACE_FORMAT = 1
+TRACE_FORMAT = 2  # 2: typed events, recording info as a dataclass
+
+
+class Event(NamedTuple):
+    """One decision worth reading, at a frame (-1: not tied to a frame).
+
+    ``kind`` is one of ``EVENT_KINDS``: ``chosen`` (a patch was selected), ``estimate`` (the estimate was made),
+    ``not_estimated``, ``skipped`` (a detection that cannot be used, e.g. its mask has no depth), ``cache`` (detections
+    reused from the trace cache), ``measured`` (the 3D stage's size of a chosen patch), ``warning`` and ``info``.
+    ``level`` is ``debug``, ``info`` or ``warn`` (the Rerun ``/log`` level). ``detection`` is the index into the
+    trace's detections the event is about (-1: none).
+    """
+
+    frame: int
+    message: str
+    kind: str = "info"
+    level: str = "info"
+    detection: int = -1
+
+    @property
+    def is_selection(self) -> bool:
+        """Events that belong to one selection (replaced when the trace is re-selected)."""
+        return self.kind in SELECTION_KINDS
+
+    def to_list(self) -> list:
+        return [int(self.frame), str(self.message), self.kind, self.level, int(self.detection)]
+
+
+EVENT_KINDS = ("chosen", "estimate", "not_estimated", "skipped", "cache", "measured", "warning", "info")
+SELECTION_KINDS = frozenset({"chosen", "estimate", "not_estimated"})
+LEVELS = ("debug", "info", "warn")
 
 
 @dataclass
 class Trace:
-    """Output of ``massviz.pipeline.run`` for one recording.
+    """Output of ``massviz.core.pipeline.run`` for one recording.
 
-    - ``recording``: ``Recording.info()`` (id, path, size, frame count, intrinsics, meta / ground truth).
+    - ``recording``: ``RecordingInfo`` (id, path, size, frame count, intrinsics, meta; ``.ground_truth``).
     - ``detector``: the detector's name and settings; ``detect_threshold`` the score threshold it ran at.
     - ``threshold``, ``k``, ``stride``: the selection settings this trace's ``selection``/``estimate`` use.
     - ``frames``: indices of the processed frames.
@@ -38,13 +69,13 @@ class Trace:
     - ``selection``: indices into ``detections`` of the chosen patches, nearest first.
     - ``estimate``: mean of the chosen predictions in grams; -1 when nothing was selected (not estimated).
     - ``excluded``: detection indices the user excluded (never selected).
-    - ``timings``: wall time per stage in seconds; ``events``: (frame, message) decisions worth reading.
-    - ``measurements``: the 3D stage's measured size of each chosen detection (``massviz.geometry3d.Measurement``
+    - ``timings``: wall time per stage in seconds; ``events``: typed ``Event`` decisions worth reading.
+    - ``measurements``: the 3D stage's measured size of each chosen detection (``massviz.core.geometry.Measurement``
       as dicts, read them with ``geometry3d.measurements_of``); empty when not measured. ``reselect`` drops them
       (they belong to the old selection).
     """
 
-    recording: dict
+    recording: RecordingInfo
     detector: dict
     detect_threshold: float
     threshold: float
@@ -60,16 +91,25 @@ class Trace:
     excluded: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     measurements: list = field(default_factory=list)
 
+    def __post_init__(self) -> None:
+        if isinstance(self.recording, dict):
+            self.recording = RecordingInfo.from_dict(self.recording)
+        self.events = [e if isinstance(e, Event) else Event(*e) for e in self.events]
+
     # -- views -----------------------------------------------------------------------------------------------------
     @property
     def selected(self) -> Detections:
         return self.detections[self.selection]
 
     @property
+    def ground_truth(self) -> GroundTruth | None:
+        """The recording's ground truth (``meta.json``), None when it has none."""
+        return self.recording.ground_truth
+
+    @property
     def ground_truth_mass(self) -> float | None:
-        c = self.recording.get("meta", {}).get("container") or {}
-        m = c.get("mass_g")
-        return None if m is None else float(m)
+        gt = self.ground_truth
+        return None if gt is None else gt.mass_g
 
     def active(self) -> np.ndarray:
         """Boolean mask of detections above the current threshold."""
@@ -109,7 +149,7 @@ class Trace:
             excluded = np.flatnonzero(ex) if ex.dtype == bool else ex.astype(np.int64).reshape(-1)
         selection = select_k_nearest(self.detections.d, self.detections.score, k, threshold, excluded)
         estimate = estimate_mass(self.detections.pred, selection)
-        events = [e for e in self.events if not is_selection_event(e)]
+        events = [e for e in self.events if not e.is_selection]
         events.extend(describe_selection(self.detections, selection, estimate, k))
         return dataclasses.replace(self, k=k, threshold=threshold, selection=selection, estimate=estimate,
                                    excluded=excluded, events=events, measurements=[])
@@ -121,10 +161,10 @@ class Trace:
         path.parent.mkdir(parents=True, exist_ok=True)
         dets = self.detections
         header = {
-            "format": TRACE_FORMAT, "recording": self.recording, "detector": self.detector,
+            "format": TRACE_FORMAT, "recording": self.recording.to_dict(), "detector": self.detector,
             "detect_threshold": self.detect_threshold, "threshold": self.threshold, "k": self.k,
             "stride": self.stride, "estimate": self.estimate, "weights_id": self.weights_id,
-            "timings": self.timings, "events": [list(e) for e in self.events],
+            "timings": self.timings, "events": [e.to_list() for e in self.events],
             "measurements": list(self.measurements),
         }
         masks = [m if m is not None else PackedMask(np.zeros((0, 0), bool)) for m in dets.masks]
@@ -172,11 +212,11 @@ class Trace:
         for j, i in enumerate(data["patch_index"]):
             patches[int(i)] = _decode_png(data["patch_bytes"][poff[j]:poff[j + 1]])
         dets = Detections(**{name: data[f"det_{name}"] for name in Detections._ARRAYS}, masks=masks, patches=patches)
-        return cls(recording=header["recording"], detector=header["detector"],
+        return cls(recording=RecordingInfo.from_dict(header["recording"]), detector=header["detector"],
                    detect_threshold=header["detect_threshold"], threshold=header["threshold"], k=header["k"],
                    stride=header["stride"], frames=data["frames"], detections=dets, selection=data["selection"],
                    estimate=header["estimate"], weights_id=header["weights_id"], timings=header["timings"],
-                   events=[tuple(e) for e in header["events"]], excluded=data["excluded"],
+                   events=[Event(*e) for e in header["events"]], excluded=data["excluded"],
                    measurements=header.get("measurements", []))
 
 
@@ -186,23 +226,15 @@ def describe_detection(dets: Detections, i: int) -> str:
             f"d={dets.d[i]:.0f}mm pred={dets.pred[i]:.1f}g")
 
 
-_SELECTION_EVENTS = ("chose patch", "estimate ", "no detection with depth")
-
-
-def is_selection_event(event) -> bool:
-    """True for the events ``describe_selection`` writes (they belong to one selection and are replaced with it)."""
-    return str(event[1]).startswith(_SELECTION_EVENTS)
-
-
-def describe_selection(dets: Detections, selection: np.ndarray, estimate: float, k: int) -> list[tuple[int, str]]:
-    """Readable decisions of the selection stage, as (frame, message)."""
-    out = [(int(dets.frame[i]), f"chose patch {r} (of K={k}): {describe_detection(dets, i)}")
-           for r, i in enumerate(selection)]
+def describe_selection(dets: Detections, selection: np.ndarray, estimate: float, k: int) -> list[Event]:
+    """The selection stage's decisions: one ``chosen`` event per patch, then ``estimate`` or ``not_estimated``."""
+    out = [Event(int(dets.frame[i]), f"chose patch {r} (of K={k}): {describe_detection(dets, i)}", "chosen",
+                 "info", int(i)) for r, i in enumerate(selection)]
     last = int(dets.frame.max()) if len(dets) else 0
     if len(selection):
-        out.append((last, f"estimate {estimate:.1f} g = mean of {len(selection)} patch predictions"))
+        out.append(Event(last, f"estimate {estimate:.1f} g = mean of {len(selection)} patch predictions", "estimate"))
     else:
-        out.append((last, "no detection with depth: mass not estimated (-1)"))
+        out.append(Event(last, "no detection with depth: mass not estimated (-1)", "not_estimated", "warn"))
     return out
 
 

@@ -17,8 +17,8 @@ from pathlib import Path
 import platformdirs
 
 from massviz.errors import MassvizError
-from massviz.recording import Recording
-from massviz.trace import Trace
+from massviz.io.recording import Recording
+from massviz.core.trace import Trace
 
 
 def default_cache_dir() -> Path:

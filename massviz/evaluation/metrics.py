@@ -295,6 +295,21 @@ class ScoreReport:
         return "\n".join(lines)
 
 
+def relative_error(estimate, true_mass):
+    """ε = |m̂ − m| / m per recording (NaN where not estimated, m̂ < 0 or NaN)."""
+    est = np.asarray(estimate, dtype=np.float64)
+    true_mass = np.asarray(true_mass, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        return np.where(est >= 0, np.abs(est - true_mass) / true_mass, np.nan)
+
+
+def recording_scores(estimate, true_mass) -> np.ndarray:
+    """The CORSMAL score's per-recording term: 1[estimated]·exp(−ε), i.e. exp(−ε), or 0 when not estimated.
+    The one formula of the score: ``score`` and the sweeps both use it."""
+    eps = relative_error(estimate, true_mass)
+    return np.where(np.isfinite(eps), np.exp(-np.nan_to_num(eps, nan=0.0)), 0.0)
+
+
 def score(pred: pd.DataFrame, ann: pd.DataFrame, class_of: ClassOf = default_class_of) -> ScoreReport:
     """Score predictions (a :func:`read_predictions` frame) against annotations (a :func:`read_annotations` frame).
 
@@ -319,8 +334,8 @@ def score(pred: pd.DataFrame, ann: pd.DataFrame, class_of: ClassOf = default_cla
     )
     frame["pred_g"] = pred.set_index(PRED_ID)[PRED_MASS].astype("float64").reindex(frame.index)
     frame["estimated"] = frame["pred_g"] >= 0  # NaN (missing) compares False
-    frame["eps"] = ((frame["pred_g"] - frame["true_g"]).abs() / frame["true_g"]).where(frame["estimated"])
-    frame["s"] = np.exp(-frame["eps"]).fillna(0.0)
+    frame["eps"] = relative_error(frame["pred_g"].to_numpy(), frame["true_g"].to_numpy())
+    frame["s"] = recording_scores(frame["pred_g"].to_numpy(), frame["true_g"].to_numpy())
 
     per_class = _summary(frame, "class")
     per_class = per_class.loc[sorted(per_class.index, key=_class_rank)]

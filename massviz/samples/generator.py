@@ -21,9 +21,6 @@ The output follows massviz's recording layout (see ``write_sample``) plus ground
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable
@@ -34,16 +31,11 @@ import open3d as o3d
 
 from massviz import __version__
 from massviz.errors import MassvizError
-from massviz.types import Intrinsics
+from massviz.io.atomic import atomic_dir
+from massviz.core.types import Intrinsics
 
-#: A RealSense D435 colour camera at 1280×720 (fx≈fy≈924) scaled by 0.375.
-INTRINSICS = Intrinsics(fx=346.4, fy=346.3, cx=243.7, cy=135.4, width=480, height=270)
-FPS = 30
-N_FRAMES = 36
-
-# Instance ids of the ground-truth masks (0 is the background wall).
-CONTAINER, PITCHER, HAND, PERSON, TABLE = 1, 2, 3, 4, 5
-INSTANCES = {CONTAINER: "container", PITCHER: "pitcher", HAND: "hand", PERSON: "person", TABLE: "table"}
+from massviz.samples.specs import (CONTAINER, FPS, HAND, INSTANCES, INTRINSICS, N_FRAMES, PERSON, PITCHER,  # noqa: F401
+                                    PITCHER_LIFT, SAMPLES, TABLE, Container, SampleSpec)
 
 # Stereo depth model. The sensor's disparity is computed at its native resolution (focal 640 px, 50 mm baseline) and
 # quantised to 1/8 px, so depth steps and noise grow with z²: about 4 mm / 2.5 mm at 1 m, 10 mm / 6 mm at 1.6 m.
@@ -56,66 +48,6 @@ _MAX_RANGE = 3.0  # m; farther returns are dropped
 
 _LIGHT = np.array([-0.5, -0.9, 0.1])  # point light, camera coordinates (m): up and left of the camera
 _AMBIENT = 0.3
-
-
-@dataclass(frozen=True)
-class Container:
-    """The handed-over container: CCM-style annotation (mm, mL, g) and how it looks."""
-
-    cls: str  # "cup", "glass" or "box"
-    mass_g: float
-    width_top_mm: float
-    width_bottom_mm: float
-    height_mm: float
-    depth_mm: float  # -1 unless a box
-    capacity_ml: float
-    colour: tuple[int, int, int]
-    accent: tuple[int, int, int]  # band on the cup, front face of the box
-
-
-@dataclass(frozen=True)
-class SampleSpec:
-    """One synthetic recording: its container, where things stand and the seed of its sensor noise."""
-
-    name: str
-    container: Container
-    seed: int
-    pitcher_xz: tuple[float, float]  # pitcher position on the table (m, camera coordinates)
-    start: tuple[float, float, float]  # container centre at the start of the hand-over (m)
-    end: tuple[float, float, float]  # ... and when it is handed to the robot
-    yaw_deg: tuple[float, float]  # container rotation about the vertical, start and end
-    shirt: tuple[int, int, int]
-    #: ``(t_start, t_end, (x, y, z))``: between hand-over times ``t_start`` and ``t_end`` a hand (behind the pitcher,
-    #: hidden by it) lifts the pitcher from the table towards the camera, its base up to ``(x, y, z)`` (m) half-way,
-    #: and puts it back. None: the pitcher stays on the table.
-    pitcher_lift: tuple[float, float, tuple[float, float, float]] | None = None
-
-
-#: Hand-over times (strictly between frames 6 and 12 of 36, so every 6th frame shows it on the table) and peak base
-#: position of the lifted pitcher: in frames 8-10 it is nearer than the container ever comes, so the K = 5 nearest
-#: detections of the whole recording include three pitcher patches.
-PITCHER_LIFT = (6 / 35, 12 / 35, (-0.16, 0.13, 0.42))
-
-SAMPLES: dict[str, SampleSpec] = {
-    spec.name: spec
-    for spec in [
-        SampleSpec(
-            "cup_handover",
-            Container("cup", 9.0, 92.0, 60.0, 110.0, -1.0, 480.0, (236, 232, 222), (196, 64, 52)),
-            seed=101, pitcher_xz=(-0.20, 0.86), start=(0.13, 0.02, 1.45), end=(0.04, 0.0, 0.56),
-            yaw_deg=(0.0, 0.0), shirt=(54, 84, 140), pitcher_lift=PITCHER_LIFT),
-        SampleSpec(
-            "glass_handover",
-            Container("glass", 118.0, 78.0, 62.0, 128.0, -1.0, 400.0, (215, 228, 235), (215, 228, 235)),
-            seed=202, pitcher_xz=(-0.22, 0.84), start=(0.14, 0.0, 1.40), end=(0.05, -0.01, 0.55),
-            yaw_deg=(0.0, 0.0), shirt=(120, 60, 60)),
-        SampleSpec(
-            "box_handover",
-            Container("box", 33.0, 150.0, 150.0, 160.0, 60.0, 1400.0, (222, 180, 60), (40, 110, 170)),
-            seed=303, pitcher_xz=(-0.24, 0.88), start=(0.15, 0.0, 1.45), end=(0.05, -0.02, 0.60),
-            yaw_deg=(30.0, 12.0), shirt=(70, 120, 80)),
-    ]
-}
 
 
 # --------------------------------------------------------------------------------------------------- geometry
@@ -133,13 +65,11 @@ class Part:
 
 
 def _rot_x(deg: float) -> np.ndarray:
-    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
-    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+    return o3d.geometry.get_rotation_matrix_from_axis_angle(np.array([np.radians(deg), 0.0, 0.0]))
 
 
 def _rot_y(deg: float) -> np.ndarray:
-    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
-    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    return o3d.geometry.get_rotation_matrix_from_axis_angle(np.array([0.0, np.radians(deg), 0.0]))
 
 
 #: Local "up" (+y, heights of lathe profiles) to camera coordinates (y down): half a turn about x.
@@ -147,14 +77,13 @@ _UPRIGHT = _rot_x(180.0)
 
 
 def _rotation_to(direction: np.ndarray) -> np.ndarray:
-    """A rotation taking local +y onto ``direction`` (Rodrigues)."""
+    """A rotation taking local +y onto ``direction`` (Open3D's axis-angle rotation about their cross product)."""
     a = np.array([0.0, 1.0, 0.0])
     b = direction / np.linalg.norm(direction)
-    v, c = np.cross(a, b), float(a @ b)
+    v, c = np.cross(a, b), float(np.clip(a @ b, -1.0, 1.0))
     if np.linalg.norm(v) < 1e-9:
         return np.eye(3) if c > 0 else _rot_x(180.0)
-    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return np.eye(3) + vx + vx @ vx / (1 + c)
+    return o3d.geometry.get_rotation_matrix_from_axis_angle(v / np.linalg.norm(v) * np.arccos(c))
 
 
 def lathe(profile: Iterable[tuple[float, float]], segments: int = 48):
@@ -521,10 +450,8 @@ def write_sample(spec: SampleSpec, out_dir: Path, progress: Callable[[int], None
     error leaves the previous recording (or nothing) behind, never a half-written one. ``progress(1)`` is called
     after each frame.
     """
-    out_dir.mkdir(parents=True, exist_ok=True)
     target = out_dir / spec.name
-    tmp = Path(tempfile.mkdtemp(prefix=f".{spec.name}.", dir=out_dir))
-    try:
+    with atomic_dir(target) as tmp:
         for sub in ("rgb", "depth", "gt"):
             (tmp / sub).mkdir()
         rng = np.random.default_rng(spec.seed)
@@ -547,17 +474,6 @@ def write_sample(spec: SampleSpec, out_dir: Path, progress: Callable[[int], None
             progress(1)
         INTRINSICS.save(tmp / "intrinsics.json")
         (tmp / "meta.json").write_text(json.dumps(_meta(spec, frames), indent=1) + "\n")
-        os.chmod(tmp, 0o755)
-        if target.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{spec.name}.old.", dir=out_dir))
-            target.rename(old / spec.name)
-            tmp.rename(target)
-            shutil.rmtree(old)
-        else:
-            tmp.rename(target)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return target
 
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from massviz.types import Detections
+from massviz.core.types import Detections
 
 
 def box_ratios(xyxy: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
@@ -51,20 +51,35 @@ def compute_features(dets: Detections, depth: np.ndarray) -> Detections:
     return dets
 
 
+class NearestOrder:
+    """The re-selection engine: detections sorted by d once (finite d only, ties: the earliest first, excluded ones
+    left out), so that the K nearest above any threshold is one boolean filter. ``select_k_nearest``, every
+    ``Trace.reselect`` and the sweeps go through it."""
+
+    def __init__(self, d: np.ndarray, score: np.ndarray, exclude: np.ndarray | None = None):
+        d = np.asarray(d, dtype=np.float64)
+        ok = np.isfinite(d)
+        if exclude is not None and len(exclude):
+            ex = np.asarray(exclude)
+            ok[ex if ex.dtype != bool else np.flatnonzero(ex)] = False
+        candidates = np.flatnonzero(ok)
+        self.order = candidates[np.argsort(d[candidates], kind="stable")]
+        self.score = np.asarray(score)[self.order]
+
+    def select(self, k: int, threshold: float) -> np.ndarray:
+        """Indices of the ``k`` nearest detections with score > ``threshold``, nearest first."""
+        if k < 1:
+            raise ValueError("k must be >= 1")
+        return self.order[self.score > threshold][:k]
+
+
 def select_k_nearest(d: np.ndarray, score: np.ndarray, k: int, threshold: float,
                      exclude: np.ndarray | None = None) -> np.ndarray:
     """Indices of the ``k`` detections with the smallest ``d`` among those with score > threshold and a finite d,
     nearest first; ties go to the earliest detection. ``exclude`` (bool mask or indices) removes detections."""
     if k < 1:
         raise ValueError("k must be >= 1")
-    d = np.asarray(d, dtype=np.float64)
-    ok = (np.asarray(score) > threshold) & np.isfinite(d)
-    if exclude is not None and len(exclude):
-        ex = np.asarray(exclude)
-        ok[ex if ex.dtype != bool else np.flatnonzero(ex)] = False
-    candidates = np.flatnonzero(ok)
-    order = candidates[np.argsort(d[candidates], kind="stable")]
-    return order[:k]
+    return NearestOrder(d, score, exclude).select(k, threshold)
 
 
 def estimate_mass(pred: np.ndarray, selection: np.ndarray) -> float:

@@ -11,7 +11,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-from massviz.atomic import atomic_path
+from massviz.io.atomic import atomic_path
 
 #: The challenge CSV header, in order (``/work/shared/ccm/README.md``).
 COLUMNS = (

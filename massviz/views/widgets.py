@@ -1,15 +1,16 @@
 """Notebook widgets and the plain state objects behind them (testable without a browser).
 
 * ``Tuner``: traces + the current threshold, K, stride and per-recording exclusions; ``update`` re-estimates every
-  recording from the cached detections (``massviz.tuning.retune``, i.e. ``Trace.reselect`` on the frames kept by the
-  stride) and re-scores them (``massviz.tuning.score_traces``). No detector or model runs.
+  recording from the cached detections (``massviz.evaluation.tuning.retune``, i.e. ``Trace.reselect`` on the frames kept by the
+  stride) and re-scores them (``massviz.evaluation.tuning.score_traces``). No detector or model runs.
 * ``TuningPanel``: sliders for threshold, K and stride, a recording picker, the chosen patches, their predictions,
   the estimate and the CORSMAL score with its per-class table (notebook 02). Slider callbacks only set widget values
   (HTML, PNG bytes), so an update stays fast; ``last_update_s`` is the time of the last one.
 * ``FailurePanel``: recordings ranked by error, the chosen patches of one with why each was chosen and whether it is
-  flagged (``massviz.failures.chosen_table``), a keep / exclude / exclude-track toggle per patch, the re-estimate,
+  flagged (``massviz.evaluation.failures.chosen_table``), a keep / exclude / exclude-track toggle per patch, the re-estimate,
   and an export of the exclusions to the JSON file ``massviz estimate --exclude`` reads (notebook 03).
-* ``open_samples``, ``notebook_weights``, ``load_traces``: what the notebooks need to get traces (cached).
+
+Traces come from ``massviz.process_recordings`` (the pipeline builder, cached); the widgets only read them.
 
 ipywidgets is imported only when a panel is built.
 """
@@ -26,51 +27,11 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from massviz.failures import (Exclusion, chosen_table, exclusion_of, rank_by_error, same_object, save_exclusions)
-from massviz.trace import Trace
-from massviz.tuning import original_selection, retune, score_traces
+from massviz.evaluation.failures import (Exclusion, chosen_table, exclusion_of, rank_by_error, same_object, save_exclusions)
+from massviz.core.trace import Trace
+from massviz.evaluation.tuning import original_selection, retune, score_traces
 
-#: where the notebooks look for the published weights when $MASSVIZ_WEIGHTS is not set (relative to notebooks/).
-REFERENCE_WEIGHTS = Path("../../shared/weights/corsmal_visual/Encoder_pool_aug_158.torch")
-SAMPLES_DIR = Path(__file__).resolve().parents[1] / "data_samples"
 MODES = ("keep", "exclude", "exclude track")
-
-
-# ------------------------------------------------------------------------------------------------ getting traces
-def notebook_weights(candidates: Sequence[str | Path] = (REFERENCE_WEIGHTS, "../shared/weights/corsmal_visual/"
-                                                         "Encoder_pool_aug_158.torch")) -> Path:
-    """The mass-CNN checkpoint: ``$MASSVIZ_WEIGHTS``, else the first existing ``candidates`` path, else the published
-    checkpoint from the user cache, downloaded once (``massviz.weights.resolve_weights``; needs the network once)."""
-    from massviz.weights import resolve_weights
-
-    if os.environ.get("MASSVIZ_WEIGHTS"):
-        return resolve_weights()
-    for c in candidates:
-        if Path(c).is_file():
-            return Path(c).resolve()
-    return resolve_weights()
-
-
-def open_samples(root: str | Path = SAMPLES_DIR) -> list:
-    """The bundled sample recordings (``massviz.recording.Recording``), sorted by name."""
-    from massviz.recording import find_recordings, open_recording
-
-    return [open_recording(p) for p in find_recordings(root)]
-
-
-def load_traces(recordings: Sequence, *, weights: str | Path, cache_dir: str | Path | None = None,
-                detector: str = "depth", threshold: float = 0.4, k: int = 5, stride: int = 1,
-                progress: bool = False) -> list[Trace]:
-    """One trace per recording: from the trace cache when there, else by running the pipeline (then cached)."""
-    from massviz.cache import TraceCache
-    from massviz.detect import make_detector
-    from massviz.model import MassNet
-    from massviz.pipeline import process
-
-    model = MassNet.from_checkpoint(weights)
-    det = make_detector(detector, threshold, quiet=True)
-    cache = TraceCache(cache_dir)
-    return [process(r, det, model, k=k, stride=stride, cache=cache, progress=progress) for r in recordings]
 
 
 # ------------------------------------------------------------------------------------------------------- state
@@ -121,7 +82,7 @@ class Tuner:
         return "excluded" if det in self.modes[i] else "excluded with its track"
 
     def export(self, path: str | Path) -> Path:
-        """Write the exclusions JSON (``massviz.failures`` format) for ``massviz estimate --exclude``."""
+        """Write the exclusions JSON (``massviz.evaluation.failures`` format) for ``massviz estimate --exclude``."""
         return save_exclusions(path, self.exclusions())
 
     # -- re-estimation ----------------------------------------------------------------------------------------------
@@ -151,7 +112,7 @@ class Tuner:
         return original_selection(self.traces[i], self.current[i], self.stride)
 
     def estimates(self) -> dict[str, float]:
-        return {str(t.recording.get("id")): float(t.estimate) for t in self.current}
+        return {t.recording.id: float(t.estimate) for t in self.current}
 
     def patch_table(self, i: int) -> pd.DataFrame:
         """The chosen patches of recording ``i``: rank, detection, frame, class, score, a, b, d_mm, pred_g."""
@@ -176,10 +137,10 @@ class PatchImages:
         if p is not None:
             return p
         try:
-            from massviz.pipeline import crop
-            from massviz.recording import open_recording
+            from massviz.core.patches import crop
+            from massviz.io.recording import open_recording
 
-            rec = self._recordings.get(id(trace)) or open_recording(trace.recording["path"])
+            rec = self._recordings.get(id(trace)) or open_recording(trace.recording.path)
             self._recordings[id(trace)] = rec
             return crop(rec.read_frame(int(trace.detections.frame[i])).rgb, trace.detections.xyxy[i])
         except Exception:  # noqa: BLE001 - recording moved or unreadable: a grey tile
@@ -215,7 +176,7 @@ def score_html(report) -> str:
 def estimate_html(trace: Trace) -> str:
     gt = trace.ground_truth_mass
     est = "not estimated" if trace.estimate < 0 else f"{trace.estimate:.1f} g"
-    text = f"<b>{html.escape(str(trace.recording.get('id')))}</b>: estimate <b>{est}</b>"
+    text = f"<b>{html.escape(trace.recording.id)}</b>: estimate <b>{est}</b>"
     if gt is not None:
         text += f" · ground truth {gt:.1f} g"
         if trace.estimate >= 0:
@@ -235,7 +196,7 @@ class TuningPanel:
         self.k = W.IntSlider(value=tuner.k, min=1, max=max_k, description="K", continuous_update=False)
         self.stride = W.IntSlider(value=tuner.stride, min=1, max=max_stride, description="stride",
                                   continuous_update=False)
-        self.recording = W.Dropdown(options=[(str(t.recording.get("id")), j) for j, t in enumerate(tuner.traces)],
+        self.recording = W.Dropdown(options=[(t.recording.id, j) for j, t in enumerate(tuner.traces)],
                                     value=self.i, description="recording")
         self.estimate = W.HTML()
         self.patches = W.HBox(layout=W.Layout(flex_flow="row wrap"))
@@ -305,7 +266,7 @@ class FailurePanel(TuningPanel):
         first = int(ranking["position"].iloc[0]) if len(ranking) else 0
         super().__init__(tuner, recording=first if recording is None else recording)
         order = list(ranking["position"]) + [j for j in range(len(tuner.traces)) if j not in set(ranking["position"])]
-        self.recording.options = [(f"{j + 1}. {tuner.traces[p].recording.get('id')}", p)
+        self.recording.options = [(f"{j + 1}. {tuner.traces[p].recording.id}", p)
                                   for j, p in enumerate(order)]
         self.recording.value = self.i
         self.widget = W.VBox([self.ranking_html, W.HBox([self.threshold, self.k, self.stride]), self.recording,
@@ -368,5 +329,5 @@ class FailurePanel(TuningPanel):
         self.rows.children = rows
 
 
-__all__ = ["Tuner", "TuningPanel", "FailurePanel", "PatchImages", "notebook_weights", "open_samples", "load_traces",
+__all__ = ["Tuner", "TuningPanel", "FailurePanel", "PatchImages",
            "score_html", "estimate_html", "MODES"]

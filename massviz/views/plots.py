@@ -11,9 +11,9 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
-from massviz.evaluate import ScoreReport
-from massviz.trace import Trace
-from massviz.types import Frame, Intrinsics, class_name
+from massviz.evaluation.metrics import ScoreReport
+from massviz.core.trace import Trace
+from massviz.core.types import Frame, Intrinsics, class_name
 
 #: colour of chosen patches (rank shown) and of the other detections.
 CHOSEN, OTHER, FLAGGED = "#ffd400", "#38b6ff", "#ff3b30"
@@ -55,7 +55,7 @@ def frame_figure(trace: Trace, frame: Frame, flagged: Sequence[int] = (), width:
             label += f" ★{rank_of[int(i)]}"
         ax.text(x1, max(y1 - 3, 8), label, color="black", fontsize=8,
                 bbox={"facecolor": colour, "alpha": 0.85, "pad": 1, "edgecolor": "none"})
-    ax.set_title(f"{trace.recording.get('id')} · frame {frame.index}: masks and boxes "
+    ax.set_title(f"{trace.recording.id} · frame {frame.index}: masks and boxes "
                  f"(yellow: chosen, ★rank; blue: other detections)", fontsize=9)
     ax.set_axis_off()
     fig.tight_layout()
@@ -79,7 +79,7 @@ def point_cloud_figure(trace: Trace, frame: Frame, intrinsics: Intrinsics, step:
                        max_depth_m: float = 1.8, width: float = 7.0) -> Figure:
     """The frame's depth back-projected to 3D (metres, camera frame; RGB colours), chosen patches' masks in yellow,
     points farther than ``max_depth_m`` (the room's wall) left out. A matplotlib 3D scatter, seen from above left."""
-    from massviz.rerun_log import depth_to_points
+    from massviz.core.geometry import depth_to_points
 
     points, colours = depth_to_points(frame.depth, intrinsics, frame.rgb, step)
     sub = frame.depth[::step, ::step] > 0
@@ -148,7 +148,7 @@ def estimate_figure(trace: Trace) -> Figure:
     ax.set_xticks(np.arange(len(pred)))
     ax.set_xlabel("chosen patch (rank; 0 = nearest)")
     ax.set_ylabel("mass (g)")
-    ax.set_title(f"{trace.recording.get('id')}: K={trace.k}, threshold {trace.threshold:.2f}", fontsize=9)
+    ax.set_title(f"{trace.recording.id}: K={trace.k}, threshold {trace.threshold:.2f}", fontsize=9)
     ax.legend(fontsize=8, loc="best")
     fig.tight_layout()
     return fig
@@ -173,7 +173,7 @@ def timings_figure(trace: Trace) -> Figure:
 
 def score_figure(report: ScoreReport, label: str = "samples") -> Figure:
     """Per-class and total CORSMAL score and mean ε (the paper's Fig. 4 style, one group of bars)."""
-    from massviz.score_plot import plot_score_analysis
+    from massviz.views.score_plot import plot_score_analysis
 
     return plot_score_analysis([report], [label])
 

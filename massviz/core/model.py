@@ -38,9 +38,9 @@ from torchvision import transforms
 from torchvision.transforms import InterpolationMode
 from torchvision.transforms import functional as TF
 
-from massviz.atomic import atomic_path
+from massviz.io.atomic import atomic_path
 from massviz.errors import WeightsError
-from massviz.weights import RANGE_KEYS, PUBLISHED, published_by_sha256, sha256_file
+from massviz.io.weights import RANGE_KEYS, PUBLISHED, published_by_sha256, sha256_file
 
 #: side of the square patch the network sees.
 PATCH_SIZE = 112
@@ -78,7 +78,7 @@ class Ranges:
                 raise ValueError(f"Ranges: each max must exceed its min, got {values}")
 
     def as_tuple(self) -> tuple[float, ...]:
-        """The eight values in :data:`massviz.weights.RANGE_KEYS` order."""
+        """The eight values in :data:`massviz.io.weights.RANGE_KEYS` order."""
         return (self.min_distance, self.max_distance, self.min_ratio_width, self.max_ratio_width,
                 self.min_ratio_height, self.max_ratio_height, self.min_mass, self.max_mass)
 
@@ -214,7 +214,7 @@ class MassNet(nn.Module):
 
         Ranges, first found wins: the ``ranges`` argument; the ``"ranges"`` of a massviz checkpoint (see
         :func:`save_checkpoint`); the table of published checkpoints, by the file's sha256; the sidecar
-        ``<checkpoint>.ranges.json`` (the eight keys of :data:`massviz.weights.RANGE_KEYS`). None of these, an
+        ``<checkpoint>.ranges.json`` (the eight keys of :data:`massviz.io.weights.RANGE_KEYS`). None of these, an
         unreadable file or a state_dict that does not fit raises :class:`WeightsError` naming the file.
         """
         path = Path(path)

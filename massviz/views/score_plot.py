@@ -11,9 +11,10 @@ from pathlib import Path
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from massviz.atomic import atomic_path
+from massviz.evaluation.sweep import best_pair
+from massviz.io.atomic import atomic_path
 from massviz.errors import MassvizError
-from massviz.evaluate import CLASS_ORDER, ScoreReport
+from massviz.evaluation.metrics import CLASS_ORDER, ScoreReport
 
 #: The paper's colours (RGB 0–255): cup black, glass orange, box grey, total yellow.
 COLOURS = {"cup": (0, 0, 0), "glass": (238, 113, 27), "box": (127, 127, 127), "total": (229, 194, 36)}
@@ -82,3 +83,25 @@ def save_figure(fig: Figure, path: str | Path, dpi: int = 150) -> Path:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, format=kind)
     return path
+
+
+def plot_heatmap(table: pd.DataFrame, path: str | Path, title: str = "CORSMAL score (%)") -> Path:
+    """Heatmap of score over threshold (rows) × K (columns), best pair outlined; written atomically."""
+    from matplotlib.patches import Rectangle
+
+    grid = table.pivot(index="threshold", columns="k", values="score")
+    fig = Figure(figsize=(1.0 + 0.55 * grid.shape[1], 1.0 + 0.35 * grid.shape[0]))
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
+    im = ax.imshow(grid.to_numpy(), aspect="auto", cmap="viridis", origin="lower")
+    ax.set_xticks(range(grid.shape[1]), [str(k) for k in grid.columns])
+    ax.set_yticks(range(grid.shape[0]), [f"{t:.2f}" for t in grid.index])
+    ax.set_xlabel("K (nearest patches averaged)")
+    ax.set_ylabel("detection threshold")
+    best = best_pair(table)
+    bi, bj = list(grid.index).index(best["threshold"]), list(grid.columns).index(best["k"])
+    ax.add_patch(Rectangle((bj - 0.5, bi - 0.5), 1, 1, fill=False, edgecolor="red", linewidth=2))
+    ax.set_title(f"{title}; best {best['score']:.2f}% at t={best['threshold']:.2f}, K={int(best['k'])}", fontsize=9)
+    fig.colorbar(im, ax=ax, label="score (%)")
+    fig.tight_layout()
+    return save_figure(fig, path, dpi=120)

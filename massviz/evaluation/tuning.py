@@ -8,7 +8,7 @@ Nothing here runs the detector or the model: every detection of a trace already 
 * ``retune(trace, k=, threshold=, stride=, exclude=)``: all four at once; ``exclude`` are indices into *this*
   trace's detections, as for ``Trace.reselect``. For ``stride == 1`` it is exactly ``trace.reselect(k, threshold,
   exclude)``.
-* ``score_traces(traces, ann)``: the CORSMAL score (``massviz.evaluate.ScoreReport``) of the traces' estimates,
+* ``score_traces(traces, ann)``: the CORSMAL score (``massviz.evaluation.metrics.ScoreReport``) of the traces' estimates,
   against an annotation CSV frame or, by default, the ground truth in the recordings' ``meta.json``.
 """
 from __future__ import annotations
@@ -20,9 +20,9 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 
-from massviz.evaluate import ScoreReport, default_class_of, score_from_estimates
-from massviz.sweep import annotations_from_meta, match_annotations
-from massviz.trace import Trace
+from massviz.evaluation.metrics import ScoreReport, default_class_of, score_from_estimates
+from massviz.evaluation.sweep import annotations_from_meta, match_annotations
+from massviz.core.trace import Trace
 
 
 def kept_indices(trace: Trace, stride: int) -> np.ndarray:
@@ -70,9 +70,9 @@ def original_selection(trace: Trace, retuned: Trace, stride: int) -> np.ndarray:
 def score_traces(traces: Sequence[Trace], ann: pd.DataFrame | None = None, class_of=None) -> ScoreReport:
     """CORSMAL score of the traces' estimates.
 
-    ``ann`` None: the ground truth of the recordings' ``meta.json`` (``massviz.sweep.annotations_from_meta``; ids are
+    ``ann`` None: the ground truth of the recordings' ``meta.json`` (``massviz.evaluation.sweep.annotations_from_meta``; ids are
     the traces' positions, one container per recording, its class from ``container.class``). Otherwise an annotation
-    frame (``massviz.evaluate.read_annotations``) matched by the recordings' configuration ids, with ``class_of``
+    frame (``massviz.evaluation.metrics.read_annotations``) matched by the recordings' configuration ids, with ``class_of``
     (default: the CCM classes).
     """
     if ann is None:

@@ -48,10 +48,10 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from massviz.atomic import atomic_path
+from massviz.io.atomic import atomic_path
 from massviz.errors import DataError
-from massviz.trace import Trace
-from massviz.types import class_name
+from massviz.core.trace import Trace
+from massviz.core.types import class_name
 
 EXCLUSIONS_FORMAT = "massviz.exclusions/1"
 #: a chosen patch whose mask has IoU below this with the ground-truth container mask is flagged.
@@ -82,7 +82,7 @@ class Exclusion:
 
 
 def recording_id(trace: Trace) -> str:
-    return str(trace.recording.get("id"))
+    return trace.recording.id
 
 
 def exclusion_of(trace: Trace, index: int, note: str = "") -> Exclusion:
@@ -139,16 +139,13 @@ def load_exclusions(path: str | Path) -> list[Exclusion]:
 
 
 def box_iou(box: Sequence[float], boxes: np.ndarray) -> np.ndarray:
-    """IoU of one x1, y1, x2, y2 box with each row of ``boxes``."""
-    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
-    x1 = np.maximum(box[0], boxes[:, 0])
-    y1 = np.maximum(box[1], boxes[:, 1])
-    x2 = np.minimum(box[2], boxes[:, 2])
-    y2 = np.minimum(box[3], boxes[:, 3])
-    inter = np.clip(x2 - x1, 0, None) * np.clip(y2 - y1, 0, None)
-    area = lambda b: (b[..., 2] - b[..., 0]) * (b[..., 3] - b[..., 1])  # noqa: E731
-    union = area(np.asarray(box, np.float64)) + area(boxes) - inter
-    return np.where(union > 0, inter / np.where(union > 0, union, 1), 0.0)
+    """IoU of one x1, y1, x2, y2 box with each row of ``boxes`` (``torchvision.ops.box_iou``)."""
+    import torch
+    from torchvision.ops import box_iou as tv_box_iou
+
+    boxes = torch.as_tensor(np.asarray(boxes, dtype=np.float64).reshape(-1, 4))
+    one = torch.as_tensor(np.asarray(box, dtype=np.float64).reshape(1, 4))
+    return torch.nan_to_num(tv_box_iou(one, boxes)[0], nan=0.0).numpy()
 
 
 def match_exclusions(trace: Trace, exclusions: Iterable[Exclusion],
@@ -209,14 +206,13 @@ def _gt_frame(path: str) -> np.ndarray | None:
 
 def ground_truth_masks(trace: Trace, frame: int) -> tuple[np.ndarray, dict[int, str]] | None:
     """(instance-id image of ``frame``, {id: name}) from the recording's meta.json, or None when unknown."""
-    meta = trace.recording.get("meta") or {}
-    pattern, instances = meta.get("instance_masks"), meta.get("instances")
-    if not pattern or not instances or not trace.recording.get("path"):
+    gt = trace.ground_truth
+    if gt is None or not gt.instance_masks or not gt.instances or not trace.recording.path:
         return None
-    img = _gt_frame(str(Path(trace.recording["path"]) / pattern.format(frame=int(frame))))
+    img = _gt_frame(str(Path(trace.recording.path) / gt.instance_masks.format(frame=int(frame))))
     if img is None:
         return None
-    return img, {int(k): (v.get("name") if isinstance(v, dict) else str(v)) for k, v in instances.items()}
+    return img, dict(gt.instances)
 
 
 def ground_truth_overlap(trace: Trace, index: int) -> dict | None:
@@ -310,7 +306,7 @@ def rank_by_error(traces: Sequence[Trace]) -> pd.DataFrame:
             continue
         est = float(t.estimate)
         eps = abs(est - true) / true if est >= 0 else np.inf
-        cls = ((t.recording.get("meta") or {}).get("container") or {}).get("class", "")
+        cls = (t.ground_truth.cls if t.ground_truth is not None else None) or ""
         rows.append({"position": pos, "recording": recording_id(t), "class": cls, "true_g": true,
                      "estimate_g": est if est >= 0 else np.nan, "eps": eps, "k": len(t.selection)})
     table = pd.DataFrame(rows, columns=["position", "recording", "class", "true_g", "estimate_g", "eps", "k"])

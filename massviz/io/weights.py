@@ -25,7 +25,7 @@ from pathlib import Path
 import platformdirs
 from tqdm import tqdm
 
-from massviz.atomic import atomic_path
+from massviz.io.atomic import atomic_path
 from massviz.errors import WeightsError
 
 #: the authors' repository commit the published checkpoints are pinned to.

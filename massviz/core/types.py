@@ -7,6 +7,7 @@ mask the paper's code uses for the average distance, which keeps a whole recordi
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Sequence
@@ -184,5 +185,106 @@ class Detections:
         return out
 
 
+def _number(value) -> float | None:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return None
+    return v if math.isfinite(v) else None
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """What a recording's ``meta.json`` says about its container, read in one place (``from_meta``).
+
+    ``mass_g`` (empty mass), ``cls`` (cup, glass, box, ...), ``container_id`` (-1 unknown), the annotated size in mm
+    (None when unknown), and, for the synthetic samples, ``instance_masks`` (a path pattern relative to the recording,
+    e.g. ``gt/{frame:06d}.png``) with ``instances`` ({instance id: name}; the container is named "container").
+    """
+
+    mass_g: float | None = None
+    cls: str | None = None
+    container_id: int = -1
+    width_top_mm: float | None = None
+    width_bottom_mm: float | None = None
+    height_mm: float | None = None
+    depth_mm: float | None = None
+    capacity_ml: float | None = None
+    instance_masks: str | None = None
+    instances: dict = field(default_factory=dict)
+
+    @classmethod
+    def from_meta(cls, meta: dict | None) -> "GroundTruth | None":
+        """The ground truth in a ``meta.json`` dict, or None when it has none."""
+        meta = meta if isinstance(meta, dict) else {}
+        c = meta.get("container") if isinstance(meta.get("container"), dict) else {}
+        instances = meta.get("instances") if isinstance(meta.get("instances"), dict) else {}
+        if not c and not instances:
+            return None
+        mass = _number(c.get("mass_g"))
+        cid = _number(c.get("id"))
+        names = {}
+        for k, v in instances.items():
+            try:
+                names[int(k)] = str(v.get("name") if isinstance(v, dict) else v)
+            except (TypeError, ValueError):
+                continue
+        pattern = meta.get("instance_masks")
+        return cls(mass_g=mass if mass is not None and mass > 0 else None,
+                   cls=str(c["class"]) if c.get("class") is not None else None,
+                   container_id=int(cid) if cid is not None and cid == int(cid) else -1,
+                   width_top_mm=_number(c.get("width_top_mm")), width_bottom_mm=_number(c.get("width_bottom_mm")),
+                   height_mm=_number(c.get("height_mm")), depth_mm=_number(c.get("depth_mm")),
+                   capacity_ml=_number(c.get("capacity_ml")),
+                   instance_masks=str(pattern) if isinstance(pattern, str) and pattern else None, instances=names)
+
+    def size(self) -> dict | None:
+        """The annotated size (mm): height, top/bottom widths, ``width_mm`` (the larger of the two) and depth (-1
+        unknown), or None when height or a width is unknown."""
+        if None in (self.width_top_mm, self.width_bottom_mm, self.height_mm):
+            return None
+        return {"height_mm": self.height_mm, "width_top_mm": self.width_top_mm,
+                "width_bottom_mm": self.width_bottom_mm, "width_mm": max(self.width_top_mm, self.width_bottom_mm),
+                "depth_mm": -1.0 if self.depth_mm is None or self.depth_mm <= 0 else self.depth_mm}
+
+
+@dataclass
+class RecordingInfo:
+    """What a trace remembers of its recording (``Recording.info()``); saved in the trace's header."""
+
+    id: str
+    path: str = ""
+    config_id: str = ""
+    kind: str = "folder"
+    width: int = 0
+    height: int = 0
+    num_frames: int = 0
+    fps: float = 0.0
+    rgb: str = "frames"
+    intrinsics: Intrinsics | None = None
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.id = str(self.id)
+        self.config_id = str(self.config_id or self.id)
+        if isinstance(self.intrinsics, dict):
+            self.intrinsics = Intrinsics.from_dict(self.intrinsics)
+
+    @property
+    def ground_truth(self) -> GroundTruth | None:
+        return GroundTruth.from_meta(self.meta)
+
+    def to_dict(self) -> dict:
+        return {"id": self.id, "config_id": self.config_id, "path": self.path, "kind": self.kind,
+                "width": self.width, "height": self.height, "num_frames": self.num_frames, "fps": self.fps,
+                "rgb": self.rgb, "intrinsics": self.intrinsics.to_dict() if self.intrinsics else None,
+                "meta": self.meta}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "RecordingInfo":
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in names})
+
+
 __all__ = [
-    "COCO_KEEP", "OBJECT_CLASS_ID", "class_name", "Intrinsics", "Frame", "Detections", "PackedMask"]
+    "COCO_KEEP", "OBJECT_CLASS_ID", "class_name", "Intrinsics", "Frame", "Detections", "PackedMask", "GroundTruth", "RecordingInfo"]

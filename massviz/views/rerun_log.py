@@ -32,7 +32,7 @@ entity                         what is logged
                                the first and the last processed frame (absent when unknown)
 ``/world/detections/<id>``     ``Points3D``: detection ``id``'s cleaned Open3D cloud (chosen ones highlighted), with
                                ``/box`` (``Boxes3D``, measured box of a chosen one) and ``/measurement`` (AnyValues);
-                               see ``massviz.geometry3d.log_frame_clouds`` (only with intrinsics; ``clouds=False`` skips)
+                               see ``log_frame_clouds`` (clouds from ``massviz.core.geometry``) (only with intrinsics; ``clouds=False`` skips)
 ``/log``                       ``TextLog`` of the decisions (trace events, missing intrinsics, video fallback) with
                                levels, at their frames
 ``/summary``                   ``TextDocument`` (static, markdown): recording, detector, K, estimate, chosen patches
@@ -60,11 +60,15 @@ import rerun as rr
 import rerun.blueprint as rrb
 from tqdm.auto import tqdm
 
-from massviz.atomic import atomic_path
+from massviz.io.atomic import atomic_path
 from massviz.errors import MassvizError
-from massviz.recording import Recording
-from massviz.trace import Trace
-from massviz.types import Detections, Intrinsics, class_name
+from massviz.io.recording import Recording
+from massviz.core.trace import Trace
+from massviz.core.geometry import (Measurement, depth_to_points, detection_cloud, measure_cloud, measurements_of,
+                                   skip_reason)
+from massviz.core.patches import crop, model_view
+from massviz.core.types import Detections, Frame, Intrinsics, class_name
+from massviz.views.palette import BOX_COLOUR, CHOSEN_COLOUR, rgb255
 
 APPLICATION_ID = "massviz"
 #: every ``POINT_STEP``-th pixel (in x and y) of the depth image becomes a point of ``/world/points``.
@@ -173,23 +177,6 @@ def log_depth(rec: rr.RecordingStream, depth: np.ndarray) -> None:
     rec.log("/camera/depth", rr.DepthImage(depth, meter=1000.0, colormap="turbo"))
 
 
-def depth_to_points(depth: np.ndarray, intrinsics: Intrinsics, rgb: np.ndarray | None = None,
-                    step: int = POINT_STEP) -> tuple[np.ndarray, np.ndarray | None]:
-    """Back-project every ``step``-th pixel with depth through Open3D (``massviz.geometry3d.rgbd_cloud``, the same
-    back-projection as the 3D stage, within its ``DEPTH_TRUNC_M``): (N×3 float32 metres in the RDF camera frame,
-    N×3 uint8 RGB colours or None). Subsampling scales the intrinsics, so a point is exactly its full-size pixel's."""
-    from massviz.geometry3d import rgbd_cloud
-
-    sub = depth[::step, ::step]
-    intr = Intrinsics(intrinsics.fx / step, intrinsics.fy / step, intrinsics.cx / step, intrinsics.cy / step,
-                      sub.shape[1], sub.shape[0])
-    colour = np.zeros((*sub.shape, 3), np.uint8) if rgb is None else rgb[::step, ::step]
-    pcd = rgbd_cloud(colour, sub, intr)
-    points = np.asarray(pcd.points, dtype=np.float32)
-    colours = None if rgb is None else np.round(np.asarray(pcd.colors) * 255).astype(np.uint8)
-    return points, colours
-
-
 def log_points(rec: rr.RecordingStream, depth: np.ndarray, rgb: np.ndarray, intr: Intrinsics, step: int,
                max_points: int) -> int:
     """``/world/points`` of one frame (at most ``max_points``, evenly subsampled); returns the number logged."""
@@ -244,23 +231,9 @@ def log_masks(rec: rr.RecordingStream, dets: Detections, idx: list[int], class_i
 
 
 # ------------------------------------------------------------------------------------------------------- patches
-def model_input_preprocessor():
-    """The single import point of the model's patch preprocessing (``massviz.model.preprocess_patch``: H×W×3 uint8
-    → zero-padded square → 3×112×112 float tensor in [0, 1]); imported on first use (it loads torch)."""
-    from massviz.model import preprocess_patch
-
-    return preprocess_patch
-
-
-def model_view(patch: np.ndarray, preprocess) -> np.ndarray:
-    """The patch as the model sees it, as an H×W×3 uint8 image."""
-    tensor = preprocess(patch)
-    return (tensor.detach().cpu().numpy().transpose(1, 2, 0) * 255.0).round().clip(0, 255).astype(np.uint8)
-
-
-def log_patch(rec: rr.RecordingStream, rank: int, dets: Detections, i: int, patch: np.ndarray, preprocess) -> None:
+def log_patch(rec: rr.RecordingStream, rank: int, dets: Detections, i: int, patch: np.ndarray) -> None:
     """``/patches/<rank>`` at its source frame: the model's input image and the numbers that went with it."""
-    rec.log(f"/patches/{rank}", rr.Image(model_view(patch, preprocess)), rr.AnyValues(
+    rec.log(f"/patches/{rank}", rr.Image(model_view(patch)), rr.AnyValues(
         a=float(dets.a[i]), b=float(dets.b[i]), d_mm=float(dets.d[i]), frame=int(dets.frame[i]),
         class_name=class_name(dets.class_id[i]), score=float(dets.score[i]), pred_g=float(dets.pred[i]),
         detection=int(i)))
@@ -297,29 +270,25 @@ def log_predictions(rec: rr.RecordingStream, trace: Trace) -> None:
 
 
 # ----------------------------------------------------------------------------------------------------- text, log
-def event_level(message: str) -> str:
-    if message.startswith(("skipped", "no detection", "not estimated")) or "cannot" in message:
-        return rr.TextLogLevel.WARN
-    if message.startswith("reused cached"):
-        return rr.TextLogLevel.DEBUG
-    return rr.TextLogLevel.INFO
+_LEVELS = {"debug": rr.TextLogLevel.DEBUG, "info": rr.TextLogLevel.INFO, "warn": rr.TextLogLevel.WARN}
 
 
 def log_events(rec: rr.RecordingStream, events, first_frame: int) -> None:
-    """``/log``: (frame, message) decisions at their frames (frame -1, e.g. cache reuse: at the first frame)."""
-    for frame, message in events:
-        frame = int(frame)
+    """``/log``: the trace's typed events at their frames (frame -1, e.g. cache reuse: at the first frame), at
+    their level."""
+    for e in events:
+        frame = int(e.frame)
         rec.set_time("frame", sequence=frame if frame >= 0 else first_frame)
-        rec.log("/log", rr.TextLog(str(message), level=event_level(str(message))))
+        rec.log("/log", rr.TextLog(str(e.message), level=_LEVELS.get(e.level, rr.TextLogLevel.INFO)))
 
 
 def summary_markdown(trace: Trace) -> str:
     info, dets = trace.recording, trace.detections
     est = "**not estimated** (no detection with depth)" if trace.estimate < 0 else f"**{trace.estimate:.1f} g**"
     gt = trace.ground_truth_mass
-    lines = [f"# {info.get('id', '?')}", "",
-             f"- recording: `{info.get('path', '?')}` ({info.get('width')}×{info.get('height')}, "
-             f"{info.get('num_frames')} frames; {len(trace.frames)} processed, stride {trace.stride})",
+    lines = [f"# {info.id}", "",
+             f"- recording: `{info.path}` ({info.width}×{info.height}, "
+             f"{info.num_frames} frames; {len(trace.frames)} processed, stride {trace.stride})",
              f"- detector: {trace.detector.get('name', '?')}, threshold {trace.threshold:g}; "
              f"{len(dets)} detections",
              f"- model weights: `{trace.weights_id or '?'}`; K = {trace.k}",
@@ -378,9 +347,70 @@ def default_blueprint(n_patches: int, *, has_3d: bool = True) -> rrb.Blueprint:
     )
 
 
+# ------------------------------------------------------------------------------------------------ 3D clouds
+def log_frame_clouds(trace, frame: Frame, intr: Intrinsics, stream, *, root: str = "world/detections",
+                     voxel_m: float = 0.004) -> list[str]:
+    """Log each detection of ``frame`` (above the trace's threshold) as ``/<root>/<id>`` (Points3D, its colours;
+    chosen ones in ``CHOSEN_COLOUR`` with their box as ``<id>/box`` Boxes3D labelled with the measured size).
+    Call it with the stream's time already set to the frame. ``voxel_m`` thins the clouds (0: every point).
+    Returns the entity paths logged."""
+    dets = trace.detections
+    rank_of = {int(i): r for r, i in enumerate(trace.selection)}
+    stored = {m.detection: m for m in measurements_of(trace)}
+    idx = [int(i) for i in np.flatnonzero((dets.frame == frame.index) & trace.active())]
+    paths = []
+    for i in idx:
+        pcd = detection_cloud(frame, dets, i, intr)
+        if len(pcd.points) == 0:
+            continue
+        m = stored.get(i)
+        size = None
+        if i in rank_of and m is None:
+            size = measure_cloud(pcd)
+            m = Measurement.from_size(rank_of[i], i, frame.index, size) if size is not None else None
+        shown = pcd.voxel_down_sample(voxel_m) if voxel_m > 0 else pcd
+        pts = np.asarray(shown.points, np.float32)
+        path = f"{root}/{i}"
+        if i in rank_of:
+            colours = np.tile(np.array(rgb255(CHOSEN_COLOUR), np.uint8), (len(pts), 1))
+        else:
+            colours = (np.asarray(shown.colors) * 255).astype(np.uint8)
+        stream.log(path, rr.Points3D(pts, colors=colours, radii=0.002))
+        if m is not None:
+            label = f"#{m.rank} h {m.height_mm:.0f} w {m.width_mm:.0f} d {m.depth_mm:.0f} mm"
+            stream.log(f"{path}/box", rr.Transform3D(translation=m.center, mat3x3=np.asarray(m.R)),
+                       rr.Boxes3D(half_sizes=[np.asarray(m.extent) / 2], colors=[rgb255(BOX_COLOUR)], labels=[label]))
+            stream.log(f"{path}/measurement", rr.AnyValues(
+                rank=m.rank, height_mm=m.height_mm, width_mm=m.width_mm, depth_mm=m.depth_mm, n_points=m.n_points))
+        paths.append(path)
+    return paths
+
+
+def log_clouds(trace, recording, stream, *, timeline: str = "frame", root: str = "world/detections",
+               voxel_m: float = 0.004) -> int:
+    """Log every processed frame's detection clouds (``log_frame_clouds``) on ``timeline`` (sequence = frame index),
+    clearing each frame's detection entities at the next processed frame so that none lingers. Returns the number of
+    clouds logged; 0 (and nothing logged) for a recording without intrinsics."""
+    if skip_reason(recording):
+        return 0
+    dets = trace.detections
+    with_dets = sorted({int(f) for f in dets.frame[trace.active()]})
+    processed = [int(f) for f in trace.frames]
+    n = 0
+    shown: list[str] = []
+    for frame in recording.frames(indices=sorted(set(with_dets) | set(processed))):
+        stream.set_time(timeline, sequence=frame.index)
+        for p in shown:
+            stream.log(p, rr.Clear(recursive=True))
+        shown = log_frame_clouds(trace, frame, recording.intrinsics, stream, root=root, voxel_m=voxel_m) \
+            if frame.index in with_dets else []
+        n += len(shown)
+    return n
+
+
 # ---------------------------------------------------------------------------------------------------------- main
 def _check_match(trace: Trace, recording: Recording) -> None:
-    w, h = trace.recording.get("width"), trace.recording.get("height")
+    w, h = trace.recording.width, trace.recording.height
     if (w, h) != (recording.width, recording.height):
         raise MassvizError(f"the trace was made on {w}x{h} frames but this recording is "
                            f"{recording.width}x{recording.height}", recording.path)
@@ -398,7 +428,6 @@ def _log_all(rec: rr.RecordingStream, trace: Trace, recording: Recording, *, vid
     for i, f in enumerate(dets.frame):
         by_frame[int(f)].append(i)
     intr = recording.intrinsics
-    preprocess = model_input_preprocessor() if rank_of else None
 
     rec.send_recording_name(f"massviz {recording.id}")
     log_annotation_context(rec, trace.k)
@@ -410,15 +439,13 @@ def _log_all(rec: rr.RecordingStream, trace: Trace, recording: Recording, *, vid
         notes.append("no camera intrinsics for this recording: /camera Pinhole and /world/points are not logged")
     if rgb.warning:
         notes.append(rgb.warning)
-    if trace.estimate < 0 and not any("not estimated" in str(m) for _, m in trace.events):
+    if trace.estimate < 0 and not any(e.kind == "not_estimated" for e in trace.events):
         notes.append("not estimated: no detection with depth was selected")
     rec.set_time("frame", sequence=first)
     for note in notes:
         rec.log("/log", rr.TextLog(note, level=rr.TextLogLevel.WARN))
 
-    log_frame_clouds = None
-    if clouds and intr is not None:
-        from massviz.geometry3d import log_frame_clouds
+    cloud_frames = clouds and intr is not None
     n_points, n_clouds, shown = 0, 0, []
     bar = tqdm(recording.frames(indices=frames), total=len(frames), desc=f"{recording.id} → rerun", unit="frame",
                file=sys.stderr, disable=not progress, leave=False)
@@ -439,9 +466,9 @@ def _log_all(rec: rr.RecordingStream, trace: Trace, recording: Recording, *, vid
             n_points += log_points(rec, frame.depth, frame.rgb, intr, step, max_points)
         for i in idx:
             if i in rank_of:
-                patch = dets.patches[i] if dets.patches[i] is not None else _crop(frame.rgb, dets.xyxy[i])
-                log_patch(rec, rank_of[i], dets, i, patch, preprocess)
-        if log_frame_clouds is not None:  # in this same pass, so the frames are decoded once
+                patch = dets.patches[i] if dets.patches[i] is not None else crop(frame.rgb, dets.xyxy[i])
+                log_patch(rec, rank_of[i], dets, i, patch)
+        if cloud_frames:  # in this same pass, so the frames are decoded once
             for path in shown:
                 rec.log(path, rr.Clear(recursive=True))
             shown = log_frame_clouds(trace, frame, intr, rec)
@@ -455,11 +482,6 @@ def _log_all(rec: rr.RecordingStream, trace: Trace, recording: Recording, *, vid
             "clouds": n_clouds, "rgb": rgb.mode, "notes": notes}
 
 
-def _crop(rgb: np.ndarray, xyxy) -> np.ndarray:
-    from massviz.pipeline import crop
-    return crop(rgb, xyxy)
-
-
 def log_trace(trace: Trace, recording: Recording, *, rrd: str | Path | None = None, spawn: bool = False,
               stream: rr.RecordingStream | None = None, progress: bool = False, max_points: int = MAX_POINTS,
               step: int = POINT_STEP, video: str = "auto", clouds: bool = True) -> dict:
@@ -471,7 +493,7 @@ def log_trace(trace: Trace, recording: Recording, *, rrd: str | Path | None = No
     recording of application ``massviz`` on its own ``RecordingStream`` (never the global one).
 
     ``video``: how an mp4 is logged (see ``RgbLogger``). ``step``/``max_points``: point cloud subsampling.
-    ``clouds``: also log each detection's Open3D cloud under ``/world/detections`` (``massviz.geometry3d``).
+    ``clouds``: also log each detection's Open3D cloud under ``/world/detections`` (``massviz.core.geometry``).
 
     Returns stats: ``recording_id``, ``frames``, ``detections``, ``chosen``, ``points``, ``rgb`` ("asset",
     "images" or "files"), ``notes`` (warnings also in /log), ``log_seconds`` (wall time of logging, flushing
@@ -565,5 +587,5 @@ def rrd_entities(path: str | Path) -> set[str]:
     return set(rrd_contents(path))
 
 
-__all__ = ["log_trace", "default_blueprint", "depth_to_points", "rrd_entities", "rrd_contents", "RgbLogger",
+__all__ = ["log_trace", "default_blueprint", "log_clouds", "log_frame_clouds", "rrd_entities", "rrd_contents", "RgbLogger",
            "CLASS_IDS", "CHOSEN_ID", "POINT_STEP", "MAX_POINTS"]

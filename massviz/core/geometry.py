@@ -1,0 +1,311 @@
+"""3D through Open3D: back-projected clouds, each detection's masked cloud, its measured size, .ply files.
+
+**Axes.** Every cloud is in metres in the *camera frame* of the recording's RGB camera, OpenCV convention (RDF):
+x to the right of the image, y down the image, z forward along the optical axis (depth). This is the convention of
+``Intrinsics`` and of Rerun's ``Pinhole`` with ``camera_xyz=RDF``, so clouds logged under the camera entity line up
+with its image. (Open3D's own viewers look down -z with y up; the renderers here set their cameras accordingly.)
+
+**Back-projection.** ``o3d.geometry.RGBDImage.create_from_color_and_depth`` (``depth_scale=1000``: depth PNGs are
+millimetres) and ``PointCloud.create_from_rgbd_image`` with the recording's ``PinholeCameraIntrinsic``: pixel (u, v)
+with depth z maps to ``((u - cx) z / fx, (v - cy) z / fy, z)``. Pixels without depth (0) or beyond ``depth_trunc``
+give no point. A detection's cloud is the same with the depth zeroed outside its full-frame mask, then cleaned:
+points farther than ``band_m`` from the mask's median depth are dropped (background seen through the mask's edge)
+and Open3D's ``remove_statistical_outlier`` removes the stray ones (flying pixels at depth edges).
+
+**Measured size.** The container's vertical axis comes from the cleaned cloud's oriented bounding box
+(``get_minimal_oriented_bounding_box``, which fits a box's faces; the PCA ``get_oriented_bounding_box`` when that
+fails): of its three axes, the one most aligned with the image's vertical (camera y). The measured box is then the
+tightest box around the points with that vertical, turned to face the camera:
+
+* **height**: the extent along the container's vertical. For an upright or tilted container this is its height,
+  whatever its yaw.
+* **width**: the extent across the line of sight (perpendicular to the vertical and to the ray from the camera to
+  the cloud's centre), i.e. the container's width *as seen*: a cup's or glass's widest diameter, a box's face width
+  when it faces the camera (``w·cos(yaw) + d·sin(yaw)`` when it is turned). This is what the CCM annotation's
+  ``width at the top``/``width at the bottom`` measure for containers seen from the front, and, unlike the minimal
+  box's own extents, it is not thrown off by a hand holding the container from the side.
+* **depth**: the extent along the line of sight. Only the camera-facing surface is seen, so for a cup or glass this
+  is about its radius, and for a box its visible side.
+
+The box is stored as centre, extent and rotation ``R`` whose columns are the (width, height, depth) directions in the
+camera frame (width ≈ +x, height ≈ +y: down, depth ≈ +z), a proper rotation; ``extent`` holds the matching lengths in
+metres.
+
+A recording without intrinsics has no metric 3D: ``measure`` returns nothing and ``skip_reason`` says why in one line.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+
+from massviz.errors import MassvizError
+from massviz.core.trace import Event
+from massviz.core.types import Detections, Frame, GroundTruth, Intrinsics
+
+#: default farthest depth (m) kept in clouds.
+DEPTH_TRUNC_M = 4.0
+#: half-width (m) of the depth band around a detection's median depth kept in its cloud.
+BAND_M = 0.25
+#: ``remove_statistical_outlier`` settings: neighbours, standard-deviation ratio.
+SOR_NEIGHBOURS = 20
+SOR_STD_RATIO = 2.0
+
+
+# ------------------------------------------------------------------------------------------------ intrinsics
+def skip_reason(recording) -> str | None:
+    """One line saying why ``recording`` gets no 3D stage, or None when it has intrinsics."""
+    if getattr(recording, "intrinsics", None) is None:
+        where = ("a calib/NNNNNN.pickle beside the CCM view" if getattr(recording, "kind", "") == "ccm"
+                 else "intrinsics.json in the recording folder")
+        return f"{recording.id}: no camera intrinsics ({where}), so no 3D: clouds and measurements skipped"
+    return None
+
+
+def require_intrinsics(recording) -> Intrinsics:
+    """The recording's intrinsics, or a ``MassvizError`` naming what is missing."""
+    reason = skip_reason(recording)
+    if reason:
+        raise MassvizError(reason)
+    return recording.intrinsics
+
+
+def pinhole(intr: Intrinsics) -> o3d.camera.PinholeCameraIntrinsic:
+    return o3d.camera.PinholeCameraIntrinsic(int(intr.width), int(intr.height), float(intr.fx), float(intr.fy),
+                                             float(intr.cx), float(intr.cy))
+
+
+# ------------------------------------------------------------------------------------------------ clouds
+def rgbd_cloud(rgb: np.ndarray, depth: np.ndarray, intr: Intrinsics, *,
+               depth_trunc: float = DEPTH_TRUNC_M) -> o3d.geometry.PointCloud:
+    """Coloured cloud of every pixel with depth in (0, ``depth_trunc``] (m, camera frame, RDF)."""
+    color = o3d.geometry.Image(np.ascontiguousarray(rgb, dtype=np.uint8))
+    d = o3d.geometry.Image(np.ascontiguousarray(depth, dtype=np.uint16))
+    rgbd = o3d.geometry.RGBDImage.create_from_color_and_depth(
+        color, d, depth_scale=1000.0, depth_trunc=float(depth_trunc), convert_rgb_to_intensity=False)
+    return o3d.geometry.PointCloud.create_from_rgbd_image(rgbd, pinhole(intr))
+
+
+def scene_cloud(frame: Frame, intr: Intrinsics, *, depth_trunc: float = DEPTH_TRUNC_M) -> o3d.geometry.PointCloud:
+    """The whole frame back-projected (no cleaning): one point per pixel with depth."""
+    return rgbd_cloud(frame.rgb, frame.depth, intr, depth_trunc=depth_trunc)
+
+
+def masked_cloud(frame: Frame, mask: np.ndarray, intr: Intrinsics, *, depth_trunc: float = DEPTH_TRUNC_M,
+                 band_m: float | None = BAND_M, clean: bool = True) -> o3d.geometry.PointCloud:
+    """The cloud of a full-frame boolean ``mask``: depth zeroed outside it, then (``clean``) the depth band around its
+    median and statistical outlier removal (module docstring)."""
+    depth = np.where(mask, frame.depth, 0).astype(np.uint16)
+    if clean and band_m is not None:
+        z = depth[depth > 0]
+        if z.size:
+            med = float(np.median(z))
+            depth[np.abs(depth.astype(np.float64) - med) > band_m * 1000.0] = 0
+    pcd = rgbd_cloud(frame.rgb, depth, intr, depth_trunc=depth_trunc)
+    if clean and len(pcd.points) > SOR_NEIGHBOURS:
+        pcd, _ = pcd.remove_statistical_outlier(nb_neighbors=SOR_NEIGHBOURS, std_ratio=SOR_STD_RATIO)
+    return pcd
+
+
+def detection_cloud(frame: Frame, dets: Detections, i: int, intr: Intrinsics, **kw) -> o3d.geometry.PointCloud:
+    """Cleaned cloud of detection ``i`` (its mask pasted into the frame)."""
+    return masked_cloud(frame, dets.full_mask(i, frame.height, frame.width), intr, **kw)
+
+
+# ------------------------------------------------------------------------------------------------ measuring
+@dataclass
+class Size:
+    """A cloud's measured box (module docstring): lengths in mm, box in metres."""
+
+    height_mm: float
+    width_mm: float
+    depth_mm: float
+    center: np.ndarray  # (3,) m
+    extent: np.ndarray  # (3,) m: width, height, depth
+    R: np.ndarray  # 3×3, columns: width, height, depth directions
+    n_points: int
+
+    def obb(self) -> o3d.geometry.OrientedBoundingBox:
+        return o3d.geometry.OrientedBoundingBox(np.asarray(self.center, float), np.asarray(self.R, float),
+                                                np.asarray(self.extent, float))
+
+
+def oriented_box(pcd: o3d.geometry.PointCloud) -> o3d.geometry.OrientedBoundingBox:
+    """Minimal oriented box of the cloud (PCA box when the minimal one fails, e.g. on a degenerate cloud)."""
+    try:
+        return pcd.get_minimal_oriented_bounding_box(robust=True)
+    except RuntimeError:
+        return pcd.get_oriented_bounding_box(robust=True)
+
+
+def vertical_axis(box: o3d.geometry.OrientedBoundingBox) -> np.ndarray:
+    """The box axis most aligned with the image's vertical (camera y), pointing down (+y)."""
+    R = np.asarray(box.R, float)
+    axis = R[:, int(np.argmax(np.abs(R[1, :])))]
+    return axis if axis[1] >= 0 else -axis
+
+
+def view_aligned_box(points: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(center, R, extent) of the tightest box around ``points`` with vertical ``up`` that faces the camera: columns of
+    R are width (across the line of sight), height (``up``) and depth (along the line of sight)."""
+    up = np.asarray(up, float) / np.linalg.norm(up)
+    c = points.mean(axis=0)
+    view = c / (np.linalg.norm(c) or 1.0)
+    w = np.cross(up, view)
+    if np.linalg.norm(w) < 1e-6:  # looking straight along the vertical: take the camera's x
+        w = np.array([1.0, 0.0, 0.0]) - up[0] * up
+    w /= np.linalg.norm(w)
+    d = np.cross(w, up)
+    R = np.stack([w, up, d], axis=1)
+    local = (points - c) @ R
+    lo, hi = local.min(axis=0), local.max(axis=0)
+    return c + R @ ((lo + hi) / 2), R, hi - lo
+
+
+def measure_cloud(pcd: o3d.geometry.PointCloud) -> Size | None:
+    """Height, width, depth (mm) and measured box of a cloud (module docstring); None with fewer than 10 points."""
+    n = len(pcd.points)
+    if n < 10:
+        return None
+    center, R, extent = view_aligned_box(np.asarray(pcd.points), vertical_axis(oriented_box(pcd)))
+    return Size(height_mm=1000 * extent[1], width_mm=1000 * extent[0], depth_mm=1000 * extent[2], center=center,
+                extent=extent, R=R, n_points=n)
+
+
+@dataclass
+class Measurement:
+    """Measured size of one chosen detection (``rank`` in the selection, ``detection`` its index in the trace)."""
+
+    rank: int
+    detection: int
+    frame: int
+    height_mm: float
+    width_mm: float
+    depth_mm: float
+    center: list  # m, camera frame
+    extent: list  # m: width, height, depth
+    R: list  # 3×3 rows; columns are the width, height, depth directions
+    n_points: int
+
+    @classmethod
+    def from_size(cls, rank: int, detection: int, frame: int, size: Size) -> "Measurement":
+        return cls(rank=int(rank), detection=int(detection), frame=int(frame),
+                   height_mm=round(float(size.height_mm), 1), width_mm=round(float(size.width_mm), 1),
+                   depth_mm=round(float(size.depth_mm), 1), center=[float(v) for v in size.center],
+                   extent=[float(v) for v in size.extent], R=np.asarray(size.R, float).tolist(),
+                   n_points=int(size.n_points))
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Measurement":
+        return cls(**{f.name: d[f.name] for f in dataclasses.fields(cls)})
+
+    def obb(self) -> o3d.geometry.OrientedBoundingBox:
+        return o3d.geometry.OrientedBoundingBox(np.asarray(self.center, float), np.asarray(self.R, float),
+                                                np.asarray(self.extent, float))
+
+
+def ground_truth_size(meta: dict | None) -> dict | None:
+    """The container's annotated size (mm) from a recording's meta (``GroundTruth.size``: height, top/bottom
+    widths, ``width_mm`` the larger of the two, depth), or None when unknown."""
+    gt = GroundTruth.from_meta(meta)
+    return None if gt is None else gt.size()
+
+
+def annotation_size(annotations, config_id) -> dict | None:
+    """A CCM annotation row (``massviz.evaluation.metrics.read_annotations`` frame) as ``ground_truth_size`` input."""
+    rows = annotations[annotations["id"].astype(str) == str(config_id)]
+    if rows.empty:
+        return None
+    r = rows.iloc[0]
+    return ground_truth_size({"container": {"width_top_mm": r["width at the top"],
+                                            "width_bottom_mm": r["width at the bottom"], "height_mm": r["height"],
+                                            "depth_mm": r.get("depth", -1)}})
+
+
+def compare(m: Measurement, gt: dict | None) -> dict:
+    """Measured vs annotated size: relative errors (%) of height and width, None where unknown."""
+    if not gt:
+        return {"height_err_pct": None, "width_err_pct": None}
+    return {"height_err_pct": round(100 * (m.height_mm - gt["height_mm"]) / gt["height_mm"], 1),
+            "width_err_pct": round(100 * (m.width_mm - gt["width_mm"]) / gt["width_mm"], 1)}
+
+
+def _by_frame(indices, dets: Detections) -> dict[int, list[int]]:
+    out: dict[int, list[int]] = {}
+    for i in indices:
+        out.setdefault(int(dets.frame[i]), []).append(int(i))
+    return out
+
+
+def measure(trace, recording, *, depth_trunc: float = DEPTH_TRUNC_M, band_m: float | None = BAND_M
+            ) -> list[Measurement]:
+    """Measure every chosen detection of ``trace`` (``trace.selection``, nearest first) from its cleaned cloud.
+
+    Reads only the frames of the chosen detections. Returns [] for a recording without intrinsics (see
+    ``skip_reason``) and skips detections whose cloud has fewer than 10 points.
+    """
+    if skip_reason(recording):
+        return []
+    intr = recording.intrinsics
+    dets = trace.detections
+    rank_of = {int(i): r for r, i in enumerate(trace.selection)}
+    out = []
+    groups = _by_frame(trace.selection, dets)
+    for frame in recording.frames(indices=list(groups)):
+        for i in groups[frame.index]:
+            size = measure_cloud(detection_cloud(frame, dets, i, intr, depth_trunc=depth_trunc, band_m=band_m))
+            if size is not None:
+                out.append(Measurement.from_size(rank_of[i], i, frame.index, size))
+    return sorted(out, key=lambda m: m.rank)
+
+
+def with_measurements(trace, recording, **kw):
+    """A copy of ``trace`` with ``measurements`` (``Measurement.to_dict()`` each) and the stage's wall time
+    (``timings["measure3d"]``); an event records a skip for a recording without intrinsics."""
+    t0 = time.perf_counter()
+    ms = measure(trace, recording, **kw)
+    timings = {**trace.timings, "measure3d": time.perf_counter() - t0}
+    events = list(trace.events)
+    reason = skip_reason(recording)
+    if reason:
+        events.append(Event(-1, reason, "warning", "warn"))
+    for m in ms:
+        events.append(Event(m.frame, f"measured chosen patch {m.rank} (detection {m.detection}): height "
+                                     f"{m.height_mm:.0f} mm, width {m.width_mm:.0f} mm, depth {m.depth_mm:.0f} mm "
+                                     f"from {m.n_points} points", "measured", "info", m.detection))
+    return dataclasses.replace(trace, measurements=[m.to_dict() for m in ms], timings=timings, events=events)
+
+
+def measurements_of(trace) -> list[Measurement]:
+    """The trace's stored measurements as ``Measurement`` objects."""
+    return [Measurement.from_dict(d) for d in getattr(trace, "measurements", None) or []]
+
+
+def depth_to_points(depth: np.ndarray, intrinsics: Intrinsics, rgb: np.ndarray | None = None,
+                    step: int = 4) -> tuple[np.ndarray, np.ndarray | None]:
+    """Back-project every ``step``-th pixel with depth through Open3D (``rgbd_cloud``, the same
+    back-projection as the 3D stage, within its ``DEPTH_TRUNC_M``): (N×3 float32 metres in the RDF camera frame,
+    N×3 uint8 RGB colours or None). Subsampling scales the intrinsics, so a point is exactly its full-size pixel's."""
+    sub = depth[::step, ::step]
+    intr = Intrinsics(intrinsics.fx / step, intrinsics.fy / step, intrinsics.cx / step, intrinsics.cy / step,
+                      sub.shape[1], sub.shape[0])
+    colour = np.zeros((*sub.shape, 3), np.uint8) if rgb is None else rgb[::step, ::step]
+    pcd = rgbd_cloud(colour, sub, intr)
+    points = np.asarray(pcd.points, dtype=np.float32)
+    colours = None if rgb is None else np.round(np.asarray(pcd.colors) * 255).astype(np.uint8)
+    return points, colours
+
+
+__all__ = [
+    "DEPTH_TRUNC_M", "BAND_M", "skip_reason", "require_intrinsics", "pinhole", "rgbd_cloud", "scene_cloud",
+    "masked_cloud", "detection_cloud", "Size", "oriented_box", "vertical_axis", "view_aligned_box", "measure_cloud",
+    "Measurement", "ground_truth_size", "annotation_size", "compare", "measure", "with_measurements",
+    "measurements_of", "depth_to_points"]

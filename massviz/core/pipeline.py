@@ -1,0 +1,239 @@
+"""The paper's pipeline, one frame at a time, every stage timed into a ``Trace``.
+
+Stages, per processed frame (every ``stride``-th): **read** the RGB-D frame, **detect** containers, compute the
+**features** (d, a, b) of every detection, **predict** the mass of every detection's patch with the mass CNN, and
+**select** the K nearest detections seen so far (the running estimate). ``FramePipeline`` holds that running state:
+
+    fp = FramePipeline(detector, model, k=5)
+    for frame in recording.frames():
+        result = fp.step(frame)          # this frame's detections, the K nearest so far, the running estimate
+    trace = fp.finish()                  # the whole recording's Trace
+
+Every runner calls the same step: ``run`` (a loop over a recording, below), the dataset runners, the live camera,
+batched detection (``step(frame, detections=...)`` when a batched detector already ran on the frame).
+
+Predicting every detection (not only the K chosen) costs little next to detection and makes re-selection for any
+K, threshold or exclusion instant (notebook sliders, sweeps). Frames are streamed; only the ``keep_patches`` nearest
+RGB patches are held, so memory does not grow with the recording's length beyond the small per-detection arrays.
+"""
+from __future__ import annotations
+
+import dataclasses
+import heapq
+import math
+import sys
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from massviz.core.patches import crop
+from massviz.core.selection import compute_features, estimate_mass, select_k_nearest
+from massviz.core.trace import Event, Trace, describe_detection, describe_selection
+from massviz.core.types import Detections, Frame, RecordingInfo
+from massviz.detect.base import Detector
+
+#: how many of the nearest detections keep their RGB patch in the trace (>= any K you will reselect with).
+KEEP_PATCHES = 32
+
+
+def predict_detections(model, rgb: np.ndarray, dets: Detections) -> tuple[np.ndarray, list]:
+    """Mass prediction (g) for every detection with a finite d and a non-empty box; NaN for the others."""
+    pred = np.full(len(dets), np.nan, dtype=np.float32)
+    patches = [crop(rgb, box) for box in dets.xyxy]
+    ok = [i for i in range(len(dets)) if np.isfinite(dets.d[i]) and patches[i].size]
+    if ok:
+        feats = np.stack([dets.a[ok], dets.b[ok], dets.d[ok]], axis=1)
+        pred[ok] = model.predict([patches[i] for i in ok], feats)
+    return pred, patches
+
+
+class _NearestPatches:
+    """Keeps the RGB patches of the ``n`` nearest detections seen so far (ties: the earliest wins)."""
+
+    def __init__(self, n: int):
+        self.n, self.heap, self.patches = n, [], {}
+
+    def offer(self, index: int, d: float, patch: np.ndarray) -> None:
+        if not np.isfinite(d) or self.n <= 0:
+            return
+        heapq.heappush(self.heap, (-d, -index))
+        self.patches[index] = patch
+        if len(self.heap) > self.n:
+            _, neg = heapq.heappop(self.heap)
+            self.patches.pop(-neg, None)
+
+
+@dataclass
+class FrameResult:
+    """What one ``FramePipeline.step`` computed.
+
+    - ``frame``: the frame; ``detections``: its detections with d, a, b and ``pred`` (their indices in the trace are
+      ``offset + i``); ``patches``: their RGB crops.
+    - ``selection``: the K nearest detections *so far* (indices into the trace's detections, nearest first) and
+      ``running_estimate`` the mean of their predictions (-1 while nothing is selected).
+    - ``timings``: this frame's seconds per stage (read, detect, features, predict, select); ``events`` its decisions.
+    """
+
+    frame: Frame
+    detections: Detections
+    patches: list
+    offset: int
+    selection: np.ndarray
+    running_estimate: float
+    timings: dict = field(default_factory=dict)
+    events: list = field(default_factory=list)
+
+
+class FramePipeline:
+    """The per-frame step of the pipeline, holding the running nearest-K state of one recording."""
+
+    def __init__(self, detector: Detector, model, *, k: int = 5, stride: int = 1, recording: RecordingInfo | None = None,
+                 keep_patches: int = KEEP_PATCHES):
+        if k < 1:
+            raise ValueError("k must be >= 1")
+        self.detector, self.model, self.k, self.stride = detector, model, int(k), int(stride)
+        self.recording = recording
+        self.timings: dict[str, float] = defaultdict(float)
+        self.events: list[Event] = []
+        self._parts: list[Detections] = []
+        self._frames: list[int] = []
+        self._nearest = _NearestPatches(max(keep_patches, k))
+        self._offset = 0
+        # the running selection: the K nearest so far (global indices, their d and predictions). The K nearest of
+        # the recording so far are the K nearest of (the previous K nearest + this frame's detections), ties to the
+        # earliest: a frame's detections come after every earlier one, so a stable merge keeps the paper's order.
+        self._sel = np.zeros(0, dtype=np.int64)
+        self._sel_d = np.zeros(0)
+        self._sel_pred = np.zeros(0)
+        self._start = time.perf_counter()
+
+    @property
+    def frames_done(self) -> int:
+        return len(self._frames)
+
+    def step(self, frame: Frame, *, detections: Detections | None = None, read_seconds: float = 0.0) -> FrameResult:
+        """Run detect (unless ``detections`` are given), features, predict and the running selection on one frame."""
+        t1 = time.perf_counter()
+        dets = self.detector.detect(frame) if detections is None else detections
+        t2 = time.perf_counter()
+        compute_features(dets, frame.depth)
+        t3 = time.perf_counter()
+        dets.pred, patches = predict_detections(self.model, frame.rgb, dets)
+        t4 = time.perf_counter()
+        events = []
+        for i in range(len(dets)):
+            if not np.isfinite(dets.d[i]):
+                events.append(Event(frame.index, f"skipped {describe_detection(dets, i)}: its mask has no depth",
+                                    "skipped", "warn", self._offset + i))
+            self._nearest.offer(self._offset + i, float(dets.d[i]), patches[i])
+        offset = self._offset
+        self._frames.append(frame.index)
+        self._parts.append(dets)
+        self._offset += len(dets)
+        selection, running = self._update_selection(dets, offset)
+        t5 = time.perf_counter()
+        timings = {"read": read_seconds, "detect": t2 - t1, "features": t3 - t2, "predict": t4 - t3,
+                   "select": t5 - t4}
+        for name, seconds in timings.items():
+            if name != "select":  # the whole recording's selection is timed in finish()
+                self.timings[name] += seconds
+        self.events.extend(events)
+        return FrameResult(frame=frame, detections=dets, patches=patches, offset=offset, selection=selection,
+                           running_estimate=running, timings=timings, events=events)
+
+    def _update_selection(self, dets: Detections, offset: int) -> tuple[np.ndarray, float]:
+        new = select_k_nearest(dets.d, dets.score, self.k, self.detector.threshold)
+        idx = np.concatenate([self._sel, offset + new])
+        d = np.concatenate([self._sel_d, dets.d[new]])
+        pred = np.concatenate([self._sel_pred, dets.pred[new].astype(np.float64)])
+        keep = select_k_nearest(d, np.ones(len(d)), self.k, 0.0)  # already above the threshold, finite d
+        self._sel, self._sel_d, self._sel_pred = idx[keep], d[keep], pred[keep]
+        return self._sel.copy(), estimate_mass(self._sel_pred, np.arange(len(keep)))
+
+    def finish(self) -> Trace:
+        """The recording's ``Trace``: every detection, the K nearest, the estimate, the decisions and stage times."""
+        detections = Detections.concat(self._parts)
+        for i, patch in self._nearest.patches.items():
+            detections.patches[i] = patch
+        t5 = time.perf_counter()
+        selection = select_k_nearest(detections.d, detections.score, self.k, self.detector.threshold)
+        estimate = estimate_mass(detections.pred, selection)
+        timings = dict(self.timings)
+        timings["select"] = time.perf_counter() - t5
+        timings["total"] = time.perf_counter() - self._start
+        events = [*self.events, *describe_selection(detections, selection, estimate, self.k)]
+        info = self.recording if self.recording is not None else RecordingInfo(id="live")
+        return Trace(recording=info, detector={"name": self.detector.name, **self.detector.settings()},
+                     detect_threshold=float(self.detector.threshold), threshold=float(self.detector.threshold),
+                     k=self.k, stride=self.stride, frames=np.asarray(self._frames, dtype=np.int32),
+                     detections=detections, selection=selection, estimate=estimate,
+                     weights_id=getattr(self.model, "weights_id", ""), timings=timings, events=events)
+
+
+def run(recording, detector: Detector, model, *, k: int = 5, stride: int = 1, keep_patches: int = KEEP_PATCHES,
+        progress: bool = False) -> Trace:
+    """Run the pipeline over ``recording`` (a loop over ``FramePipeline.step``) and select the ``k`` nearest."""
+    fp = FramePipeline(detector, model, k=k, stride=stride, recording=recording.info(), keep_patches=keep_patches)
+    total = math.ceil(recording.num_frames / stride)
+    bar = tqdm(total=total, desc=f"{recording.id}", unit="frame", file=sys.stderr, disable=not progress,
+               leave=False)
+    t0 = time.perf_counter()
+    try:  # the bar is cleared before any error is reported, so the error line stands alone
+        for frame in recording.frames(stride=stride):
+            fp.step(frame, read_seconds=time.perf_counter() - t0)
+            bar.update(1)
+            t0 = time.perf_counter()
+    finally:
+        bar.close()
+    return fp.finish()
+
+
+def repredict(trace: Trace, recording, model, progress: bool = False) -> Trace:
+    """Recompute every detection's prediction with another model (re-reads the frames that have detections)."""
+    dets = trace.detections
+    pred = np.full(len(dets), np.nan, dtype=np.float32)
+    by_frame = defaultdict(list)
+    for i, f in enumerate(dets.frame):
+        by_frame[int(f)].append(i)
+    for frame in tqdm(recording.frames(indices=list(by_frame)), total=len(by_frame), disable=not progress,
+                      file=sys.stderr, desc=f"{recording.id} re-predict", leave=False):
+        idx = by_frame[frame.index]
+        pred[idx], _ = predict_detections(model, frame.rgb, dets[idx])
+    new = Detections(**{n: getattr(dets, n) for n in Detections._ARRAYS if n != "pred"}, pred=pred,
+                     masks=dets.masks, patches=dets.patches)
+    out = dataclasses.replace(trace, detections=new, weights_id=getattr(model, "weights_id", ""))
+    return out.reselect()
+
+
+def process(recording, detector: Detector, model, *, k: int = 5, stride: int = 1, cache=None,
+            progress: bool = False, exclude=None) -> Trace:
+    """``run`` with the trace cache: reuse cached detections when the recording, detector settings and stride match
+    and the cached threshold is <= this one; re-predict only when the model differs. ``cache`` is a
+    ``massviz.io.cache.TraceCache`` or None (no caching)."""
+    info = {"name": detector.name, **detector.settings()}
+    trace = cache.load(recording, info, stride, detector.threshold) if cache is not None else None
+    if trace is not None:
+        t0 = time.perf_counter()
+        note = (f"reused cached detections (made at threshold {trace.detect_threshold}); the detector did not run")
+        if trace.weights_id != getattr(model, "weights_id", ""):
+            trace = repredict(trace, recording, model, progress=progress)
+            cache.save(trace, recording, info)
+            note += "; predictions recomputed for this model"
+        trace = trace.reselect(k=k, threshold=detector.threshold, exclude=exclude)
+        events = [e for e in trace.events if not e.is_selection]
+        events.append(Event(-1, note, "cache", "debug"))
+        events.extend(e for e in trace.events if e.is_selection)
+        timings = {"cache": time.perf_counter() - t0}
+        return dataclasses.replace(trace, events=events, timings={**trace.timings, **timings})
+    trace = run(recording, detector, model, k=k, stride=stride, progress=progress)
+    if cache is not None:
+        cache.save(trace, recording, info)
+    if exclude is not None:
+        trace = trace.reselect(exclude=exclude)
+    return trace
+
+
+__all__ = ["FramePipeline", "FrameResult", "KEEP_PATCHES", "predict_detections", "run", "repredict", "process"]

@@ -1,0 +1,1 @@
+"""Runners: loops that drive the per-frame pipeline step (``massviz.core.pipeline.FramePipeline``) over recordings."""

@@ -1,0 +1,1 @@
+"""Training the mass CNN with the paper's protocol: patch extraction (``extract``) and training (``train``)."""

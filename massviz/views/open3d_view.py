@@ -1,0 +1,231 @@
+"""Open3D as a sink: .ply files, the offscreen renderer and the interactive window, all drawn from a trace.
+
+The geometry (clouds, measured boxes) comes from ``massviz.core.geometry``; this module only writes and draws it.
+Axes are the camera frame (RDF: x right, y down, z forward); Open3D's viewers look down -z with y up, so the renderers
+set their cameras accordingly.
+"""
+from __future__ import annotations
+
+import math
+import os
+import sys
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+
+from massviz.core.geometry import (DEPTH_TRUNC_M, _by_frame, detection_cloud, measure_cloud, measurements_of,
+                                   require_intrinsics, rgbd_cloud, scene_cloud, skip_reason)
+from massviz.core.types import Intrinsics
+from massviz.errors import MassvizError
+from massviz.io.atomic import atomic_path
+from massviz.views.palette import BOX_COLOUR, CHOSEN_COLOUR
+
+# ------------------------------------------------------------------------------------------------ files
+def save_cloud(path: str | Path, pcd: o3d.geometry.PointCloud) -> Path:
+    """Write a binary .ply atomically (a reader never sees half a file)."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        if not o3d.io.write_point_cloud(str(tmp), pcd, write_ascii=False):
+            raise MassvizError("Open3D could not write the point cloud", path)
+    return path
+
+
+def write_ply(out_dir: str | Path, trace, recording, *, frames=None, depth_trunc: float = DEPTH_TRUNC_M
+              ) -> dict[str, int]:
+    """Write .ply clouds into ``out_dir`` and return {file name: point count}.
+
+    For each frame in ``frames`` (default: the frames of the chosen detections): ``scene_<frame>.ply`` (the whole
+    frame) and ``detection_<id>.ply`` for every detection of that frame above the trace's threshold (``id`` = index
+    in ``trace.detections``); the chosen ones also as ``chosen_<rank>.ply``. Nothing is written (and {} returned)
+    for a recording without intrinsics.
+    """
+    if skip_reason(recording):
+        return {}
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    intr, dets = recording.intrinsics, trace.detections
+    rank_of = {int(i): r for r, i in enumerate(trace.selection)}
+    if frames is None:
+        frames = sorted({int(dets.frame[i]) for i in trace.selection})
+    active = np.flatnonzero(trace.active())
+    groups = _by_frame([i for i in active if int(dets.frame[i]) in set(int(f) for f in frames)], dets)
+    written: dict[str, int] = {}
+    for frame in recording.frames(indices=frames):
+        scene = scene_cloud(frame, intr, depth_trunc=depth_trunc)
+        written[save_cloud(out_dir / f"scene_{frame.index:06d}.ply", scene).name] = len(scene.points)
+        for i in groups.get(frame.index, []):
+            pcd = detection_cloud(frame, dets, i, intr, depth_trunc=depth_trunc)
+            written[save_cloud(out_dir / f"detection_{i}.ply", pcd).name] = len(pcd.points)
+            if i in rank_of:
+                written[save_cloud(out_dir / f"chosen_{rank_of[i]}.ply", pcd).name] = len(pcd.points)
+    return written
+
+
+def write_ply_or_skip(out_dir: str | Path, trace, recording) -> str:
+    """``write_ply`` with the default frames; returns the one line to print (what was written, or why nothing)."""
+    reason = skip_reason(recording)
+    if reason:
+        return reason
+    written = write_ply(out_dir, trace, recording)
+    return f"{recording.id}: wrote {len(written)} .ply files to {out_dir}"
+
+
+def box_lineset(obb: o3d.geometry.OrientedBoundingBox, colour=BOX_COLOUR) -> o3d.geometry.LineSet:
+    ls = o3d.geometry.LineSet.create_from_oriented_bounding_box(obb)
+    ls.paint_uniform_color(colour)
+    return ls
+
+
+# ------------------------------------------------------------------------------------------------ views
+def frame_geometries(trace, recording, frame_index: int | None = None, *, depth_trunc: float = DEPTH_TRUNC_M
+                     ) -> tuple[int, list[tuple[str, object]]]:
+    """(frame, [(name, geometry)]) to draw: the scene cloud with the chosen detections' points recoloured
+    (``CHOSEN_COLOUR``) and their oriented boxes as line sets. ``frame_index`` defaults to the frame of the nearest
+    chosen detection (else the first processed frame)."""
+    intr = require_intrinsics(recording)
+    dets = trace.detections
+    if frame_index is None:
+        frame_index = (int(dets.frame[trace.selection[0]]) if len(trace.selection)
+                       else int(trace.frames[0]) if len(trace.frames) else 0)
+    frame = recording.read_frame(int(frame_index))
+    chosen = [int(i) for i in trace.selection if int(dets.frame[i]) == frame.index]
+    highlight = np.zeros((frame.height, frame.width), bool)
+    for i in chosen:
+        highlight |= dets.full_mask(i, frame.height, frame.width)
+    depth = frame.depth
+    scene = rgbd_cloud(frame.rgb, np.where(highlight, 0, depth).astype(np.uint16), intr, depth_trunc=depth_trunc)
+    geoms: list[tuple[str, object]] = [("scene", scene)]
+    stored = {m.detection: m for m in measurements_of(trace)}
+    for r, i in enumerate(chosen):
+        pcd = detection_cloud(frame, dets, i, intr, depth_trunc=depth_trunc)
+        pcd.paint_uniform_color(CHOSEN_COLOUR)
+        geoms.append((f"chosen_{i}", pcd))
+        m = stored.get(i)
+        size = measure_cloud(pcd) if m is None else None
+        obb = m.obb() if m is not None else (size.obb() if size is not None else None)
+        if obb is not None:
+            geoms.append((f"box_{i}", box_lineset(obb)))
+    return frame.index, geoms
+
+
+def _look_at(eye: np.ndarray, target: np.ndarray, down=(0.0, 1.0, 0.0)) -> np.ndarray:
+    """4×4 world-to-camera matrix (OpenCV camera: x right, y down, z forward) looking from ``eye`` at ``target``."""
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(np.asarray(down, float), z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])  # rows: camera axes in world coordinates
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = -R @ eye
+    return T
+
+
+def view_extrinsic(target: np.ndarray, yaw_deg: float = 0.0, pitch_deg: float = 0.0) -> np.ndarray:
+    """Extrinsic of a camera orbiting ``target`` from the recording camera's viewpoint by ``yaw`` (about the
+    vertical, positive = from the right) and ``pitch`` (positive = from above). (0, 0) is the recording's camera."""
+    if yaw_deg == 0 and pitch_deg == 0:
+        return np.eye(4)
+    target = np.asarray(target, float)
+    r = float(np.linalg.norm(target))
+    yaw, pitch = math.radians(yaw_deg), math.radians(pitch_deg)
+    offset = r * np.array([math.sin(yaw) * math.cos(pitch), -math.sin(pitch), -math.cos(yaw) * math.cos(pitch)])
+    return _look_at(target + offset, target)
+
+
+def render_png(trace, recording, out: str | Path, *, frame_index: int | None = None, width: int = 960,
+               height: int = 540, yaw_deg: float = 25.0, pitch_deg: float = 15.0, point_size: float = 2.0,
+               background=(1.0, 1.0, 1.0)) -> dict:
+    """Draw ``frame_geometries`` with Open3D's offscreen renderer (CPU: Filament on Mesa's llvmpipe, no display)
+    into ``out`` (.png, atomically). The camera orbits the nearest chosen detection (or the scene's median point)
+    from the recording camera's viewpoint by ``yaw_deg``/``pitch_deg``; 0/0 reproduces the recording's view.
+    Returns {"frame", "path", "seconds"}."""
+    t0 = time.perf_counter()
+    intr = require_intrinsics(recording)
+    frame, geoms = frame_geometries(trace, recording, frame_index)
+    image = render_geometries(geoms, intr, width=width, height=height, yaw_deg=yaw_deg, pitch_deg=pitch_deg,
+                              point_size=point_size, background=background)
+    out = Path(out)
+    with atomic_path(out) as tmp:
+        if not o3d.io.write_image(str(tmp), o3d.geometry.Image(image)):
+            raise MassvizError("Open3D could not write the image", out)
+    return {"frame": frame, "path": str(out), "seconds": time.perf_counter() - t0}
+
+
+def _orbit_target(geoms) -> np.ndarray:
+    for name, g in geoms:
+        if name.startswith("chosen_") and len(g.points):
+            return np.asarray(g.get_center())
+    pts = np.asarray(geoms[0][1].points)
+    return np.median(pts, axis=0) if len(pts) else np.array([0.0, 0.0, 1.0])
+
+
+def render_geometries(geoms, intr: Intrinsics, *, width: int = 960, height: int = 540, yaw_deg: float = 25.0,
+                      pitch_deg: float = 15.0, point_size: float = 2.0, background=(1.0, 1.0, 1.0)) -> np.ndarray:
+    """H×W×3 uint8 offscreen rendering of [(name, geometry)] through a pinhole like the recording's (scaled to
+    ``width``×``height``). Without a display Open3D 0.20 renders headless with Filament's Vulkan backend on Mesa's
+    llvmpipe (packages libvulkan1 and mesa-vulkan-drivers); no environment variable is needed."""
+    from open3d.visualization import rendering
+
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    with _stdout_to_stderr():
+        renderer = rendering.OffscreenRenderer(int(width), int(height))
+        points = rendering.MaterialRecord()
+        points.shader, points.point_size = "defaultUnlit", float(point_size) * width / 960
+        lines = rendering.MaterialRecord()
+        lines.shader, lines.line_width = "unlitLine", 3.0
+        for name, g in geoms:
+            renderer.scene.add_geometry(name, g, lines if isinstance(g, o3d.geometry.LineSet) else points)
+        renderer.scene.set_background(list(background) + [1.0])
+        s = min(width / intr.width, height / intr.height)
+        K = np.array([[intr.fx * s, 0, width / 2 + (intr.cx - intr.width / 2) * s],
+                      [0, intr.fy * s, height / 2 + (intr.cy - intr.height / 2) * s], [0, 0, 1]])
+        renderer.setup_camera(K, view_extrinsic(_orbit_target(geoms), yaw_deg, pitch_deg), int(width), int(height))
+        image = np.asarray(renderer.render_to_image()).copy()
+        del renderer
+    return image
+
+
+@contextmanager
+def _stdout_to_stderr():
+    """Send what native code prints on stdout (Filament's start-up lines) to stderr while the block runs, so that
+    commands keep stdout for their output."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        os.dup2(2, 1)
+        yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+def has_display() -> bool:
+    """Whether an interactive window can open (X11 ``DISPLAY`` or ``WAYLAND_DISPLAY`` is set)."""
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def require_display() -> None:
+    """``MassvizError`` (one line) when no interactive window can open."""
+    if not has_display():
+        raise MassvizError("no display (DISPLAY and WAYLAND_DISPLAY are unset): use 'massviz render REC --out "
+                           "view.png' for a headless picture")
+
+
+def show(trace, recording, frame_index: int | None = None) -> int:
+    """Open Open3D's interactive window on ``frame_geometries``; ``MassvizError`` when there is no display."""
+    require_display()
+    frame, geoms = frame_geometries(trace, recording, frame_index)
+    o3d.visualization.draw_geometries([g for _, g in geoms], window_name=f"massviz {recording.id} frame {frame}",
+                                      front=[0, 0, -1], up=[0, -1, 0], lookat=_orbit_target(geoms), zoom=0.5)
+    return frame
+
+
+
+__all__ = ["save_cloud", "write_ply", "write_ply_or_skip", "box_lineset", "frame_geometries", "render_png",
+           "render_geometries", "view_extrinsic", "has_display", "require_display", "show"]
