@@ -13,7 +13,7 @@ from typing import Any
 
 from massviz.io.atomic import atomic_path
 
-#: The challenge CSV header, in order (``/work/shared/ccm/README.md``).
+#: The challenge CSV header, in order (the CORSMAL challenge format; shared/ccm/README.md in the reference data).
 COLUMNS = (
     "Configuration ID", "Container capacity", "Container mass", "Filling mass", "None", "Pasta", "Rice", "Water",
     "Filling type", "Empty", "Half-full", "Full", "Filling level", "Width at the top", "Width at the bottom",
