@@ -36,6 +36,8 @@ from massviz.errors import DataError
 PRED_ID, PRED_MASS = "Configuration ID", "Container mass"
 #: Recording id, container id and empty container mass (g) columns of the CCM annotation CSV.
 ANN_ID, ANN_CONTAINER, ANN_MASS = "id", "container id", "container mass"
+#: Size columns of the CCM annotation CSV read as numbers (the 3D stage compares with them).
+ANN_SIZES = ("width at the top", "width at the bottom", "height", "depth", "container capacity")
 #: The paper's classes, in the order of its tables and figure.
 CLASS_ORDER = ("cup", "glass", "box")
 
@@ -81,13 +83,20 @@ def _read_table(path: Path, required: Sequence[str]) -> tuple[list[str], list[_R
     return header, rows
 
 
+#: largest recording / container id read from a CSV (ids are indices, never near this).
+MAX_ID = 2**31 - 1
+
+
 def _integer(text: str) -> int:
+    """A recording or container id: an integer in [0, MAX_ID] (``1e30`` would overflow the int64 columns)."""
     try:
         value = float(text)
     except ValueError:
         raise ValueError(f"{text!r} is not an integer" if text else "empty value") from None
     if not value.is_integer():
         raise ValueError(f"{text!r} is not an integer")
+    if not 0 <= value <= MAX_ID:
+        raise ValueError(f"{text!r} must be >= 0 and <= {MAX_ID}")
     return int(value)
 
 
@@ -148,15 +157,17 @@ def read_predictions(path: str | Path) -> pd.DataFrame:
 def read_annotations(path: str | Path) -> pd.DataFrame:
     """Read a CCM annotation CSV (``id``, ``container id``, ..., ``container mass``, ...) into a frame.
 
-    ``id`` and ``container id`` are ints, ``container mass`` (g) a float > 0; every other column is kept, numeric
-    where all its values parse as numbers. Raises ``DataError`` (naming file, row and column) for an unreadable or
+    ``id`` and ``container id`` are ints in [0, 2^31), ``container mass`` (g) a finite float > 0, the size columns
+    (:data:`ANN_SIZES`, mm / mL; -1 = not given) finite floats; every other column is kept, numeric where all its
+    values parse as numbers. Raises ``DataError`` (naming file, row and column) for an unreadable or
     non-CSV file, a missing column, a ragged row, a non-numeric value, a mass ≤ 0, a repeated id or no data rows.
     """
     path = Path(path)
     header, rows = _read_table(path, (ANN_ID, ANN_CONTAINER, ANN_MASS))
     if not rows:
         raise DataError("no annotated recordings (only a header)", path)
-    parsers = {ANN_ID: _integer, ANN_CONTAINER: _integer, ANN_MASS: _positive_mass}
+    parsers = {ANN_ID: _integer, ANN_CONTAINER: _integer, ANN_MASS: _positive_mass,
+               **{name: _number for name in ANN_SIZES}}
     data = {}
     for name in header:
         if name in parsers:

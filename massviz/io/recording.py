@@ -34,7 +34,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import string
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,7 +43,7 @@ import cv2
 import numpy as np
 
 from massviz.errors import RecordingError
-from massviz.io.untrusted import (MAX_IMAGE_SIDE, MAX_INDEX, check_image_size, confined, load_calibration_pickle,
+from massviz.io.untrusted import (MAX_IMAGE_SIDE, MAX_INDEX, check_image_size, frame_path, load_calibration_pickle,
                                   number, text_id)
 from massviz.core.types import Frame, Intrinsics, RecordingInfo
 
@@ -362,20 +361,7 @@ def check_meta(meta: dict, path: Path, folder: Path) -> dict:
 
 
 def _check_mask_pattern(pattern, path: Path, folder: Path) -> None:
-    what = "'instance_masks'"
-    if not isinstance(pattern, str):
-        raise RecordingError(f"{what} must be a path pattern such as \"gt/{{frame:06d}}.png\"", path)
-    try:
-        fields = [(f, spec, conv) for _, f, spec, conv in string.Formatter().parse(pattern) if f is not None]
-    except ValueError as e:
-        raise RecordingError(f"{what} {pattern!r} is not a format pattern ({e})", path) from None
-    for name, spec, conv in fields:
-        if name != "frame" or conv or not (spec == "" or (len(spec) <= 3 and spec.rstrip("d").isdigit()
-                                                             and spec.endswith("d"))):
-            raise RecordingError(f"{what} {pattern!r}: the only field allowed is {{frame}} or {{frame:0Nd}} "
-                                 f"(N <= 2 digits), got {{{name}{'!' + conv if conv else ''}"
-                                 f"{':' + spec if spec else ''}}}", path)
-    confined(folder, pattern.format(frame=0), path, what, RecordingError)
+    frame_path(pattern, folder, 0, path, "'instance_masks'", RecordingError)
 
 
 def _check_counts(depth_dir: Path, n_depth: int, n_rgb: int) -> None:

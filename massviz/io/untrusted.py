@@ -162,6 +162,25 @@ def confined(base: str | Path, name, source: str | Path, what: str, error=DataEr
     return Path(base) / rel
 
 
+def frame_path(pattern, base: str | Path, frame: int, source, what: str, error=DataError) -> Path:
+    """The file of ``frame`` for a per-frame path pattern read from a data file (e.g. meta.json's
+    ``"gt/{frame:06d}.png"``): the only field allowed is ``{frame}`` or ``{frame:0Nd}`` (no attribute or index
+    access, no huge widths), and the path must stay inside ``base`` (:func:`confined`)."""
+    import string
+
+    if not isinstance(pattern, str) or not pattern:
+        raise error(f"{what} must be a path pattern such as \"gt/{{frame:06d}}.png\", got {_short(pattern)}", source)
+    try:
+        fields = [(f, spec, conv) for _, f, spec, conv in string.Formatter().parse(pattern) if f is not None]
+    except ValueError as e:
+        raise error(f"{what} {_short(pattern)} is not a format pattern ({e})", source) from None
+    for name, spec, conv in fields:
+        if name != "frame" or conv or not re.fullmatch(r"(0?[1-9]?d)?", spec or ""):
+            raise error(f"{what} {_short(pattern)}: the only field allowed is {{frame}} or {{frame:0Nd}} "
+                        "(N one digit)", source)
+    return confined(base, pattern.format(frame=int(frame)), source, what, error)
+
+
 # ---------------------------------------------------------------------------------------------------------- ids
 _CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f\u2028\u2029\u200e\u200f\u202a-\u202e\u2066-\u2069]")
 
@@ -271,6 +290,40 @@ def check_image_size(path: str | Path, error=MassvizError, what: str = "image") 
                     "pixels); not decoded", path)
 
 
-__all__ = ["MAX_CALIB_BYTES", "MAX_ID_CHARS", "MAX_IMAGE_SIDE", "MAX_IMAGE_PIXELS", "MAX_INDEX",
+# ---------------------------------------------------------------------------------------------------------- npz
+#: most bytes of arrays an .npz (trace, replay) may declare.
+MAX_NPZ_BYTES = 1 << 31
+
+
+def load_npz_checked(path: str | Path, max_bytes: int = MAX_NPZ_BYTES) -> dict[str, np.ndarray]:
+    """The arrays of an .npz file, never unpickling and never allocating what the file only *declares*: each
+    member's .npy header (shape x item size) must fit in the member's stored size, all of them in ``max_bytes``.
+    ``ValueError`` (or ``zipfile.BadZipFile``/``OSError``) otherwise."""
+    import zipfile
+
+    total = 0
+    with zipfile.ZipFile(path) as z:
+        for info in z.infolist():
+            name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
+            if not info.filename.endswith(".npy"):
+                raise ValueError(f"member {name!r} is not a .npy array")
+            total += info.file_size
+            if total > max_bytes:
+                raise ValueError(f"its arrays hold more than {max_bytes} bytes")
+            with z.open(info) as fh:
+                version = np.lib.format.read_magic(fh)
+                read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                        else np.lib.format.read_array_header_2_0)
+                shape, _, dtype = read(fh)
+            if dtype.hasobject:
+                raise ValueError(f"array {name} holds Python objects")
+            declared = math.prod(shape) * dtype.itemsize
+            if declared > info.file_size:
+                raise ValueError(f"array {name} declares {declared} bytes but holds {info.file_size}")
+    with np.load(path, allow_pickle=False) as z:
+        return {name: z[name] for name in z.files}
+
+
+__all__ = ["MAX_NPZ_BYTES", "load_npz_checked", "MAX_CALIB_BYTES", "MAX_ID_CHARS", "MAX_IMAGE_SIDE", "MAX_IMAGE_PIXELS", "MAX_INDEX",
            "RestrictedUnpickler", "load_calibration_pickle", "confined", "text_id", "safe_filename", "number",
-           "check_image_size", "image_header_size"]
+           "check_image_size", "image_header_size", "frame_path"]
