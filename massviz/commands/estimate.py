@@ -53,7 +53,10 @@ def run(args) -> int:
     from massviz.commands._common import build
     from massviz.io.recording import collect_recordings
 
-    recordings = collect_recordings(args.recordings, args.view)
+    from massviz.io.atomic import check_output_file
+
+    check_output_file(args.out, "--out")
+    recordings = collect_recordings(args.recordings, args.view, allow_partial=args.allow_partial)
     exclusions = None
     if args.exclude:
         from massviz.evaluation.failures import load_exclusions
