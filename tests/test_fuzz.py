@@ -908,3 +908,157 @@ def test_hostile_input(case, base, tmp_path, monkeypatch):
 
 def test_enough_cases():
     assert len(CASES) >= 100
+
+
+# ============================================================================================ accepted hostile inputs
+def test_partial_video_is_reported_and_allowed_on_request(base, tmp_path):
+    """A video cut in half (index at the front): an error naming both counts by default; with --allow-partial the
+    decoded frames are processed and the counts are on stderr and among the trace's events (Rerun's /log)."""
+    from massviz.core.pipeline import process
+    from massviz.detect.replay import ReplayDetector
+    from massviz.core.model import MassNet
+    from massviz.io.recording import open_recording
+
+    rec = truncated_video(tmp_path)
+    cap = cv2.VideoCapture(str(rec / "rgb.mp4"))
+    decoded = 0
+    while cap.grab():
+        decoded += 1
+    cap.release()
+    assert 0 < decoded < 12 and int(cv2.VideoCapture(str(rec / "rgb.mp4")).get(cv2.CAP_PROP_FRAME_COUNT)) == 12
+    code, _, stderr = run_cli(estimate(tmp_path, base, rec)[0])
+    assert code == 2 and f"only {decoded} of the 12 frames" in stderr and "--allow-partial" in stderr
+    argv, out = estimate(tmp_path, base, rec, "--allow-partial")
+    code, _, stderr = run_cli(argv)
+    assert code == 0, stderr
+    warning = [line for line in visible_lines(stderr) if "warning" in line]
+    assert len(warning) == 1 and f"only {decoded} of the 12 frames" in warning[0] and str(rec / "rgb.mp4") in warning[0]
+    assert out.is_file()
+    opened = open_recording(rec, allow_partial=True)
+    assert opened.num_frames == decoded and opened.declared_frames == 12
+    trace = process(opened, ReplayDetector(base.replay), MassNet.from_checkpoint(base.weights))
+    assert [int(f) for f in trace.frames] == list(range(decoded))
+    assert any(e.kind == "warning" and f"only {decoded} of the 12" in e.message for e in trace.events)
+
+
+def test_ids_from_data_files_are_sanitised_for_file_names(base, tmp_path):
+    """A recording id that climbs out of the patch set (``../../x``) becomes a plain file name inside it."""
+    rec = copy_sample(tmp_path / "rec")
+    edit_json(rec / "meta.json", lambda d: d.update(id="../../../escaped/x"))
+    before = {p for p in tmp_path.rglob("*")}
+    out = tmp_path / "patches"
+    code, _, stderr = run_cli(["extract", rec, "--out", out, "--detector", "replay", "--replay", base.replay,
+                               "--weights", base.weights, "--cache", tmp_path / "cache", "--quiet", "--k", "1"])
+    assert code == 0, stderr
+    new = {p for p in tmp_path.rglob("*")} - before
+    assert all(p == out or out in p.parents or tmp_path / "cache" in [p, *p.parents] for p in new), new
+    images = sorted(p.name for p in (out / "images").iterdir())
+    assert images == ["escaped_x_0.png"]
+    import pandas as pd
+
+    index = pd.read_csv(out / "index.csv")
+    assert index["recording"].tolist() == ["../../../escaped/x"] and index["file"].tolist() == ["images/escaped_x_0.png"]
+
+
+def _estimate_value(argv) -> str:
+    code, _, stderr = run_cli(argv)
+    assert code == 0, stderr
+    return Path(argv[argv.index("--out") + 1]).read_text().splitlines()[1].split(",")[2]
+
+
+def test_same_size_edit_with_mtime_restored_is_not_served_from_the_cache(base, tmp_path):
+    """The cache key is the files' content: an edit that keeps the size and sets the modification time back (what
+    ``touch -d`` or a careless copy does) is seen, the detections are recomputed."""
+    from massviz.io.cache import TraceCache
+    from massviz.io.recording import open_recording
+
+    rec = copy_sample(tmp_path / "rec")
+    depth = rec / "depth" / "000001.png"
+    d = cv2.imread(str(depth), cv2.IMREAD_UNCHANGED)
+    cv2.imwrite(str(depth), d, [cv2.IMWRITE_PNG_COMPRESSION, 0])  # uncompressed: the size depends only on W x H
+    argv, out = estimate(tmp_path, base, rec, "--exact")
+    first = _estimate_value(argv)
+    key = TraceCache(tmp_path / "cache").entry(open_recording(rec), {}, 1)
+    st = depth.stat()
+    d[d > 0] = np.clip(d[d > 0].astype(np.int64) - 400, 1, None).astype(np.uint16)  # everything 40 cm nearer
+    cv2.imwrite(str(depth), d, [cv2.IMWRITE_PNG_COMPRESSION, 0])
+    os.utime(depth, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert depth.stat().st_size == st.st_size and depth.stat().st_mtime_ns == st.st_mtime_ns
+    assert TraceCache(tmp_path / "cache").entry(open_recording(rec), {}, 1) != key
+    second = _estimate_value(argv)
+    assert second != first  # d (a feature of the prediction) changed: not the stale cached value
+    cached = _estimate_value(argv)
+    assert cached == second
+
+
+@pytest.mark.parametrize("damage", ["garbage", "truncated", "patch-not-png", "directory"])
+def test_undecodable_cache_entry_is_dropped_and_recomputed(base, tmp_path, damage):
+    rec = copy_sample(tmp_path / "rec")
+    argv, out = estimate(tmp_path, base, rec, "--exact")
+    first = _estimate_value(argv)
+    (entry,) = (tmp_path / "cache" / "traces").rglob("t*.npz")
+    data = entry.read_bytes()
+    if damage == "garbage":
+        entry.write_bytes(os.urandom(len(data)))
+    elif damage == "truncated":
+        entry.write_bytes(data[:len(data) // 2])
+    elif damage == "patch-not-png":
+        with np.load(entry) as z:
+            arrays = {k: z[k] for k in z.files}
+        arrays["patch_bytes"] = np.zeros_like(arrays["patch_bytes"])
+        np.savez(entry, **arrays)
+    else:
+        entry.unlink()
+        entry.mkdir()
+    code, _, stderr = run_cli(argv)
+    assert code == 0 and visible_lines(stderr)[-1].startswith("wrote"), stderr
+    assert _estimate_value(argv) == first
+    assert entry.is_file()
+    from massviz.core.trace import Trace
+
+    assert len(Trace.load(entry).detections) == 1
+
+
+def test_real_ccm_calibration_loads_through_the_restricted_unpickler(shared_dir):
+    from massviz.io.untrusted import RestrictedUnpickler, load_calibration_pickle
+
+    path = shared_dir / "ccm_real" / "view1" / "calib" / "000000.pickle"
+    calib = load_calibration_pickle(path)
+    assert calib[0]["rgb"][0, 0] == pytest.approx(923.62, abs=0.01)
+    for protocol in range(6):  # the same data re-saved by Python 3 / numpy 2 in every protocol
+        again = RestrictedUnpickler(io.BytesIO(pickle.dumps(calib, protocol=protocol))).load()
+        np.testing.assert_array_equal(again[1]["rgb"]["projMatrix"], calib[1]["rgb"]["projMatrix"])
+
+
+# ===================================================================================================== subprocesses
+SUBPROCESS = ["calib-os_system_p0", "video-cut-in-half", "output-estimate-out-is-dir", "option-render-yaw-nan",
+              "meta-id_escape", "replay-mask_parent"]
+
+
+def test_as_real_subprocesses(base, tmp_path):
+    """A few cases as a user runs them: ``python -m massviz ...``, two at a time."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    by_name = {c.name: c for c in CASES}
+    env = {k: v for k, v in os.environ.items() if k not in ("MASSVIZ_DEBUG", "MASSVIZ_WEIGHTS")}
+    jobs = []
+    for name in SUBPROCESS:
+        work = tmp_path / name
+        work.mkdir()
+        argv, culprit, what, outputs = by_name[name].build(work, base)
+        jobs.append((name, work, argv, culprit, what, outputs, snapshot(work, skip=work / "cache")))
+
+    def call(job):
+        return subprocess.run([sys.executable, "-m", "massviz", *map(str, job[2])], capture_output=True, timeout=300,
+                              cwd=ROOT, env=env)
+
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        results = list(pool.map(call, jobs))
+    for (name, work, argv, culprit, what, outputs, before), result in zip(jobs, results):
+        stderr = result.stderr.decode()
+        lines = visible_lines(stderr)
+        assert result.returncode == 2 and "Traceback" not in stderr and len(lines) == 1, (name, stderr)
+        prefix = f"massviz {argv[0]}: error: {culprit}"
+        assert lines[0].startswith(prefix) and re.search(what, lines[0][len(prefix):]), (name, lines[0])
+        assert not (work / "CANARY").exists() and not any(Path(o).exists() for o in outputs), name
+        assert snapshot(work, skip=work / "cache") == before, name

@@ -205,11 +205,12 @@ def text_id(value, what: str, source, error=DataError) -> str:
 
 
 def safe_filename(text: str, max_chars: int = 100) -> str:
-    """``text`` as one file-name component: letters, digits and ``_.-`` kept, anything else (``/``, ``\\``, ``..``
-    runs, spaces, ``:``) replaced by ``_``; never empty, never ``.``/``..`` or hidden (leading dot)."""
+    """``text`` as one file-name component: letters, digits and ``_.-`` kept, any run of anything else (``/``,
+    ``\\``, ``..``, spaces, ``:``) replaced by one ``_``, leading/trailing ``._`` stripped; never empty, never
+    ``.``/``..`` or hidden (``../../x/y`` -> ``x_y``)."""
     text = unicodedata.normalize("NFKC", str(text))
     safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", text)
-    safe = re.sub(r"\.{2,}", "_", safe).lstrip(".")[:max_chars]
+    safe = re.sub(r"_{2,}", "_", re.sub(r"\.{2,}", "_", safe)).strip("._")[:max_chars]
     return safe or "_"
 
 
