@@ -290,6 +290,14 @@ def _(work, b):
     return argv, rec / "meta.json", "JSON object", [out]
 
 
+@case("meta-duplicate-config-id")
+def _(work, b):
+    for name in ("a", "b"):
+        edit_json(copy_sample(work / "ds" / name) / "meta.json", lambda d, name=name: d.update(config_id=7, id=name))
+    argv, out = estimate(work, b, work / "ds")
+    return argv, work / "ds" / "b", "configuration id 7 is also the id of", [out]
+
+
 # --- images and videos ------------------------------------------------------------------------------------------
 @case("depth-header-bomb")
 def _(work, b):
@@ -433,8 +441,7 @@ def replay_case(edit, what: str, mask: str | None = None):
 REPLAYS = {
     "mask_parent": (lambda d, det, w, r: det.update(mask="../outside.png"), "mask.*outside"),
     "mask_absolute": (lambda d, det, w, r: det.update(mask=str(w / "outside.png")), "mask.*absolute"),
-    "mask_symlink": (lambda d, det, w, r: ((r / "link.png").symlink_to(w / "outside.png"), det.update(mask="link.png")),
-                     "mask.*outside"),
+    "mask_dotdot_inside": (lambda d, det, w, r: det.update(mask="sub/../../outside.png"), "mask.*outside"),
     "mask_number": (lambda d, det, w, r: det.update(mask=12), "mask.*relative file path"),
     "box_inf": (lambda d, det, w, r: det.update(box=[0, 0, float("inf"), 10]), "box.*finite"),
     "box_nan": (lambda d, det, w, r: det.update(box=[0, 0, float("nan"), 10]), "box.*finite"),
@@ -958,6 +965,19 @@ def test_ids_from_data_files_are_sanitised_for_file_names(base, tmp_path):
 
     index = pd.read_csv(out / "index.csv")
     assert index["recording"].tolist() == ["../../../escaped/x"] and index["file"].tolist() == ["images/escaped_x_0.png"]
+
+
+def test_id_with_comma_and_quote_is_quoted_in_the_challenge_csv(base, tmp_path):
+    import csv
+
+    rec = copy_sample(tmp_path / "rec")
+    edit_json(rec / "meta.json", lambda d: d.update(id='cup, "large"'))
+    argv, out = estimate(tmp_path, base, rec)
+    code, _, stderr = run_cli(argv)
+    assert code == 0, stderr
+    with open(out, newline="") as f:
+        rows = list(csv.reader(f))
+    assert len(rows) == 2 and rows[1][0] == 'cup, "large"' and len(rows[1]) == 20
 
 
 def _estimate_value(argv) -> str:

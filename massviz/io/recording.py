@@ -43,9 +43,8 @@ import cv2
 import numpy as np
 
 from massviz.errors import RecordingError
-from massviz.io.untrusted import (MAX_IMAGE_SIDE, MAX_INDEX, check_image_size, frame_path, load_calibration_pickle,
-                                  number, text_id)
-from massviz.core.types import Frame, Intrinsics, RecordingInfo
+from massviz.io.untrusted import MAX_IMAGE_SIDE, MAX_INDEX, check_image_size, load_calibration_pickle, number, text_id
+from massviz.core.types import Frame, GroundTruth, Intrinsics, RecordingInfo
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
@@ -312,9 +311,6 @@ def _intrinsics_ccm(path: Path, width: int, height: int) -> Intrinsics:
     return check_intrinsics({"fx": k[0, 0], "fy": k[1, 1], "cx": k[0, 2], "cy": k[1, 2]}, path, width, height)
 
 
-_DIMENSIONS = ("width_top_mm", "width_bottom_mm", "height_mm", "depth_mm", "capacity_ml")
-
-
 def check_meta(meta: dict, path: Path, folder: Path) -> dict:
     """Check the fields of a meta.json massviz reads (``RecordingError`` naming ``path``): ``id`` and ``config_id``
     are text without control characters (``config_id`` may be an integer), ``fps`` a finite number in (0, 1000],
@@ -333,35 +329,8 @@ def check_meta(meta: dict, path: Path, folder: Path) -> dict:
             raise err(f"'config_id' must be a string or an integer, got {cid!r}"[:200], path)
     if "fps" in meta:
         number(meta["fps"], "'fps'", path, lo=0, lo_open=True, hi=1000, error=err)
-    container = meta.get("container")
-    if container is not None:
-        if not isinstance(container, dict):
-            raise err(f"'container' must be a JSON object, got {type(container).__name__}", path)
-        if container.get("mass_g") is not None:
-            number(container["mass_g"], "'container.mass_g'", path, lo=0, lo_open=True, error=err)
-        for key in _DIMENSIONS:
-            if container.get(key) is not None:
-                number(container[key], f"'container.{key}'", path, error=err)
-        if container.get("id") is not None:
-            number(container["id"], "'container.id'", path, lo=-1, hi=MAX_INDEX, integral=True, error=err)
-        if container.get("class") is not None:
-            text_id(container["class"], "'container.class'", path, err)
-    instances = meta.get("instances")
-    if instances is not None:
-        if not isinstance(instances, dict):
-            raise err("'instances' must be a JSON object {\"id\": {\"name\": ...}}", path)
-        for key, value in instances.items():
-            if not (key.isdigit() and int(key) <= 65535):
-                raise err(f"'instances': key {key[:40]!r} is not an instance id (an integer 0..65535)", path)
-            name = value.get("name") if isinstance(value, dict) else value
-            text_id(name, f"'instances.{key}' name", path, err)
-    if meta.get("instance_masks") is not None:
-        _check_mask_pattern(meta["instance_masks"], path, folder)
+    GroundTruth.check_meta(meta, path, folder, err)
     return meta
-
-
-def _check_mask_pattern(pattern, path: Path, folder: Path) -> None:
-    frame_path(pattern, folder, 0, path, "'instance_masks'", RecordingError)
 
 
 def _check_counts(depth_dir: Path, n_depth: int, n_rgb: int) -> None:

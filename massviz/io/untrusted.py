@@ -145,21 +145,22 @@ def load_calibration_pickle(path: str | Path, error=MassvizError):
 # -------------------------------------------------------------------------------------------------------- paths
 def confined(base: str | Path, name, source: str | Path, what: str, error=DataError) -> Path:
     """``base / name`` for a relative path ``name`` read from the data file ``source``; ``error`` (naming
-    ``source``) when it is not a non-empty relative path or resolves (``..``, symlinks) outside ``base``."""
+    ``source``) when it is not a non-empty relative path or leads outside ``base`` (``..``). The check is on the
+    path as written: symlinks inside ``base`` are the file system's arrangement (frames linked to another disk) and
+    are followed."""
     if not isinstance(name, str) or not name or "\x00" in name:
-        raise error(f"{what} must be a relative file path, got {name!r}", source)
+        raise error(f"{what} must be a relative file path, got {_short(name)}", source)
     if _control(name):
         raise error(f"{what} {name!r} contains control characters", source)
     rel = Path(name)
-    if rel.is_absolute() or rel.drive:
+    if rel.is_absolute() or rel.drive or name.startswith(("/", "\\")):
         raise error(f"{what} {name!r} is an absolute path; paths in a data file must be relative to its folder "
                     f"({base})", source)
-    base_real = Path(os.path.realpath(base))
-    target = Path(os.path.realpath(base_real / rel))
-    if target != base_real and base_real not in target.parents:
+    norm = Path(os.path.normpath(rel))
+    if norm.parts[:1] == ("..",) or str(norm) == ".":
         raise error(f"{what} {name!r} leads outside {base}; paths in a data file must stay inside its folder",
                     source)
-    return Path(base) / rel
+    return Path(base) / norm
 
 
 def frame_path(pattern, base: str | Path, frame: int, source, what: str, error=DataError) -> Path:
