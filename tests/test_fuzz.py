@@ -946,6 +946,24 @@ def test_partial_video_is_reported_and_allowed_on_request(base, tmp_path):
     trace = process(opened, ReplayDetector(base.replay), MassNet.from_checkpoint(base.weights))
     assert [int(f) for f in trace.frames] == list(range(decoded))
     assert any(e.kind == "warning" and f"only {decoded} of the 12" in e.message for e in trace.events)
+    rrd = tmp_path / "partial.rrd"
+    code, _, stderr = run_cli(["log", rec, "--rrd", rrd, "--allow-partial", "--detector", "replay", "--replay",
+                               base.replay, "--weights", base.weights, "--cache", tmp_path / "cache", "--quiet"])
+    assert code == 0, stderr
+    assert any(f"only {decoded} of the 12 frames" in t for t in rrd_log_texts(rrd))
+
+
+def rrd_log_texts(path: Path) -> list[str]:
+    """The ``/log`` TextLog lines of an .rrd file."""
+    from rerun.chunk import RrdReader
+
+    texts = []
+    for chunk in RrdReader(path).stream():
+        if chunk.entity_path == "/log":
+            batch = chunk.to_record_batch()
+            for value in batch.column(batch.schema.names.index("TextLog:text")).to_pylist():
+                texts.extend(value if isinstance(value, list) else [value])
+    return [str(t) for t in texts]
 
 
 def test_ids_from_data_files_are_sanitised_for_file_names(base, tmp_path):
