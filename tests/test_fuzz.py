@@ -855,6 +855,19 @@ for _name, (_option, _value, _what) in TRAIN_OPTIONS.items():
     case(f"option-train-{_name}")(_build)
 
 
+@case("csv-class-map-control")
+def _(work, b):
+    argv, *_ = score_case("ann", "id", "1", "")(work, b)
+    return [*argv, "--classes", "1=cup\x1b[31m,4=glass,7=box"], "class mapping", "control", [work / "score.json"]
+
+
+@case("index-image-header-bomb")
+def _(work, b):
+    argv, index, _, outputs = index_case(lambda rows, w: None, "")(work, b)
+    (work / "patches" / "images" / "rec1_0.png").write_bytes(png_header_only(50_000, 50_000))
+    return argv, work / "patches" / "images" / "rec1_0.png", "50000x50000", outputs
+
+
 # ============================================================================================================ runner
 def visible_lines(stderr: str) -> list[str]:
     lines = [line.split("\r")[-1] for line in stderr.split("\n")]
@@ -1100,3 +1113,4 @@ def test_as_real_subprocesses(base, tmp_path):
         assert lines[0].startswith(prefix) and re.search(what, lines[0][len(prefix):]), (name, lines[0])
         assert not (work / "CANARY").exists() and not any(Path(o).exists() for o in outputs), name
         assert snapshot(work, skip=work / "cache") == before, name
+

@@ -211,7 +211,11 @@ def parse_class_map(spec: str) -> dict[int, str]:
             raise DataError(f"class mapping: {key.strip()!r} is not a container id (expected e.g. 1=cup,2=cup)") from None
         if not name.strip():
             raise DataError(f"class mapping: container {container} has no class name (expected e.g. {container}=cup)")
-        mapping[container] = name.strip()
+        if not 0 <= container <= MAX_ID:
+            raise DataError(f"class mapping: container id {container} must be >= 0 and <= {MAX_ID}")
+        from massviz.io.untrusted import text_id
+
+        mapping[container] = text_id(name.strip(), f"class mapping: the class name of container {container}", None)
     if not mapping:
         raise DataError("class mapping is empty (expected e.g. 1=cup,2=cup,4=glass)")
     return mapping

@@ -56,7 +56,7 @@ from tqdm.auto import tqdm
 
 from massviz.errors import DataError, MassvizError
 from massviz.io.atomic import atomic_dir
-from massviz.io.untrusted import confined, number, safe_filename, text_id
+from massviz.io.untrusted import check_image_size, confined, number, safe_filename, text_id
 from massviz.evaluation.metrics import ANN_CONTAINER, ANN_ID, ANN_MASS
 from massviz.core.types import GroundTruth
 from massviz.core.model import MassNet, Ranges, preprocess_patch, save_checkpoint
@@ -240,6 +240,7 @@ def read_index(patches: str | Path) -> pd.DataFrame:
         image = confined(patches, name if isinstance(name, str) else None, path, f"row {i + 1}, column 'file'")
         if not image.is_file():
             raise DataError(f"row {i + 1}: image {name} is missing", image)
+        check_image_size(image, DataError, "patch image")
     return table
 
 
