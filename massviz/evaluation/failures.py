@@ -49,7 +49,8 @@ import numpy as np
 import pandas as pd
 
 from massviz.io.atomic import atomic_path
-from massviz.errors import DataError
+from massviz.errors import DataError, MassvizError
+from massviz.io.untrusted import _CONTROL, MAX_INDEX, check_image_size, frame_path, text_id
 from massviz.core.trace import Trace
 from massviz.core.types import class_name
 
@@ -127,14 +128,20 @@ def load_exclusions(path: str | Path) -> list[Exclusion]:
         rec, frame, box = e.get("recording"), e.get("frame"), e.get("box")
         if not isinstance(rec, str) or not rec:
             raise DataError(f'{where}: "recording" must be a non-empty string (the recording id)', path)
-        if not isinstance(frame, int) or isinstance(frame, bool) or frame < 0:
-            raise DataError(f'{where}: "frame" must be an integer >= 0, got {frame!r}', path)
+        text_id(rec, f'{where}: "recording"', path)
+        if not isinstance(frame, int) or isinstance(frame, bool) or not 0 <= frame <= MAX_INDEX:
+            raise DataError(f'{where}: "frame" must be an integer >= 0 and <= {MAX_INDEX}, got {frame!r}'[:300], path)
         if (not isinstance(box, list) or len(box) != 4
-                or not all(isinstance(v, int) and not isinstance(v, bool) for v in box)
+                or not all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= MAX_INDEX for v in box)
                 or not (box[2] > box[0] and box[3] > box[1])):
-            raise DataError(f'{where}: "box" must be 4 integers [x1, y1, x2, y2] with x2 > x1 and y2 > y1, '
-                            f"got {box!r}", path)
-        out.append(Exclusion(rec, frame, tuple(box), str(e.get("note", ""))))
+            raise DataError(f'{where}: "box" must be 4 integers [x1, y1, x2, y2] in [0, {MAX_INDEX}] with x2 > x1 '
+                            f"and y2 > y1, got {box!r}"[:300], path)
+        note = e.get("note", "")
+        if not isinstance(note, str) or len(note) > 2000:
+            raise DataError(f'{where}: "note" must be a string of at most 2000 characters', path)
+        if _CONTROL.search(note.replace("\n", "").replace("\t", "")):
+            raise DataError(f'{where}: "note" contains control characters', path)
+        out.append(Exclusion(rec, frame, tuple(box), note))
     return out
 
 
@@ -200,6 +207,10 @@ def robust_z(values: np.ndarray, others: np.ndarray, floor: float) -> np.ndarray
 
 @lru_cache(maxsize=256)
 def _gt_frame(path: str) -> np.ndarray | None:
+    try:
+        check_image_size(path, MassvizError, "ground-truth image")
+    except MassvizError:
+        return None
     img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
     return None if img is None else (img if img.ndim == 2 else img[..., 0])
 
@@ -209,7 +220,12 @@ def ground_truth_masks(trace: Trace, frame: int) -> tuple[np.ndarray, dict[int, 
     gt = trace.ground_truth
     if gt is None or not gt.instance_masks or not gt.instances or not trace.recording.path:
         return None
-    img = _gt_frame(str(Path(trace.recording.path) / gt.instance_masks.format(frame=int(frame))))
+    try:  # the pattern comes from a data file: only {frame}, and inside the recording folder
+        path = frame_path(gt.instance_masks, trace.recording.path, int(frame), trace.recording.path,
+                          "instance_masks")
+    except DataError:
+        return None
+    img = _gt_frame(str(path))
     if img is None:
         return None
     return img, dict(gt.instances)

@@ -36,6 +36,8 @@ from massviz.errors import DataError
 PRED_ID, PRED_MASS = "Configuration ID", "Container mass"
 #: Recording id, container id and empty container mass (g) columns of the CCM annotation CSV.
 ANN_ID, ANN_CONTAINER, ANN_MASS = "id", "container id", "container mass"
+#: Size columns of the CCM annotation CSV read as numbers (the 3D stage compares with them).
+ANN_SIZES = ("width at the top", "width at the bottom", "height", "depth", "container capacity")
 #: The paper's classes, in the order of its tables and figure.
 CLASS_ORDER = ("cup", "glass", "box")
 
@@ -104,13 +106,20 @@ def _data_row_number(path: Path, line: int) -> int:
     return sum(1 for text in lines if text.strip())
 
 
+#: largest recording / container id read from a CSV (ids are indices, never near this).
+MAX_ID = 2**31 - 1
+
+
 def _integer(text: str) -> int:
+    """A recording or container id: an integer in [0, MAX_ID] (``1e30`` would overflow the int64 columns)."""
     try:
         value = float(text)
     except ValueError:
         raise ValueError(f"{text!r} is not an integer" if text else "empty value") from None
     if not value.is_integer():
         raise ValueError(f"{text!r} is not an integer")
+    if not 0 <= value <= MAX_ID:
+        raise ValueError(f"{text!r} must be >= 0 and <= {MAX_ID}")
     return int(value)
 
 
@@ -171,15 +180,17 @@ def read_predictions(path: str | Path) -> pd.DataFrame:
 def read_annotations(path: str | Path) -> pd.DataFrame:
     """Read a CCM annotation CSV (``id``, ``container id``, ..., ``container mass``, ...) into a frame.
 
-    ``id`` and ``container id`` are ints, ``container mass`` (g) a float > 0; every other column is kept, numeric
-    where all its values parse as numbers. Raises ``DataError`` (naming file, row and column) for an unreadable or
+    ``id`` and ``container id`` are ints in [0, 2^31), ``container mass`` (g) a finite float > 0, the size columns
+    (:data:`ANN_SIZES`, mm / mL; -1 = not given) finite floats; every other column is kept, numeric where all its
+    values parse as numbers. Raises ``DataError`` (naming file, row and column) for an unreadable or
     non-CSV file, a missing column, a ragged row, a non-numeric value, a mass ≤ 0, a repeated id or no data rows.
     """
     path = Path(path)
     header, rows = _read_table(path, (ANN_ID, ANN_CONTAINER, ANN_MASS))
     if not rows:
         raise DataError("no annotated recordings (only a header)", path)
-    parsers = {ANN_ID: _integer, ANN_CONTAINER: _integer, ANN_MASS: _positive_mass}
+    parsers = {ANN_ID: _integer, ANN_CONTAINER: _integer, ANN_MASS: _positive_mass,
+               **{name: _number for name in ANN_SIZES}}
     data = {}
     for name in header:
         if name in parsers:
@@ -223,7 +234,11 @@ def parse_class_map(spec: str) -> dict[int, str]:
             raise DataError(f"class mapping: {key.strip()!r} is not a container id (expected e.g. 1=cup,2=cup)") from None
         if not name.strip():
             raise DataError(f"class mapping: container {container} has no class name (expected e.g. {container}=cup)")
-        mapping[container] = name.strip()
+        if not 0 <= container <= MAX_ID:
+            raise DataError(f"class mapping: container id {container} must be >= 0 and <= {MAX_ID}")
+        from massviz.io.untrusted import text_id
+
+        mapping[container] = text_id(name.strip(), f"class mapping: the class name of container {container}", None)
     if not mapping:
         raise DataError("class mapping is empty (expected e.g. 1=cup,2=cup,4=glass)")
     return mapping
