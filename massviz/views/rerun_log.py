@@ -132,7 +132,8 @@ class RgbLogger:
         self.recording, self.warning, self.timestamps_ns = recording, None, None
         self.asset = None
         if recording.rgb_video is None:
-            self.mode = "files"
+            # frame files are logged as they are; frames without files (RealSense recordings) as JPEG images
+            self.mode = "files" if recording.rgb_files is not None else "images"
             return
         self.mode = "images" if video == "images" else "asset"
         if video == "images":
