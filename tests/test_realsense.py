@@ -244,7 +244,8 @@ def test_estimate_on_db3_equals_the_sample_folder(cup_db3, shared_dir, tmp_path)
     assert r.returncode == 0, r.stderr
     from massviz.views.rerun_log import rrd_entities
 
-    assert {"/camera/rgb", "/camera/depth", "/camera/detections"} <= rrd_entities(rrd)
+    assert {"/camera/rgb", "/camera/depth", "/camera/detections", "/predictions/running_estimate",
+            "/latency/detect"} <= rrd_entities(rrd)
 
 
 def test_cli_bad_files_exit_2_one_line_nothing_written(bad_files, tmp_path):
