@@ -233,6 +233,7 @@ def run_live(stream, frame_pipeline, *, logger=None, duration: float | None = No
         warm_up(fp, info)
         with _StopFlag() as flag:
             stream.start(sink)
+            started = last_arrival = time.perf_counter()
             while True:
                 now = time.perf_counter()
                 if flag.reason:
@@ -330,12 +331,16 @@ def run_live(stream, frame_pipeline, *, logger=None, duration: float | None = No
 def warm_up(fp, info) -> None:
     """Run the detector and the model once on a blank frame (not recorded), so the first live frame does not pay
     for lazy initialisation (torch, Mask R-CNN) while the camera's frames are dropped."""
+    from massviz.core.patches import model_view
     from massviz.core.types import Frame
 
     blank = Frame(index=-1, rgb=np.zeros((info.height, info.width, 3), np.uint8),
                   depth=np.zeros((info.height, info.width), np.uint16))
     fp.detector.detect(blank)
-    fp.model.predict([np.zeros((16, 16, 3), np.uint8)], np.array([[0.1, 0.1, 500.0]]))
+    patch = np.zeros((16, 16, 3), np.uint8)
+    fp.model.predict([patch], np.array([[0.1, 0.1, 500.0]]))
+    model_view(patch)  # the logger's view of a chosen patch (imports torch when the model did not)
+    cv2.imencode(".jpg", blank.rgb)
 
 
 def live_meta(stats: LiveStats, source: str) -> dict:

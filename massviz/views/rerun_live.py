@@ -6,7 +6,8 @@ estimate, the stage timings) and logs it at once on the ``frame`` timeline (sequ
 and on ``capture_time`` (seconds since the first frame, from the camera's timestamps):
 
 - ``/camera/rgb`` (JPEG ``EncodedImage``), ``/camera/depth`` (``DepthImage``: the 3D view back-projects it through the
-  ``/camera`` ``Pinhole``; no ``/world/points`` is logged live, to keep logging cheap), ``/camera/detections`` and
+  ``/camera`` ``Pinhole``; ``/world/points`` is not logged live unless ``points=True``: back-projecting and logging
+  the cloud per frame costs more than everything else massviz does per frame, see benchmarks/live_latency.py), ``/camera/detections`` and
   ``/camera/masks`` (the K nearest *so far* marked ★rank), ``/patches/<rank>`` (when the K nearest change);
 - ``/predictions/running_estimate`` (the mean of the K nearest so far) each frame;
 - ``/latency/<stage>`` (ms): ``read`` (aligning and copying the newest frame), ``detect``, ``features``,
@@ -34,9 +35,10 @@ from massviz.core.trace import Trace, describe_detection
 from massviz.core.types import Intrinsics
 from massviz.errors import MassvizError
 from massviz.io.atomic import atomic_path
-from massviz.views.rerun_log import (APPLICATION_ID, RUNNING_COLOUR, default_blueprint, detection_class_ids,
-                                     frustum_depth, log_annotation_context, log_depth, log_detections, log_masks,
-                                     log_patch, log_pinhole, log_predictions, log_summary, log_timings)
+from massviz.views.rerun_log import (APPLICATION_ID, MAX_POINTS, POINT_STEP, RUNNING_COLOUR, default_blueprint,
+                                     detection_class_ids, frustum_depth, log_annotation_context, log_depth,
+                                     log_detections, log_masks, log_patch, log_pinhole, log_points, log_predictions,
+                                     log_summary, log_timings)
 
 _LEVELS = {"debug": rr.TextLogLevel.DEBUG, "info": rr.TextLogLevel.INFO, "warn": rr.TextLogLevel.WARN}
 
@@ -47,10 +49,11 @@ class LiveLogger:
 
     def __init__(self, *, name: str, k: int, threshold: float, intrinsics: Intrinsics | None,
                  rrd: str | Path | None = None, spawn: bool = False, connect: str | None = None,
-                 stream: rr.RecordingStream | None = None, jpeg_quality: int = 85):
+                 stream: rr.RecordingStream | None = None, jpeg_quality: int = 85, points: bool = False):
         if stream is None and rrd is None and not spawn and not connect:
             raise ValueError("nothing to log to: give rrd, spawn, connect or stream")
         self.k, self.threshold, self.intrinsics, self.quality = k, threshold, intrinsics, int(jpeg_quality)
+        self.points = points and intrinsics is not None  # /world/points as massviz log does (costly; off by default)
         self._stack = contextlib.ExitStack()
         self.rrd = None if rrd is None else Path(rrd)
         self._own = stream is None
@@ -95,6 +98,8 @@ class LiveLogger:
             raise MassvizError(f"cannot JPEG-encode frame {frame.index}")
         rec.log("/camera/rgb", rr.EncodedImage(contents=buf.tobytes(), media_type="image/jpeg"))
         log_depth(rec, frame.depth)
+        if self.points:
+            log_points(rec, frame.depth, frame.rgb, self.intrinsics, POINT_STEP, MAX_POINTS)
         n = len(dets)
         rank_global = {int(g): r for r, g in enumerate(res.selection)}
         rank_of = {i: rank_global[res.offset + i] for i in range(n) if res.offset + i in rank_global}
