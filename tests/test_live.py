@@ -254,7 +254,9 @@ def test_slow_detector_drops_frames_counts_them_and_memory_stays_flat(rs, depth_
     growth = s.rss_mb[-1] - s.rss_mb[2]
     queued = (s.dropped * 640 * 480 * 5) / 2**20  # what holding the dropped frames would have cost
     assert growth < max(25.0, 0.1 * queued), (growth, queued, s.rss_mb)
-    assert "/log" in __import__("massviz.views.rerun_log", fromlist=["rrd_entities"]).rrd_entities(tmp_path / "slow.rrd")
+    from massviz.views.rerun_log import rrd_entities
+
+    assert "/log" in rrd_entities(tmp_path / "slow.rrd")
 
 
 # ---------------------------------------------------------------------------------------------- command line
@@ -338,3 +340,62 @@ def test_cli_without_pyrealsense2_says_what_to_install(tmp_path):
     r = massviz("live", "--file", tmp_path / "x.db3", "--no-cache", env_extra=env)
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0, r.stderr
     assert "pip install 'massviz[realsense]'" in r.stderr
+
+
+def test_ctrl_c_ends_the_session_cleanly(rs, played, depth_detector, tmp_path):
+    import signal
+    import threading
+
+    from massviz.io.realsense import SoftwareCamera, open_device_stream
+    from massviz.runners.live import run_live
+    from massviz.views.rerun_live import LiveLogger
+
+    rec = open_recording(played)
+    cam = SoftwareCamera(list(rec.frames()), rec.intrinsics, fps=15, loops=100)
+    stream = open_device_stream(cam.device, "software camera", on_stop=cam.stop)
+    started = stream.start
+    stream.start = lambda sink: (started(sink), cam.start())[0]
+    info = RecordingInfo(id="ctrl-c", kind="live", width=rec.width, height=rec.height, fps=15,
+                         intrinsics=rec.intrinsics)
+    fp = FramePipeline(depth_detector, FastModel(), k=5, recording=info)
+    logger = LiveLogger(name="ctrl-c", k=5, threshold=0.4, intrinsics=rec.intrinsics, rrd=tmp_path / "c.rrd")
+    timer = threading.Timer(2.0, os.kill, (os.getpid(), signal.SIGINT))
+    timer.start()
+    try:
+        result = run_live(stream, fp, logger=logger, save=tmp_path / "c_rec")
+    finally:
+        timer.cancel()
+    assert result.stats.stopped == "interrupted" and result.stats.processed > 0
+    assert (tmp_path / "c.rrd").stat().st_size > 0
+    assert open_recording(tmp_path / "c_rec").num_frames == result.stats.processed == len(result.trace.frames)
+    assert signal.getsignal(signal.SIGINT) is not None  # the previous handler is back
+
+
+def test_serve_web_serves_a_viewer_on_localhost(rs, played_db3, depth_detector, tmp_path, capsys):
+    import re
+    import signal
+    import socket
+    import urllib.request
+
+    from massviz.commands.live import run_session
+    from massviz.io.realsense import open_file_stream
+
+    ports = []
+    for _ in range(2):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            ports.append(s.getsockname()[1])
+    args = session_args(file=str(played_db3), serve_web=True, web_port=ports[0], grpc_port=ports[1])
+    assert run_session(args, pipeline(depth_detector, tmp_path), open_file_stream(played_db3), "played") == 0
+    err = capsys.readouterr().err
+    pid = int(re.search(r"kill (\d+)", err).group(1))
+    try:
+        url = re.search(r"web viewer at (\S+)", err).group(1)
+        assert url.startswith(f"http://127.0.0.1:{ports[0]}/")
+        with urllib.request.urlopen(f"http://127.0.0.1:{ports[0]}/", timeout=10) as page:
+            assert page.status == 200
+        listening = subprocess.run(["ss", "-ltn"], capture_output=True, text=True).stdout
+        for port in ports:
+            assert f"127.0.0.1:{port} " in listening and f"0.0.0.0:{port} " not in listening
+    finally:
+        os.kill(pid, signal.SIGTERM)

@@ -6,9 +6,9 @@ estimate, the stage timings) and logs it at once on the ``frame`` timeline (sequ
 and on ``capture_time`` (seconds since the first frame, from the camera's timestamps):
 
 - ``/camera/rgb`` (JPEG ``EncodedImage``), ``/camera/depth`` (``DepthImage``: the 3D view back-projects it through the
-  ``/camera`` ``Pinhole``; ``/world/points`` is not logged live unless ``points=True``: back-projecting and logging
-  the cloud per frame costs more than everything else massviz does per frame, see benchmarks/live_latency.py), ``/camera/detections`` and
-  ``/camera/masks`` (the K nearest *so far* marked ★rank), ``/patches/<rank>`` (when the K nearest change);
+  ``/camera`` ``Pinhole``; ``/world/points`` is not logged live unless ``points=True``: an Open3D back-projection
+  per frame and 2-3x the .rrd size, see benchmarks/live_latency.py), ``/camera/detections`` and ``/camera/masks``
+  (the K nearest *so far* marked ★rank), ``/patches/<rank>`` (when the K nearest change);
 - ``/predictions/running_estimate`` (the mean of the K nearest so far) each frame;
 - ``/latency/<stage>`` (ms): ``read`` (aligning and copying the newest frame), ``detect``, ``features``,
   ``predict``, ``select``, ``log`` (this logging), ``wait`` (the frame's time in the one-frame buffer while the
