@@ -38,9 +38,8 @@ from massviz.io.recording import Recording
 
 SUFFIXES = (".db3", ".bag")
 INSTALL_HINT = "RealSense support needs pyrealsense2: pip install 'massviz[realsense]' (or pip install pyrealsense2)"
-#: seconds to wait for a frameset before a file is considered finished / a camera silent.
-FILE_TIMEOUT_S = 2.0
-CAMERA_TIMEOUT_S = 5.0
+#: seconds without a frame, before the end of a file, after which its non-real-time playback counts as stalled.
+FILE_TIMEOUT_S = 10.0
 
 
 def import_rs():
@@ -324,8 +323,11 @@ class _FileFrames:
                     raise RecordingError(f"cannot read the RealSense recording ({self.reader.error})",
                                          self.path) from None
                 idle += 0.05
-                if (self.reader.finished() and self.queue.empty()) or idle > FILE_TIMEOUT_S:
+                if self.reader.finished() and self.queue.empty():
                     return
+                if idle > FILE_TIMEOUT_S:
+                    raise RecordingError(f"the RealSense playback stalled (no frame for {FILE_TIMEOUT_S:g} s before "
+                                         "the end of the file)", self.path)
                 continue
             idle = 0.0
             yield item
@@ -376,6 +378,7 @@ class RealSenseRecording(Recording):
         if last < 0:
             return
         frames = _FileFrames(self.path)
+        i = -1
         try:
             for i, (c, d) in enumerate(frames):
                 if i > last:
@@ -384,6 +387,8 @@ class RealSenseRecording(Recording):
                     yield frames.reader.frame(c, d, i)
         finally:
             frames.close()
+        if i < last:  # the file changed since it was opened, or librealsense skipped frames: never a silent gap
+            raise RecordingError(f"the RealSense recording ended after {i + 1} of {self.num_frames} frames", self.path)
 
 
 def open_realsense(path: str | Path) -> RealSenseRecording:
