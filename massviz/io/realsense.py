@@ -122,10 +122,12 @@ def stream_info(rs, device, profiles, source) -> StreamInfo:
                              source)
     if str(d.format()).replace("format.", "") != "z16":
         raise RecordingError(f"depth stream format {d.format()} is not supported (z16)", source)
+    info = {}
     try:
         scale = float(device.first_depth_sensor().get_depth_scale())
-    except RuntimeError:
+    except RuntimeError:  # no depth-units option recorded: librealsense's default unit, said in the metadata
         scale = 0.001
+        info["depth_scale_note"] = "no depth units option in the source: assumed 0.001 m (1 mm)"
     if not scale > 0:
         raise RecordingError(f"depth scale {scale} is not positive", source)
     ci, di = c.get_intrinsics(), d.get_intrinsics()
@@ -137,7 +139,6 @@ def stream_info(rs, device, profiles, source) -> StreamInfo:
                     and np.allclose(np.asarray(ex.translation, float), 0.0, atol=1e-9))
     except RuntimeError:
         identity = False
-    info = {}
     for key, name in (("name", "name"), ("serial", "serial_number"), ("firmware", "firmware_version")):
         try:
             if device.supports(getattr(rs.camera_info, name)):
