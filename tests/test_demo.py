@@ -13,7 +13,8 @@ from sample_traces import WEIGHTS, sample_cache
 
 ROOT = Path(__file__).resolve().parents[1]
 CONTRACT = ["/camera", "/camera/rgb", "/camera/depth", "/camera/detections", "/camera/masks", "/world/points",
-            "/log", "/predictions/estimate", "/predictions/ground_truth"]
+            "/log", "/predictions/estimate", "/predictions/ground_truth", "/predictions/running_estimate",
+            "/latency/detect"]
 
 
 def demo_command() -> list[str]:

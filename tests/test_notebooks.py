@@ -91,6 +91,7 @@ def test_notebook_01_shows_each_stage(executed):
     book = executed["01_inspect_recording.ipynb"]
     text = _outputs_text(book)
     assert "estimate" in text and "ground truth" in text
+    assert "within 10 % of the final" in text  # the running estimate and how long it took to settle
     images = sum("image/png" in o.get("data", {}) for c in book.cells for o in c.get("outputs", []))
     assert images >= 6, f"expected the frame, depth, point cloud, patches, estimate and timings figures, got {images}"
     widgets = sum("application/vnd.jupyter.widget-view+json" in o.get("data", {})

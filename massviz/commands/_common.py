@@ -20,8 +20,8 @@ def add_dataset_args(p: argparse.ArgumentParser, metavar: str = "REC") -> None:
     """Positional recordings / dataset roots (-> ``args.recordings``) and ``--view`` for CCM roots; expand them with
     ``massviz.commands.estimate.collect_recordings(args.recordings, args.view)``."""
     p.add_argument("recordings", nargs="+", metavar=metavar,
-                   help="recording folders, CCM videos (ROOT/viewN/rgb/NNNNNN.mp4), CCM dataset roots or folders of "
-                   "recordings")
+                   help="recording folders, CCM videos (ROOT/viewN/rgb/NNNNNN.mp4), RealSense files (.db3, .bag), CCM "
+                   "dataset roots or folders of recordings")
     p.add_argument("--view", type=int, default=3, choices=[1, 2, 3, 4],
                    help="camera view of a CCM dataset root (default: 3, the paper's fixed frontal view)")
 

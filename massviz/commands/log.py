@@ -11,12 +11,13 @@ def register(sub) -> None:
     p = sub.add_parser(
         "log", help="run one recording and log every stage to Rerun (.rrd file or live viewer)",
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="Run the pipeline on one recording (a massviz folder or a CCM .mp4) and log the trace to "
+        description="Run the pipeline on one recording (a massviz folder, a CCM .mp4 or a RealSense .db3/.bag) and "
+        "log the trace to "
         "Rerun: frames, depth, detections, masks, point cloud, the chosen patches as the model saw them, "
         "per-patch predictions, the estimate, the decisions and the stage timings (entity tree in the README).",
         epilog="examples:\n  massviz log data_samples/cup_handover --rrd cup.rrd && rerun cup.rrd\n"
         "  massviz log data_samples/glass_handover --spawn --k 3\n" + PIPELINE_HELP)
-    p.add_argument("recording", metavar="REC", help="recording folder or CCM video path")
+    p.add_argument("recording", metavar="REC", help="recording folder, CCM video path or RealSense file (.db3, .bag)")
     out = p.add_argument_group("output (one of them is required)")
     out.add_argument("--rrd", metavar="OUT.rrd", help="write the Rerun recording to this file")
     out.add_argument("--spawn", action="store_true", help="spawn (or connect to) a Rerun viewer")

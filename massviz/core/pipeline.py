@@ -102,6 +102,7 @@ class FramePipeline:
         self._frames: list[int] = []
         self._nearest = _NearestPatches(max(keep_patches, k))
         self._offset = 0
+        self._frame_timings: dict[str, list[float]] = defaultdict(list)
         # the running selection: the K nearest so far (global indices, their d and predictions). The K nearest of
         # the recording so far are the K nearest of (the previous K nearest + this frame's detections), ties to the
         # earliest: a frame's detections come after every earlier one, so a stable merge keeps the paper's order.
@@ -138,6 +139,7 @@ class FramePipeline:
         timings = {"read": read_seconds, "detect": t2 - t1, "features": t3 - t2, "predict": t4 - t3,
                    "select": t5 - t4}
         for name, seconds in timings.items():
+            self._frame_timings[name].append(seconds)
             if name != "select":  # the whole recording's selection is timed in finish()
                 self.timings[name] += seconds
         self.events.extend(events)
@@ -170,7 +172,8 @@ class FramePipeline:
                      detect_threshold=float(self.detector.threshold), threshold=float(self.detector.threshold),
                      k=self.k, stride=self.stride, frames=np.asarray(self._frames, dtype=np.int32),
                      detections=detections, selection=selection, estimate=estimate,
-                     weights_id=getattr(self.model, "weights_id", ""), timings=timings, events=events)
+                     weights_id=getattr(self.model, "weights_id", ""), timings=timings, events=events,
+                     frame_timings={n: np.asarray(v) for n, v in self._frame_timings.items()})
 
 
 def run(recording, detector: Detector, model, *, k: int = 5, stride: int = 1, keep_patches: int = KEEP_PATCHES,

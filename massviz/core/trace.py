@@ -20,7 +20,7 @@ import numpy as np
 
 from massviz.io.atomic import atomic_path
 from massviz.errors import MassvizError
-from massviz.core.selection import estimate_mass, select_k_nearest
+from massviz.core.selection import NearestOrder, estimate_mass, select_k_nearest
 from massviz.core.types import Detections, GroundTruth, PackedMask, RecordingInfo, class_name
 
 TRACE_FORMAT = 2  # 2: typed events, recording info as a dataclass
@@ -73,6 +73,8 @@ class Trace:
     - ``measurements``: the 3D stage's measured size of each chosen detection (``massviz.core.geometry.Measurement``
       as dicts, read them with ``geometry3d.measurements_of``); empty when not measured. ``reselect`` drops them
       (they belong to the old selection).
+    - ``frame_timings``: seconds per stage for each processed frame (stage -> array aligned with ``frames``; empty
+      for traces made before massviz recorded them).
     """
 
     recording: RecordingInfo
@@ -90,6 +92,7 @@ class Trace:
     events: list = field(default_factory=list)
     excluded: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     measurements: list = field(default_factory=list)
+    frame_timings: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if isinstance(self.recording, dict):
@@ -129,6 +132,30 @@ class Trace:
             "active": self.active(), "rank": rank,
         })
 
+    def running_estimate(self) -> np.ndarray:
+        """The estimate as it stood after each processed frame (aligned with ``frames``): the mean prediction of the
+        K nearest detections among those of the frames processed so far, with this trace's K, threshold and
+        exclusions (what ``massviz live`` shows as ``/predictions/running_estimate``); -1 while none is selected.
+        Its last value is ``estimate``."""
+        dets = self.detections
+        nearest = NearestOrder(dets.d, dets.score, self.excluded)  # finite d, not excluded, sorted by d (ties: first)
+        order = nearest.order[nearest.score > self.threshold]
+        position = {int(f): j for j, f in enumerate(self.frames)}
+        processed_at = np.array([position.get(int(f), len(self.frames)) for f in dets.frame[order]], dtype=np.int64)
+        out = np.full(len(self.frames), -1.0)
+        for j in range(len(self.frames)):
+            out[j] = estimate_mass(dets.pred, order[processed_at <= j][: self.k])
+        return out
+
+    def settled_after(self, tolerance: float = 0.10) -> int | None:
+        """How many processed frames it took the running estimate to settle: from then on it stays within
+        ``tolerance`` (relative) of the final estimate. None when not estimated."""
+        if self.estimate < 0 or len(self.frames) == 0:
+            return None
+        running = self.running_estimate()
+        outside = np.flatnonzero((running < 0) | (np.abs(running - self.estimate) > tolerance * abs(self.estimate)))
+        return int(outside[-1]) + 2 if len(outside) else 1
+
     # -- reselection -----------------------------------------------------------------------------------------------
     def reselect(self, k: int | None = None, threshold: float | None = None, exclude=None) -> "Trace":
         """A new trace with the selection and estimate recomputed for another ``k``/``threshold``/exclusion.
@@ -165,7 +192,7 @@ class Trace:
             "detect_threshold": self.detect_threshold, "threshold": self.threshold, "k": self.k,
             "stride": self.stride, "estimate": self.estimate, "weights_id": self.weights_id,
             "timings": self.timings, "events": [e.to_list() for e in self.events],
-            "measurements": list(self.measurements),
+            "measurements": list(self.measurements), "frame_timing_stages": list(self.frame_timings),
         }
         masks = [m if m is not None else PackedMask(np.zeros((0, 0), bool)) for m in dets.masks]
         patch_idx = [i for i, p in enumerate(dets.patches) if p is not None]
@@ -180,6 +207,7 @@ class Trace:
             "patch_index": np.array(patch_idx, dtype=np.int64),
             "patch_sizes": np.array([len(e) for e in encoded], dtype=np.int64),
             "patch_bytes": np.concatenate(encoded) if encoded else np.zeros(0, np.uint8),
+            **{f"frame_time_{i}": np.asarray(v, np.float64) for i, v in enumerate(self.frame_timings.values())},
         }
         with atomic_path(path) as tmp, open(tmp, "wb") as fh:
             np.savez_compressed(fh, **arrays)
@@ -223,7 +251,9 @@ class Trace:
                    stride=header["stride"], frames=data["frames"], detections=dets, selection=data["selection"],
                    estimate=header["estimate"], weights_id=header["weights_id"], timings=header["timings"],
                    events=[Event(*e) for e in header["events"]], excluded=data["excluded"],
-                   measurements=header.get("measurements", []))
+                   measurements=header.get("measurements", []),
+                   frame_timings={name: data[f"frame_time_{i}"]
+                                  for i, name in enumerate(header.get("frame_timing_stages", []))})
 
 
 #: largest frame index or pixel coordinate a trace may hold.

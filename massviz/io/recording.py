@@ -1,6 +1,6 @@
 """Reading RGB-D recordings, one frame at a time.
 
-Two layouts are read:
+Three kinds of recording are read:
 
 * **CCM** (CORSMAL Containers Manipulation), addressed by the video path::
 
@@ -14,6 +14,9 @@ Two layouts are read:
       REC/depth/*.png                        16-bit mm, aligned to RGB, sorted by name
       REC/intrinsics.json                    optional {"fx","fy","cx","cy","width","height"}
       REC/meta.json                          optional annotations / ground truth
+
+* **RealSense files** ``X.db3`` (ROS2, librealsense >= 2.56) and ``X.bag`` (ROS1), through ``pyrealsense2``
+  (optional extra ``massviz[realsense]``): see ``massviz.io.realsense``.
 
 Frames are streamed (``Recording.frames``): nothing is accumulated, so memory does not grow with the recording's
 length. Problems are reported as ``RecordingError`` naming the file, checked up front where that is cheap (so a
@@ -54,7 +57,7 @@ class Recording:
     """An RGB-D recording on disk. Create it with ``open_recording``."""
 
     path: Path
-    kind: str  # "ccm" or "folder"
+    kind: str  # "ccm", "folder" or "realsense"
     id: str
     depth_files: list[Path]
     width: int
@@ -342,7 +345,8 @@ def _check_counts(depth_dir: Path, n_depth: int, n_rgb: int) -> None:
 
 
 def open_recording(path: str | Path, *, allow_partial: bool = False) -> Recording:
-    """Open and check a recording: a massviz folder, or a CCM video path (ROOT/viewN/rgb/NNNNNN.mp4).
+    """Open and check a recording: a massviz folder, a CCM video path (ROOT/viewN/rgb/NNNNNN.mp4) or a RealSense
+    file (.db3 / .bag).
 
     ``allow_partial``: a video cut short is processed as far as it decodes (a warning on stderr and in
     ``Recording.notes``) instead of being an error."""
@@ -350,9 +354,13 @@ def open_recording(path: str | Path, *, allow_partial: bool = False) -> Recordin
     if not path.exists():
         raise RecordingError("no such file or directory", path)
     if path.is_file():
+        if path.suffix.lower() in (".db3", ".bag"):
+            from massviz.io.realsense import open_realsense
+
+            return open_realsense(path)
         if path.suffix.lower() != ".mp4":
-            raise RecordingError("not a recording: give a recording folder or a CCM video (.../viewN/rgb/NNNNNN.mp4)",
-                                 path)
+            raise RecordingError("not a recording: give a recording folder, a CCM video (.../viewN/rgb/NNNNNN.mp4) "
+                                 "or a RealSense file (.db3, .bag)", path)
         rec = _open_ccm(path, allow_partial)
     else:
         rec = _open_folder(path, allow_partial)
@@ -437,7 +445,9 @@ def find_recordings(root: str | Path, view: int = 3) -> list[Path]:
             return sorted(rgb.glob("*.mp4"))
     if (root / "rgb.mp4").is_file() or (root / "rgb").is_dir():
         return [root]  # a recording folder, even an incomplete one: open_recording says what is missing
-    found = sorted(p for p in root.iterdir() if p.is_dir() and ((p / "rgb.mp4").is_file() or (p / "rgb").is_dir()))
+    found = sorted(p for p in root.iterdir() if (p.is_dir() and ((p / "rgb.mp4").is_file() or (p / "rgb").is_dir()))
+                   or (p.is_file() and p.suffix.lower() in (".db3", ".bag")))
     if not found:
-        raise RecordingError(f"no recordings found (looked for view{view}/rgb/*.mp4 and for recording folders)", root)
+        raise RecordingError(f"no recordings found (looked for view{view}/rgb/*.mp4, recording folders and RealSense "
+                             ".db3/.bag files)", root)
     return found

@@ -154,6 +154,33 @@ def estimate_figure(trace: Trace) -> Figure:
     return fig
 
 
+def running_estimate_figure(trace: Trace, tolerance: float = 0.10) -> Figure:
+    """The running estimate (``Trace.running_estimate``: the mean of the K nearest so far after each processed
+    frame), the ±``tolerance`` band around the final estimate and the frame from which it stays inside the band
+    (``Trace.settled_after``), and the ground truth when known."""
+    frames, running = np.asarray(trace.frames), trace.running_estimate()
+    fig = Figure(figsize=(6, 3))
+    ax = fig.add_subplot()
+    ok = running >= 0
+    ax.step(frames[ok], running[ok], where="post", color="#1f77b4", linewidth=2, label="running estimate")
+    title = f"{trace.recording.id}: not estimated"
+    if trace.estimate >= 0:
+        lo, hi = trace.estimate * (1 - tolerance), trace.estimate * (1 + tolerance)
+        ax.axhspan(lo, hi, color="#1f77b4", alpha=0.12, label=f"final {trace.estimate:.1f} g ± {tolerance:.0%}")
+        n = trace.settled_after(tolerance)
+        ax.axvline(frames[n - 1], color="#ff7f0e", linestyle=":", label=f"settled at frame {frames[n - 1]}")
+        title = f"{trace.recording.id}: within {tolerance:.0%} of the final estimate after {n} of {len(frames)} frames"
+    gt = trace.ground_truth_mass
+    if gt is not None:
+        ax.axhline(gt, color="#2ca02c", linestyle="--", linewidth=2, label=f"ground truth {gt:.1f} g")
+    ax.set_xlabel("frame")
+    ax.set_ylabel("mass (g)")
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=8, loc="best")
+    fig.tight_layout()
+    return fig
+
+
 def timings_figure(trace: Trace) -> Figure:
     """Wall time of each pipeline stage (seconds; ``total`` and ``cache`` apart)."""
     stages = [(k, v) for k, v in trace.timings.items() if k not in ("total",)]

@@ -132,7 +132,8 @@ class RgbLogger:
         self.recording, self.warning, self.timestamps_ns = recording, None, None
         self.asset = None
         if recording.rgb_video is None:
-            self.mode = "files"
+            # frame files are logged as they are; frames without files (RealSense recordings) as JPEG images
+            self.mode = "files" if recording.rgb_files is not None else "images"
             return
         self.mode = "images" if video == "images" else "asset"
         if video == "images":
@@ -269,6 +270,30 @@ def log_predictions(rec: rr.RecordingStream, trace: Trace) -> None:
             rec.log("/predictions/ground_truth", rr.Scalars(gt))
 
 
+RUNNING_COLOUR = (90, 170, 255)
+
+
+def log_running(rec: rr.RecordingStream, trace: Trace) -> None:
+    """``/predictions/running_estimate``: the estimate after each processed frame (``Trace.running_estimate``, from
+    the first frame with a selected patch), and ``/latency/<stage>``: each processed frame's seconds per stage, in
+    ms (when the trace has them)."""
+    frames = np.asarray(trace.frames, dtype=np.int64)
+    if len(frames) == 0:
+        return
+    running = trace.running_estimate()
+    keep = running >= 0
+    if keep.any():
+        rec.log("/predictions/running_estimate", rr.SeriesLines(names="running estimate (K nearest so far)",
+                                                                colors=RUNNING_COLOUR, widths=2), static=True)
+        rec.send_columns("/predictions/running_estimate", indexes=[rr.TimeColumn("frame", sequence=frames[keep])],
+                         columns=rr.Scalars.columns(scalars=running[keep]))
+    for stage, seconds in trace.frame_timings.items():
+        seconds = np.asarray(seconds, dtype=np.float64)
+        if len(seconds) == len(frames):
+            rec.send_columns(f"/latency/{stage}", indexes=[rr.TimeColumn("frame", sequence=frames)],
+                             columns=rr.Scalars.columns(scalars=1000.0 * seconds))
+
+
 # ----------------------------------------------------------------------------------------------------- text, log
 _LEVELS = {"debug": rr.TextLogLevel.DEBUG, "info": rr.TextLogLevel.INFO, "warn": rr.TextLogLevel.WARN}
 
@@ -319,15 +344,18 @@ def log_timings(rec: rr.RecordingStream, timings: dict, n_frames: int) -> None:
 
 
 # ------------------------------------------------------------------------------------------------------ blueprint
-def default_blueprint(n_patches: int, *, has_3d: bool = True) -> rrb.Blueprint:
-    """RGB + detections + masks, depth and 3D on the left; the chosen patches, predictions and text on the right."""
+def default_blueprint(n_patches: int, *, has_3d: bool = True, depth_in_3d: bool = False) -> rrb.Blueprint:
+    """RGB + detections + masks, depth and 3D on the left; the chosen patches, predictions and text on the right.
+    ``depth_in_3d``: the 3D view also shows ``/camera/depth`` (Rerun back-projects it through the Pinhole; live
+    mode logs no ``/world/points``)."""
     camera = rrb.Spatial2DView(name="RGB · detections · masks", origin="/camera",
                                contents=["/camera/rgb", "/camera/detections", "/camera/masks"])
     depth = rrb.Spatial2DView(name="Depth", origin="/camera", contents=["/camera/depth"])
     lower = [depth]
     if has_3d:
         lower.append(rrb.Spatial3DView(name="3D (camera frame, m)", origin="/",
-                                       contents=["/world/**", "/camera", "/camera/rgb"]))
+                                       contents=["/world/**", "/camera", "/camera/rgb",
+                                                 *(["/camera/depth"] if depth_in_3d else [])]))
     if n_patches:
         patches = rrb.Grid(*[rrb.Spatial2DView(name=f"patch ★{r}", origin=f"/patches/{r}") for r in range(n_patches)],
                            name="Chosen patches (model input)")
@@ -335,7 +363,8 @@ def default_blueprint(n_patches: int, *, has_3d: bool = True) -> rrb.Blueprint:
         patches = rrb.TextDocumentView(name="Summary", origin="/summary")
     text = rrb.Tabs(rrb.TextLogView(name="Decisions", origin="/log"),
                     rrb.TextDocumentView(name="Summary", origin="/summary"),
-                    rrb.TextDocumentView(name="Timings", origin="/timings"))
+                    rrb.TextDocumentView(name="Timings", origin="/timings"),
+                    rrb.TimeSeriesView(name="Latency per frame (ms)", origin="/latency"))
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(camera, rrb.Horizontal(*lower), row_shares=[3, 2]),
@@ -476,6 +505,7 @@ def _log_all(rec: rr.RecordingStream, trace: Trace, recording: Recording, *, vid
     bar.close()
     rec.reset_time()
     log_predictions(rec, trace)
+    log_running(rec, trace)
     log_events(rec, trace.events, first)
     rec.reset_time()
     return {"frames": len(frames), "detections": len(dets), "chosen": len(rank_of), "points": n_points,

@@ -1,0 +1,191 @@
+"""``massviz live``: a RealSense camera (or a RealSense file played back in real time) through the pipeline, frame by
+frame, logged to Rerun as it happens."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from massviz.commands._common import PIPELINE_HELP, add_pipeline_args
+
+EPILOG = """examples:
+  massviz live --rrd session.rrd --save rec/ --duration 20     first connected camera, 20 s
+  massviz live --camera 123456789012 --spawn                     that camera, into a native Rerun viewer
+  massviz live --file handover.db3 --serve-web                   a recording in real time, in a browser viewer
+  massviz log rec/ --rrd replay.rrd                              replay a saved session (same trace, from cache)
+
+Per processed frame: detect, features, predict, update the K nearest so far, and log the frame's stages at once
+(/camera/*, /patches/<rank>, /predictions/running_estimate, /latency/<stage> in ms; entity tree in the README).
+When the detector is slower than the camera, massviz takes the newest frame and drops the others: the drops are
+counted in /log and in the summary; nothing queues. Ctrl-C, --duration or the end of a --file ends the session: the
+trace goes to the trace cache, --save writes the processed frames as a massviz recording folder, and the last line
+prints the estimate. Needs pyrealsense2: pip install 'massviz[realsense]'.
+""" + PIPELINE_HELP
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "live", help="run a RealSense camera (or a .db3/.bag in real time) live and log every frame to Rerun",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Estimate the container's mass live from an Intel RealSense camera (or a RealSense recording "
+        "played back in real time), streaming each frame's stages to Rerun as they are computed.",
+        epilog=EPILOG)
+    src = p.add_argument_group("source (default: the first connected camera)")
+    one = src.add_mutually_exclusive_group()
+    one.add_argument("--camera", metavar="SERIAL", nargs="?", const="",
+                     help="a connected RealSense camera by serial number (no serial: the first one)")
+    one.add_argument("--file", metavar="X.db3", help="a RealSense recording (.db3 or .bag) played back in real time")
+    src.add_argument("--width", type=int, default=640, help="camera stream width (default 640)")
+    src.add_argument("--height", type=int, default=480, help="camera stream height (default 480)")
+    src.add_argument("--fps", type=int, default=30, help="camera frame rate (default 30)")
+    out = p.add_argument_group("output (any of them)")
+    out.add_argument("--rrd", metavar="OUT.rrd", help="write the Rerun recording to this file (when the session ends)")
+    out.add_argument("--spawn", action="store_true", help="spawn (or connect to) a native Rerun viewer")
+    out.add_argument("--connect", metavar="URL", help="send to a running Rerun viewer or server, e.g. "
+                     "rerun+http://127.0.0.1:9876/proxy")
+    out.add_argument("--serve-web", action="store_true",
+                     help="serve a browser viewer on 127.0.0.1 (ports --web-port and --grpc-port); it keeps serving "
+                     "after the session, until you stop it (its pid is printed)")
+    out.add_argument("--web-port", type=int, default=9090, help="--serve-web: web viewer port (default 9090)")
+    out.add_argument("--grpc-port", type=int, default=9876, help="--serve-web: gRPC port (default 9876)")
+    out.add_argument("--save", metavar="REC_DIR", help="write the processed frames as a massviz recording folder "
+                     "(a new folder; written when the session ends)")
+    p.add_argument("--duration", type=float, metavar="S", help="end after S seconds (default: Ctrl-C or end of file)")
+    add_pipeline_args(p)
+    p.set_defaults(func=run)
+
+
+def _serve_web(web_port: int, grpc_port: int) -> tuple[str, str, int]:
+    """A Rerun server with a web viewer bound to 127.0.0.1, as its own process: (gRPC URL, browser URL, pid)."""
+    import socket
+    import subprocess
+    import time
+    import urllib.parse
+
+    from massviz.errors import MassvizError
+
+    for port in (web_port, grpc_port):
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                raise MassvizError(f"port {port} on 127.0.0.1 is in use; choose others with --web-port/--grpc-port")
+    cmd = [sys.executable, "-m", "rerun", "--serve-web", "--bind", "127.0.0.1", "--port", str(grpc_port),
+           "--web-viewer-port", str(web_port)]
+    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+    grpc = f"rerun+http://127.0.0.1:{grpc_port}/proxy"
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise MassvizError(f"the Rerun web viewer did not start (exit code {proc.returncode})")
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", grpc_port)) == 0:
+                url = f"http://127.0.0.1:{web_port}/?url={urllib.parse.quote(grpc, safe='')}"
+                return grpc, url, proc.pid
+        time.sleep(0.2)
+    proc.terminate()
+    raise MassvizError("the Rerun web viewer did not start within 20 s")
+
+
+def run(args) -> int:
+    from pathlib import Path
+
+    from massviz.commands._common import build
+    from massviz.errors import MassvizError
+    from massviz.io import realsense
+
+    if args.stride != 1:
+        raise MassvizError("--stride does not apply to live mode (it processes the newest frame each time)")
+    if args.duration is not None and args.duration <= 0:
+        raise MassvizError(f"--duration must be positive, got {args.duration}")
+    if args.rrd and Path(args.rrd).is_dir():
+        raise MassvizError("is a directory; --rrd needs a file path", args.rrd)
+    if args.rrd and not Path(args.rrd).parent.is_dir():
+        raise MassvizError(f"cannot write: folder {Path(args.rrd).parent} does not exist", args.rrd)
+    if args.save and Path(args.save).exists() and (not Path(args.save).is_dir() or any(Path(args.save).iterdir())):
+        raise MassvizError("exists and is not an empty folder; --save needs a new folder", args.save)
+    realsense.import_rs()
+    if args.file:
+        stream = realsense.open_file_stream(args.file)
+        name = Path(args.file).stem
+    else:
+        stream = realsense.open_camera(args.camera or None, args.width, args.height, args.fps)
+        name = f"camera-{stream.info.device.get('serial', 'realsense')}"
+    try:
+        pipeline = build(args)
+    except BaseException:
+        stream.stop()
+        raise
+    return run_session(args, pipeline, stream, name)
+
+
+def run_session(args, pipeline, stream, name: str) -> int:
+    """The session itself (``massviz live`` after the source is open; tests call it with a stand-in camera)."""
+    from massviz.core.types import RecordingInfo
+    from massviz.errors import MassvizError
+    from massviz.runners.live import run_live
+
+    info = stream.info
+    rec_info = RecordingInfo(id=name, path=str(args.file or stream.description), kind="live", width=info.width,
+                             height=info.height, num_frames=0, fps=info.fps, intrinsics=info.intrinsics,
+                             meta={"realsense": info.describe()})
+    fp = pipeline.frame_pipeline(rec_info)
+    logger = None
+    web = None
+    try:
+        connect = args.connect
+        if args.serve_web and args.connect:
+            raise MassvizError("give --connect or --serve-web, not both")
+        if args.serve_web:
+            connect_web, url, pid = _serve_web(args.web_port, args.grpc_port)
+            web = (url, pid)
+            connect = connect or connect_web
+            print(f"massviz live: web viewer at {url}", file=sys.stderr)
+        if args.rrd or args.spawn or connect:
+            from massviz.views.rerun_live import LiveLogger
+
+            logger = LiveLogger(name=name, k=pipeline.options.k, threshold=pipeline.options.threshold,
+                                intrinsics=info.intrinsics, rrd=args.rrd, spawn=args.spawn, connect=connect)
+    except BaseException:
+        stream.stop()
+        raise
+    print(f"massviz live: {stream.description}; Ctrl-C ends the session", file=sys.stderr)
+    result = run_live(stream, fp, logger=logger, duration=args.duration, save=args.save, progress=not args.quiet,
+                      name=name, source=stream.description)
+    trace, stats = result.trace, result.stats
+    cached = _cache(pipeline, trace, result, args, stream)
+    print(f"massviz live: {stats.summary()}; stopped: {stats.stopped}", file=sys.stderr)
+    for line in ([f"wrote {args.rrd}"] if args.rrd else []) + ([f"saved the frames to {result.saved} "
+                                                                 f"(replay: massviz log {result.saved} --rrd X.rrd)"]
+                                                                if result.saved else []) + \
+            ([f"trace cached at {cached}"] if cached else []):
+        print(f"massviz live: {line}", file=sys.stderr)
+    if web is not None:
+        print(f"massviz live: the web viewer keeps serving at {web[0]} (pid {web[1]}; stop it with kill {web[1]})",
+              file=sys.stderr)
+    est = "not estimated" if trace.estimate < 0 else f"{trace.estimate:.1f} g"
+    print(f"{name}: {est} (K={len(trace.selection)}, {stats.processed} frames, {stats.dropped} dropped)",
+          file=sys.stderr)
+    return 0
+
+
+def _cache(pipeline, trace, result, args, stream):
+    """Put the session's trace in the trace cache under the recording it is exactly the trace of: the saved folder,
+    else the played file when every frame of it was processed, else a session file under the cache's live/."""
+    import re
+    import time
+
+    if pipeline.cache is None:
+        return None
+    from massviz.io.recording import open_recording
+
+    info = {"name": pipeline.detector.name, **pipeline.detector.settings()}
+    if result.saved is not None:
+        return pipeline.cache.save(trace, open_recording(result.saved), info)
+    if args.file:
+        import dataclasses
+
+        rec = open_recording(args.file)
+        numbers = rec.meta.get("realsense", {}).get("frame_numbers")
+        if result.stats.dropped == 0 and numbers == result.stats.frame_numbers:
+            return pipeline.cache.save(dataclasses.replace(trace, recording=rec.info()), rec, info)
+    safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", trace.recording.id)
+    return trace.save(pipeline.cache.root / "live" / f"{safe}-{time.strftime('%Y%m%d-%H%M%S')}.npz")

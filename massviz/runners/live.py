@@ -1,0 +1,353 @@
+"""The live runner: frames from a RealSense source go through the per-frame pipeline step and out to Rerun as they
+arrive (``massviz live``).
+
+    stream = open_file_stream("x.db3")               # or open_camera(serial), open_device_stream(device)
+    fp = pipeline.frame_pipeline()                   # massviz.core.build.Pipeline: FramePipeline.step per frame
+    result = run_live(stream, fp, logger=LiveLogger(...), duration=10, save="rec/")
+    result.trace, result.stats.dropped
+
+librealsense's threads hand each colour+depth pair to a one-slot buffer (``LatestSlot``) that keeps only the newest:
+when the detector is slower than the camera, the frames that arrive meanwhile are dropped and counted, and nothing
+queues (memory stays flat however long the session). The main thread takes the newest pair, aligns and copies it
+(``read``), runs ``FramePipeline.step`` (detect, features, predict, the K nearest so far) and logs the frame. Ctrl-C
+(first press), ``duration`` or the end of a file ends the session cleanly: the trace is finished, ``save`` writes
+the processed frames as a massviz recording folder (so ``massviz log`` and notebooks replay the session exactly).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import queue
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm.auto import tqdm
+
+from massviz.errors import MassvizError
+
+#: seconds without any frame from a camera before the session gives up on it.
+SILENCE_S = 5.0
+
+
+class LatestSlot:
+    """Holds only the newest item: ``put`` replacing an item nobody took counts a drop. Thread-safe."""
+
+    def __init__(self):
+        self._cond = threading.Condition()
+        self._item = None
+        self.arrived = 0
+        self.dropped = 0
+
+    def put(self, item) -> None:
+        with self._cond:
+            if self._item is not None:
+                self.dropped += 1
+            self._item = item
+            self.arrived += 1
+            self._cond.notify()
+
+    def take(self, timeout: float):
+        """The newest item (and empty the slot), or None after ``timeout`` seconds."""
+        with self._cond:
+            if self._item is None:
+                self._cond.wait(timeout)
+            item, self._item = self._item, None
+            return item
+
+    def __len__(self) -> int:
+        return 0 if self._item is None else 1
+
+
+def rss_mb() -> float:
+    """Resident memory of this process (MB; Linux /proc, else the peak from getrusage)."""
+    try:
+        with open("/proc/self/statm") as fh:
+            import os
+
+            return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except OSError:
+        import resource
+
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+@dataclass
+class LiveStats:
+    """What a session did: frames that ``arrived`` from the source, were ``processed`` or ``dropped`` (replaced by a
+    newer one while the pipeline was busy), ``unpaired`` frames (colour without depth or back), why it
+    ``stopped``, its ``seconds``, per-frame latency (ms: stage -> list, one per processed frame) and resident memory
+    (MB) sampled after every processed frame."""
+
+    arrived: int = 0
+    processed: int = 0
+    dropped: int = 0
+    unpaired: int = 0
+    stopped: str = ""
+    seconds: float = 0.0
+    latency_ms: dict = field(default_factory=dict)
+    rss_mb: list = field(default_factory=list)
+    frame_numbers: list = field(default_factory=list)
+    timestamps_ms: list = field(default_factory=list)
+
+    def median_ms(self, stage: str) -> float:
+        values = self.latency_ms.get(stage) or [float("nan")]
+        return float(np.median(values))
+
+    def summary(self) -> str:
+        line = (f"{self.processed} frames processed of {self.arrived} received, {self.dropped} dropped "
+                f"(detector slower than the source)" if self.dropped else
+                f"{self.processed} frames processed of {self.arrived} received, none dropped")
+        if self.unpaired:
+            line += f", {self.unpaired} unpaired colour/depth frames skipped"
+        if self.processed:
+            line += (f"; per frame (median): {self.median_ms('total'):.0f} ms from arrival to logged, "
+                     f"{self.median_ms('overhead'):.1f} ms of it massviz's own work beyond detect + predict "
+                     "(read, align, features, select, log)")
+        return line
+
+
+@dataclass
+class LiveResult:
+    trace: object
+    stats: LiveStats
+    saved: Path | None = None
+
+
+class FolderWriter:
+    """Writes processed frames as a massviz recording folder (``rgb/NNNNNN.png``, ``depth/NNNNNN.png`` 16-bit mm,
+    ``intrinsics.json``, ``meta.json``) from a writer thread with a bounded queue, into a temporary folder beside
+    ``path`` that ``finish`` renames into place (``abort`` removes it): never a half-written recording."""
+
+    def __init__(self, path: str | Path, queue_size: int = 8):
+        from massviz.io.atomic import atomic_dir
+
+        self.path = Path(path)
+        if self.path.exists() and (not self.path.is_dir() or any(self.path.iterdir())):
+            raise MassvizError("exists and is not an empty folder; --save needs a new folder", self.path)
+        self._ctx = atomic_dir(self.path)
+        self.tmp = self._ctx.__enter__()
+        (self.tmp / "rgb").mkdir()
+        (self.tmp / "depth").mkdir()
+        self._queue: queue.Queue = queue.Queue(maxsize=queue_size)
+        self.error: BaseException | None = None
+        self._thread = threading.Thread(target=self._work, name="massviz-save", daemon=True)
+        self._thread.start()
+
+    def write(self, frame) -> None:
+        if self.error is not None:
+            raise MassvizError(f"cannot write the frames ({self.error})", self.path)
+        self._queue.put(frame)  # blocks when the disk is slower than the camera (more frames dropped, counted)
+
+    def _work(self) -> None:
+        png = [cv2.IMWRITE_PNG_COMPRESSION, 1]
+        while True:
+            frame = self._queue.get()
+            if frame is None:
+                return
+            try:
+                name = f"{frame.index:06d}.png"
+                ok = cv2.imwrite(str(self.tmp / "rgb" / name), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR), png)
+                ok = ok and cv2.imwrite(str(self.tmp / "depth" / name), frame.depth, png)
+                if not ok:
+                    raise OSError(f"could not write frame {frame.index}")
+            except BaseException as err:  # noqa: BLE001 - reported by write()/finish() on the main thread
+                self.error = err
+
+    def finish(self, intrinsics, meta: dict) -> Path:
+        self._queue.put(None)
+        self._thread.join()
+        if self.error is not None:
+            err = MassvizError(f"cannot write the frames ({self.error})", self.path)
+            self.abort(err)
+            raise err
+        if intrinsics is not None:
+            intrinsics.save(self.tmp / "intrinsics.json")
+        (self.tmp / "meta.json").write_text(json.dumps(meta, indent=1) + "\n")
+        self._ctx.__exit__(None, None, None)
+        return self.path
+
+    def abort(self, err: BaseException | None = None) -> None:
+        if self._thread.is_alive():
+            try:
+                self._queue.put_nowait(None)
+            except queue.Full:
+                pass
+            self._thread.join(timeout=10)
+        err = err or MassvizError("session aborted")
+        try:
+            self._ctx.__exit__(type(err), err, err.__traceback__)
+        except BaseException:  # noqa: BLE001 - the context re-raises what it was given
+            pass
+
+
+class _StopFlag:
+    """Ctrl-C ends the session after the current frame (a second Ctrl-C interrupts at once)."""
+
+    def __init__(self):
+        self.reason = ""
+        self._old = None
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            self._old = signal.signal(signal.SIGINT, self._handle)
+        return self
+
+    def _handle(self, signum, frame):
+        if self.reason == "interrupted":
+            raise KeyboardInterrupt
+        self.reason = "interrupted"
+
+    def __exit__(self, *exc):
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+
+
+def run_live(stream, frame_pipeline, *, logger=None, duration: float | None = None, save: str | Path | None = None,
+             max_frames: int | None = None, progress: bool = False, name: str = "live", source: str = "") -> LiveResult:
+    """Run a live session (see the module docstring). ``stream``: a started-or-not ``massviz.io.realsense
+    .LiveStream``; ``frame_pipeline``: a fresh ``FramePipeline``; ``logger``: a ``LiveLogger`` or None;
+    ``duration``: seconds (None: until Ctrl-C or the end of a file); ``max_frames``: stop after that many processed
+    frames; ``save``: folder for the processed frames. The stream is stopped and the logger closed on return."""
+    stats = LiveStats()
+    slot = LatestSlot()
+    writer = FolderWriter(save) if save is not None else None
+    info = stream.info
+    fp = frame_pipeline
+    total = None
+    bar = tqdm(total=total, desc=f"live {name}", unit="frame", file=sys.stderr, disable=not progress, leave=False)
+    started = time.perf_counter()
+    last_arrival = started
+    seen_dropped = 0
+
+    def sink(c, d):
+        slot.put((c, d, time.perf_counter()))
+
+    trace = None
+    try:
+        warm_up(fp, info)
+        with _StopFlag() as flag:
+            stream.start(sink)
+            started = last_arrival = time.perf_counter()
+            while True:
+                now = time.perf_counter()
+                if flag.reason:
+                    stats.stopped = flag.reason
+                    break
+                if duration is not None and now - started >= duration:
+                    stats.stopped = f"duration {duration:g} s"
+                    break
+                if max_frames is not None and stats.processed >= max_frames:
+                    stats.stopped = f"{max_frames} frames"
+                    break
+                if stream.reader.error is not None:
+                    raise MassvizError(f"{stream.description}: cannot read frames ({stream.reader.error})")
+                item = slot.take(timeout=0.05)
+                if item is None:
+                    if stream.is_file and stream.finished() and len(slot) == 0:
+                        stats.stopped = "end of file"
+                        break
+                    if time.perf_counter() - last_arrival > SILENCE_S:
+                        if stats.processed == 0:
+                            raise MassvizError(f"{stream.description}: no frame arrived in {SILENCE_S:g} s")
+                        stats.stopped = f"no frame for {SILENCE_S:g} s (camera disconnected?)"
+                        if logger is not None:
+                            logger.note(f"session ended: {stats.stopped}", "warn")
+                        break
+                    continue
+                c, d, arrival = item
+                last_arrival = arrival
+                number, stamp = int(c.get_frame_number()), float(c.get_timestamp())
+                t0 = time.perf_counter()
+                frame = stream.frame(c, d, stats.processed)
+                del c, d, item  # release librealsense's buffers before the slow part
+                read = time.perf_counter() - t0
+                res = fp.step(frame, read_seconds=read)
+                notes = []
+                dropped_now = slot.dropped - seen_dropped
+                if dropped_now:
+                    notes.append(("warn", f"dropped {dropped_now} frame(s) since the previous processed frame "
+                                  f"(detector slower than the source; {slot.dropped} in all)"))
+                    seen_dropped = slot.dropped
+                t = res.timings
+                extra = {"wait": t0 - arrival, "total": time.perf_counter() - arrival,
+                         "overhead": t["read"] + t["features"] + t["select"]}
+                log_s = 0.0
+                if logger is not None:
+                    log_s = logger.log_step(res, latency=extra, timestamp_ms=stamp, notes=notes)
+                    extra["total"] = time.perf_counter() - arrival
+                    extra["overhead"] += log_s
+                if writer is not None:
+                    writer.write(frame)
+                for stage, seconds in {**res.timings, "log": log_s, **extra}.items():
+                    stats.latency_ms.setdefault(stage, []).append(1000.0 * seconds)
+                stats.frame_numbers.append(number)
+                stats.timestamps_ms.append(stamp)
+                stats.processed += 1
+                stats.rss_mb.append(rss_mb())
+                bar.update(1)
+                if res.running_estimate >= 0:
+                    bar.set_postfix_str(f"running estimate {res.running_estimate:.1f} g, {slot.dropped} dropped",
+                                        refresh=False)
+        stream.stop()
+        stats.arrived, stats.dropped, stats.unpaired = slot.arrived, slot.dropped, stream.reader.unpaired
+        stats.seconds = time.perf_counter() - started
+        if stats.processed == 0:
+            raise MassvizError(f"{stream.description}: no frame was processed ({stats.stopped or 'stopped'})")
+        fp.recording.num_frames = stats.processed
+        fp.recording.meta.setdefault("live", {}).update(live_meta(stats, source or stream.description))
+        trace = fp.finish()
+        saved = None
+        if writer is not None:
+            meta = dict(fp.recording.meta, id=name, fps=info.fps)
+            saved = writer.finish(info.intrinsics, meta)
+            writer = None
+            from massviz.io.recording import open_recording
+
+            # the trace is the saved folder's: `massviz log SAVED` finds it in the cache and replays it exactly
+            trace = dataclasses.replace(trace, recording=open_recording(saved).info())
+        if logger is not None:
+            logger.close(trace, timings={"live_seconds": stats.seconds}, summary=stats.summary())
+            logger = None
+        return LiveResult(trace=trace, stats=stats, saved=saved)
+    except BaseException as err:
+        try:
+            stream.stop()
+        finally:
+            if writer is not None:
+                writer.abort(err)
+            if logger is not None:
+                logger.abort(err)
+        raise
+    finally:
+        bar.close()
+
+
+def warm_up(fp, info) -> None:
+    """Run the detector and the model once on a blank frame (not recorded), so the first live frame does not pay
+    for lazy initialisation (torch, Mask R-CNN) while the camera's frames are dropped."""
+    from massviz.core.patches import model_view
+    from massviz.core.types import Frame
+
+    blank = Frame(index=-1, rgb=np.zeros((info.height, info.width, 3), np.uint8),
+                  depth=np.zeros((info.height, info.width), np.uint16))
+    fp.detector.detect(blank)
+    patch = np.zeros((16, 16, 3), np.uint8)
+    fp.model.predict([patch], np.array([[0.1, 0.1, 500.0]]))
+    model_view(patch)  # the logger's view of a chosen patch (imports torch when the model did not)
+    cv2.imencode(".jpg", blank.rgb)
+
+
+def live_meta(stats: LiveStats, source: str) -> dict:
+    """What a saved live recording's ``meta.json`` keeps of the session (under ``"live"``)."""
+    return {"source": source, "arrived": stats.arrived, "processed": stats.processed, "dropped": stats.dropped,
+            "unpaired": stats.unpaired, "stopped": stats.stopped, "seconds": round(stats.seconds, 3),
+            "frame_numbers": stats.frame_numbers, "timestamps_ms": stats.timestamps_ms}
+
+
+__all__ = ["LatestSlot", "LiveStats", "LiveResult", "FolderWriter", "run_live", "rss_mb", "live_meta"]

@@ -1,0 +1,401 @@
+"""Live mode: the running estimate of offline traces, the one-frame buffer, and ``massviz live`` on RealSense files
+played back in real time and on a ``software_device`` fed from a thread (a stand-in camera): the .rrd holds the
+documented entities and the running estimate, the trace equals the offline one of the same frames, the saved folder
+replays in ``massviz log``; a slow detector drops frames, counts them, and memory stays flat; bad sources are one
+clear line, exit 2, nothing written.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from massviz.core.pipeline import FramePipeline, run
+from massviz.core.selection import estimate_mass, select_k_nearest
+from massviz.core.trace import Trace
+from massviz.core.types import Frame, Intrinsics, RecordingInfo
+from massviz.errors import MassvizError
+from massviz.io.recording import open_recording
+from massviz.runners.live import LatestSlot
+from test_pipeline import DETECTIONS, scene
+from test_recording import write_recording
+from test_selection import ListDetector
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLE = ROOT / "data_samples" / "cup_handover"
+#: the frames of cup_handover the live tests play (the container comes nearest in 19..29; 12 frames keep them quick)
+PLAYED = list(range(18, 30))
+
+
+class FastModel:
+    """d / 10 grams: a stand-in for the mass CNN where the test is about live mechanics, not the CNN."""
+
+    weights_id = "fast-model"
+
+    def predict(self, patches, features):
+        return (np.asarray(features, np.float64).reshape(-1, 3)[:, 2] / 10).astype(np.float32)
+
+
+class SlowDetector:
+    """Test-only: another detector that takes ``seconds`` per frame (slower than the camera)."""
+
+    def __init__(self, inner, seconds: float):
+        self.inner, self.seconds = inner, seconds
+        self.name, self.threshold = inner.name, inner.threshold
+
+    def settings(self) -> dict:
+        return self.inner.settings()
+
+    def detect(self, frame):
+        time.sleep(self.seconds)
+        return self.inner.detect(frame)
+
+
+# ------------------------------------------------------------------------------------------- offline: no camera
+@pytest.fixture(scope="module")
+def scene_trace(tmp_path_factory):
+    rgbs, depths = scene()
+    rec = open_recording(write_recording(tmp_path_factory.mktemp("live_scene") / "scene", rgbs, depths))
+    fp = FramePipeline(ListDetector(DETECTIONS, threshold=0.4), FastModel(), k=3, recording=rec.info())
+    steps = [fp.step(frame).running_estimate for frame in rec.frames()]
+    return fp.finish(), steps
+
+
+def brute_running(trace: Trace) -> list[float]:
+    dets, out = trace.detections, []
+    for f in trace.frames:
+        score = np.where(dets.frame <= f, dets.score, -1.0)  # only the frames processed so far
+        sel = select_k_nearest(dets.d, score, trace.k, trace.threshold, trace.excluded)
+        out.append(estimate_mass(dets.pred, sel))
+    return out
+
+
+def test_running_estimate_is_the_estimate_over_the_frames_so_far(scene_trace):
+    trace, steps = scene_trace
+    running = trace.running_estimate()
+    assert running.tolist() == steps == brute_running(trace)  # the live step, the trace, a selection per frame
+    assert running[-1] == trace.estimate and len(set(running.tolist())) > 2
+    other = trace.reselect(k=2, threshold=0.6, exclude=[int(trace.selection[0])])
+    assert other.running_estimate().tolist() == brute_running(other)
+    assert other.running_estimate()[-1] == other.estimate
+
+
+def test_settled_after_counts_frames_to_within_tolerance(scene_trace):
+    trace, _ = scene_trace
+    running, final = trace.running_estimate(), trace.estimate
+    n = trace.settled_after(0.10)
+    assert 1 <= n <= len(running)
+    assert np.all(np.abs(running[n - 1:] - final) <= 0.10 * final)
+    assert n == 1 or abs(running[n - 2] - final) > 0.10 * final or running[n - 2] < 0
+    changes = np.flatnonzero(running != final)  # tolerance 0: settled after the last change
+    assert trace.settled_after(0.0) == (int(changes[-1]) + 2 if len(changes) else 1)
+
+
+def test_frame_timings_are_kept_per_frame_and_saved(scene_trace, tmp_path):
+    trace, _ = scene_trace
+    assert set(trace.frame_timings) == {"read", "detect", "features", "predict", "select"}
+    assert all(len(v) == len(trace.frames) for v in trace.frame_timings.values())
+    back = Trace.load(trace.save(tmp_path / "t.npz"))
+    assert {k: v.tolist() for k, v in back.frame_timings.items()} == \
+        {k: np.asarray(v).tolist() for k, v in trace.frame_timings.items()}
+    assert back.running_estimate().tolist() == trace.running_estimate().tolist()
+
+
+def test_latest_slot_keeps_only_the_newest_and_counts_drops():
+    slot = LatestSlot()
+    assert slot.take(timeout=0.01) is None
+    for i in range(5):
+        slot.put(i)
+        assert len(slot) == 1
+    assert slot.take(timeout=0.01) == 4 and slot.take(timeout=0.01) is None
+    assert (slot.arrived, slot.dropped) == (5, 4)
+
+
+# ------------------------------------------------------------------------------------------------ RealSense live
+@pytest.fixture(scope="module")
+def rs():
+    from test_realsense import need_realsense
+
+    return need_realsense()
+
+
+@pytest.fixture(scope="module")
+def played(tmp_path_factory) -> Path:
+    """The played frames of cup_handover as a recording folder of their own (the offline reference)."""
+    sample = open_recording(SAMPLE)
+    frames = list(sample.frames(indices=PLAYED))
+    root = tmp_path_factory.mktemp("played") / "played"
+    return write_recording(root, [f.rgb for f in frames], [f.depth for f in frames],
+                           intrinsics=sample.intrinsics.to_dict(), meta={"id": "played", "fps": 10})
+
+
+@pytest.fixture(scope="module")
+def played_db3(rs, played, tmp_path_factory) -> Path:
+    """A .db3 of the played frames, recorded at 10 fps in real time (so real-time playback takes 1.2 s)."""
+    from massviz.io.realsense import write_realsense
+
+    return write_realsense(open_recording(played), tmp_path_factory.mktemp("db3") / "played.db3", pace=True)
+
+
+@pytest.fixture(scope="module")
+def depth_detector():
+    from massviz.detect import make_detector
+
+    return make_detector("depth", 0.4)
+
+
+def pipeline(detector, tmp_path: Path, model=None):
+    from massviz.core.build import Pipeline, PipelineOptions
+    from massviz.io.cache import TraceCache
+
+    return Pipeline(PipelineOptions(detector="depth"), detector, model or FastModel(), TraceCache(tmp_path / "cache"))
+
+
+def session_args(**kw) -> argparse.Namespace:
+    base = dict(file=None, rrd=None, spawn=False, connect=None, serve_web=False, save=None, duration=None,
+                quiet=True, web_port=9090, grpc_port=9876)
+    return argparse.Namespace(**{**base, **kw})
+
+
+LIVE_ENTITIES = {"/camera", "/camera/rgb", "/camera/depth", "/camera/detections", "/camera/masks", "/patches/0",
+                 "/predictions/running_estimate", "/predictions/estimate", "/latency/total", "/latency/overhead",
+                 "/latency/read", "/latency/detect", "/latency/predict", "/latency/log", "/log", "/summary",
+                 "/timings"}
+
+
+def offline(detector, recording_path: Path):
+    return run(open_recording(recording_path), detector, FastModel(), k=5)
+
+
+def test_live_file_in_real_time(rs, played_db3, played, depth_detector, tmp_path, capsys):
+    from massviz.commands.live import run_session
+    from massviz.io.realsense import open_file_stream
+    from massviz.views.rerun_log import rrd_entities
+
+    p = pipeline(depth_detector, tmp_path)
+    args = session_args(file=str(played_db3), rrd=str(tmp_path / "live.rrd"), save=str(tmp_path / "rec"))
+    t0 = time.perf_counter()
+    assert run_session(args, p, open_file_stream(played_db3), "played") == 0
+    assert time.perf_counter() - t0 >= 1.0  # real time: the 12 frames were recorded over 1.2 s
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith("played: ") and last.split()[1] != "not"
+    assert LIVE_ENTITIES <= rrd_entities(tmp_path / "live.rrd")
+    saved = open_recording(tmp_path / "rec")
+    live_meta = saved.meta["live"]
+    trace = p.cache.load(saved, {"name": depth_detector.name, **depth_detector.settings()}, 1, 0.4)
+    assert trace is not None and len(trace.frames) == saved.num_frames == live_meta["processed"] >= 2
+    # the saved frames are the played ones, exactly (frame numbers name the frame of the file)
+    source = list(open_recording(played).frames())
+    for frame, number in zip(saved.frames(), live_meta["frame_numbers"], strict=True):
+        assert np.array_equal(frame.rgb, source[number].rgb) and np.array_equal(frame.depth, source[number].depth)
+    assert trace.estimate == offline(depth_detector, tmp_path / "rec").estimate
+    if live_meta["dropped"] == 0 and live_meta["frame_numbers"] == list(range(len(PLAYED))):
+        assert trace.estimate == offline(depth_detector, played).estimate
+    assert f"{trace.estimate:.1f} g" in last
+
+
+def test_live_software_camera_stand_in(rs, played, depth_detector, tmp_path, capsys):
+    from massviz.commands.live import run_session
+    from massviz.io.realsense import SoftwareCamera, open_device_stream
+    from massviz.views.rerun_log import rrd_entities
+
+    rec = open_recording(played)
+    cam = SoftwareCamera(list(rec.frames()), rec.intrinsics, fps=10)
+    stream = open_device_stream(cam.device, "software camera", on_stop=cam.stop)
+    started = stream.start
+    stream.start = lambda sink: (started(sink), cam.start())[0]  # frames flow once the session listens
+    p = pipeline(depth_detector, tmp_path)
+    args = session_args(rrd=str(tmp_path / "cam.rrd"), save=str(tmp_path / "cam_rec"), duration=2.5)
+    assert run_session(args, p, stream, "camera-sw") == 0
+    err = capsys.readouterr().err
+    assert "stopped: duration 2.5 s" in err
+    assert LIVE_ENTITIES <= rrd_entities(tmp_path / "cam.rrd")
+    saved = open_recording(tmp_path / "cam_rec")
+    trace = p.cache.load(saved, {"name": depth_detector.name, **depth_detector.settings()}, 1, 0.4)
+    assert trace.estimate == offline(depth_detector, tmp_path / "cam_rec").estimate >= 0
+    if saved.meta["live"]["dropped"] == 0 and saved.num_frames == len(PLAYED):
+        assert trace.estimate == offline(depth_detector, played).estimate
+    assert err.strip().splitlines()[-1].startswith(f"camera-sw: {trace.estimate:.1f} g")
+
+
+def test_slow_detector_drops_frames_counts_them_and_memory_stays_flat(rs, depth_detector, tmp_path):
+    """A 640x480 stand-in camera at 60 fps and a detector taking 0.15 s: most frames are dropped, each counted,
+    and resident memory does not grow with the frames that arrived (a queue would hold ~1.5 MB per frame)."""
+    from massviz.io.realsense import SoftwareCamera, open_device_stream
+    from massviz.runners.live import run_live
+    from massviz.views.rerun_live import LiveLogger
+
+    sample = open_recording(SAMPLE)
+    i = sample.intrinsics
+    big = Intrinsics(i.fx * 640 / i.width, i.fy * 480 / i.height, i.cx * 640 / i.width, i.cy * 480 / i.height,
+                     640, 480)
+    frames = [Frame(f.index, cv2.resize(f.rgb, (640, 480)), cv2.resize(f.depth, (640, 480),
+                                                                        interpolation=cv2.INTER_NEAREST))
+              for f in sample.frames(indices=PLAYED)]
+    cam = SoftwareCamera(frames, big, fps=60, loops=100)
+    stream = open_device_stream(cam.device, "software camera", on_stop=cam.stop)
+    started = stream.start
+    stream.start = lambda sink: (started(sink), cam.start())[0]
+    info = RecordingInfo(id="slow", kind="live", width=640, height=480, fps=60, intrinsics=big)
+    fp = FramePipeline(SlowDetector(depth_detector, 0.15), FastModel(), k=5, recording=info)
+    logger = LiveLogger(name="slow", k=5, threshold=0.4, intrinsics=big, rrd=tmp_path / "slow.rrd")
+    result = run_live(stream, fp, logger=logger, duration=4.0)
+    s = result.stats
+    assert s.dropped > 5 * s.processed > 0, s.summary()
+    assert s.arrived - 1 <= s.processed + s.dropped <= s.arrived  # every frame processed or dropped (one in flight)
+    assert f"{s.dropped} dropped" in s.summary()
+    growth = s.rss_mb[-1] - s.rss_mb[2]
+    queued = (s.dropped * 640 * 480 * 5) / 2**20  # what holding the dropped frames would have cost
+    assert growth < max(25.0, 0.1 * queued), (growth, queued, s.rss_mb)
+    from massviz.views.rerun_log import rrd_entities
+
+    assert "/log" in rrd_entities(tmp_path / "slow.rrd")
+
+
+# ---------------------------------------------------------------------------------------------- command line
+def massviz(*args, env_extra=None) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if k not in ("MASSVIZ_DEBUG", "MASSVIZ_WEIGHTS")}
+    env.update(env_extra or {})
+    return subprocess.run([sys.executable, "-m", "massviz", *map(str, args)], capture_output=True, text=True,
+                          timeout=600, cwd=ROOT, env=env)
+
+
+def test_cli_live_file_then_massviz_log_replays_the_session(rs, played_db3, shared_dir, tmp_path):
+    weights = shared_dir / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch"
+    common = ["--detector", "depth", "--weights", weights, "--cache", tmp_path / "cache", "--quiet"]
+    r = massviz("live", "--file", played_db3, "--rrd", tmp_path / "live.rrd", "--save", tmp_path / "rec", *common)
+    assert r.returncode == 0, r.stderr
+    last = r.stderr.strip().splitlines()[-1]
+    assert last.startswith("played: ") and " g (K=" in last
+    estimate = last.split()[1]
+    r = massviz("log", tmp_path / "rec", "--rrd", tmp_path / "replay.rrd", *common)
+    assert r.returncode == 0, r.stderr
+    assert r.stderr.strip().splitlines()[-1].startswith(f"played: {estimate} g")
+
+
+def test_cli_bad_sources_one_line_exit_2_nothing_written(rs, tmp_path):
+    from test_realsense import _bad_files
+
+    sample = open_recording(SAMPLE)
+    db3 = tmp_path / "ok.db3"
+    from massviz.io.realsense import write_realsense
+
+    write_realsense(sample, db3)
+    bad = _bad_files(rs, tmp_path, db3, sample)
+    cases = {name: ("--file", path) for name, (path, _) in bad.items() if name in ("truncated", "no depth",
+                                                                                  "no colour")}
+    if not len(rs.context().query_devices()):
+        cases["no camera"] = ("--camera",)
+        cases["unknown serial"] = ("--camera", "000000000000")
+    for name, src in cases.items():
+        out, rec = tmp_path / f"{name}.rrd", tmp_path / f"{name}_rec"
+        r = massviz("live", *src, "--detector", "depth", "--no-cache", "--rrd", out, "--save", rec)
+        lines = [line for line in r.stderr.splitlines() if line.strip()]
+        assert r.returncode == 2 and len(lines) == 1 and "Traceback" not in r.stderr, (name, r.stderr)
+        assert not out.exists() and not rec.exists(), name
+        if name in ("no camera", "unknown serial"):
+            assert "no RealSense camera connected" in lines[0]
+        else:
+            assert str(src[1]) in lines[0]
+
+
+def test_unknown_serial_names_the_connected_ones(monkeypatch):
+    from massviz.io import realsense
+
+    class Dev:
+        def __init__(self, serial):
+            self.serial = serial
+
+        def supports(self, info):
+            return True
+
+        def get_info(self, info):
+            return self.serial
+
+    class FakeRS:
+        class camera_info:
+            serial_number, name = "serial", "name"
+
+        class context:
+            def query_devices(self):
+                return [Dev("111"), Dev("222")]
+
+    monkeypatch.setattr(realsense, "import_rs", lambda: FakeRS)
+    with pytest.raises(MassvizError, match=r"no RealSense camera with serial 333 \(connected: 111, 222\)"):
+        realsense.open_camera("333")
+
+
+def test_cli_without_pyrealsense2_says_what_to_install(tmp_path):
+    fake = tmp_path / "fake"
+    fake.mkdir()
+    (fake / "pyrealsense2.py").write_text("raise ImportError('No module named pyrealsense2')\n")
+    env = {"PYTHONPATH": os.pathsep.join([str(fake), str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    r = massviz("live", "--file", tmp_path / "x.db3", "--no-cache", env_extra=env)
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0, r.stderr
+    assert "pip install 'massviz[realsense]'" in r.stderr
+
+
+def test_ctrl_c_ends_the_session_cleanly(rs, played, depth_detector, tmp_path):
+    import signal
+    import threading
+
+    from massviz.io.realsense import SoftwareCamera, open_device_stream
+    from massviz.runners.live import run_live
+    from massviz.views.rerun_live import LiveLogger
+
+    rec = open_recording(played)
+    cam = SoftwareCamera(list(rec.frames()), rec.intrinsics, fps=15, loops=100)
+    stream = open_device_stream(cam.device, "software camera", on_stop=cam.stop)
+    started = stream.start
+    stream.start = lambda sink: (started(sink), cam.start())[0]
+    info = RecordingInfo(id="ctrl-c", kind="live", width=rec.width, height=rec.height, fps=15,
+                         intrinsics=rec.intrinsics)
+    fp = FramePipeline(depth_detector, FastModel(), k=5, recording=info)
+    logger = LiveLogger(name="ctrl-c", k=5, threshold=0.4, intrinsics=rec.intrinsics, rrd=tmp_path / "c.rrd")
+    timer = threading.Timer(2.0, os.kill, (os.getpid(), signal.SIGINT))
+    timer.start()
+    try:
+        result = run_live(stream, fp, logger=logger, save=tmp_path / "c_rec")
+    finally:
+        timer.cancel()
+    assert result.stats.stopped == "interrupted" and result.stats.processed > 0
+    assert (tmp_path / "c.rrd").stat().st_size > 0
+    assert open_recording(tmp_path / "c_rec").num_frames == result.stats.processed == len(result.trace.frames)
+    assert signal.getsignal(signal.SIGINT) is not None  # the previous handler is back
+
+
+def test_serve_web_serves_a_viewer_on_localhost(rs, played_db3, depth_detector, tmp_path, capsys):
+    import re
+    import signal
+    import socket
+    import urllib.request
+
+    from massviz.commands.live import run_session
+    from massviz.io.realsense import open_file_stream
+
+    ports = []
+    for _ in range(2):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            ports.append(s.getsockname()[1])
+    args = session_args(file=str(played_db3), serve_web=True, web_port=ports[0], grpc_port=ports[1])
+    assert run_session(args, pipeline(depth_detector, tmp_path), open_file_stream(played_db3), "played") == 0
+    err = capsys.readouterr().err
+    pid = int(re.search(r"kill (\d+)", err).group(1))
+    try:
+        url = re.search(r"web viewer at (\S+)", err).group(1)
+        assert url.startswith(f"http://127.0.0.1:{ports[0]}/")
+        with urllib.request.urlopen(f"http://127.0.0.1:{ports[0]}/", timeout=10) as page:
+            assert page.status == 200
+        listening = subprocess.run(["ss", "-ltn"], capture_output=True, text=True).stdout
+        for port in ports:
+            assert f"127.0.0.1:{port} " in listening and f"0.0.0.0:{port} " not in listening
+    finally:
+        os.kill(pid, signal.SIGTERM)
