@@ -302,6 +302,11 @@ class MaskRCNNDetector:
         return self._model
 
     @property
+    def default_batch(self) -> int:
+        """Frames per forward when ``--batch`` is not given: 1 on a CPU (batching gains ~5 % there), 4 on CUDA."""
+        return 4 if self.device.type == "cuda" else 1
+
+    @property
     def runtime(self) -> torch.nn.Module:
         """The fast copy of ``model`` that runs (``runtime_model``), built on first use."""
         if self._runtime is None:
