@@ -111,8 +111,32 @@ def test_the_plain_run_is_worth_comparing(plain):
     assert trace.detector["precision"] == "fp32"
 
 
-@pytest.mark.parametrize("batch,prefetch", [(3, 0), (1, 2), (4, 3)], ids=["batch3", "prefetch", "batch4+prefetch"])
-def test_batched_and_background_read_runs_equal_the_plain_run(plain, recording, mass_model, batch, prefetch):
+def test_background_read_run_equals_the_plain_run_exactly(plain, recording, mass_model):
+    det, reference = plain
+    assert_traces_equal(run(recording, det, mass_model, stride=STRIDE, batch=1, prefetch=2), reference)
+
+
+def assert_equal_up_to_float_rounding(trace, reference):
+    """Every detection matched (IoU >= 0.9), scores within 1e-4, integer boxes within 1 px, d within 1 mm,
+    predictions within 0.5 g, the same chosen patches and estimate within 0.5 g (a box edge within ~1e-4 px of an
+    integer can truncate the other way, moving that box, its mask and patch by one pixel)."""
+    from massviz.evaluation.compare import compare_traces
+
+    c = compare_traces(reference, trace, iou=0.9)
+    s = c.summary()
+    assert s["unmatched_a"] == s["unmatched_b"] == 0 and s["class_changes"] == 0
+    assert s["matched"] == len(reference.detections)
+    assert s["max_abs_d_score"] <= 1e-4 and s["max_abs_d_d_mm"] <= 1.0 and s["max_abs_d_pred_g"] <= 0.5
+    a, b = reference.detections.xyxy[c.match_a], trace.detections.xyxy[c.match_b]
+    assert np.abs(a - b).max() <= 1
+    assert s["chosen_changed"] == [] and abs(s["estimate_delta_g"]) <= 0.5
+
+
+@pytest.mark.parametrize("batch,prefetch", [(3, 2)], ids=["batch3+prefetch"])
+def test_batched_runs_equal_the_plain_run(plain, recording, mass_model, batch, prefetch):
+    """One forward for several frames of one size: torchvision pads them all to the same size as one frame alone,
+    so the inputs are identical; oneDNN may still pick other kernels for another batch size (equal up to float
+    rounding; bit-identical at 1280x720 on the machine the README names)."""
     det, reference = plain
     calls = []
     original = det.detect_batch
@@ -121,9 +145,8 @@ def test_batched_and_background_read_runs_equal_the_plain_run(plain, recording, 
         trace = run(recording, det, mass_model, stride=STRIDE, batch=batch, prefetch=prefetch)
     finally:
         del det.detect_batch
-    assert_traces_equal(trace, reference)
-    if batch > 1:  # really batched: 4 frames in forwards of `batch` (the last one shorter)
-        assert calls == [batch, 4 - batch] if batch < 4 else calls == [4]
+    assert calls == ([batch, 4 - batch] if batch < 4 else [4])  # really batched (the last batch shorter)
+    assert_equal_up_to_float_rounding(trace, reference)
     assert trace.timings["detect"] > 0
 
 
@@ -141,10 +164,9 @@ def test_fast_runtime_equals_torchvision_up_to_float_rounding(weights_file, reco
     assert np.abs(fast.xyxy[:n][same] - exact.xyxy[:n][same]).max() <= 1
 
 
-def test_runtime_leaves_the_torchvision_model_untouched(weights_file, recording):
-    det = detector(weights_file, recording)
-    before = {k: v.clone() for k, v in det.model.state_dict().items()}
-    det.detect(recording.read_frame(0))
+def test_runtime_leaves_the_torchvision_model_untouched(weights_file, plain):
+    det, _ = plain  # it ran: its fast copy exists
+    before = torch.load(weights_file, weights_only=True)
     after = det.model.state_dict()
     assert before.keys() == after.keys()
     assert all(torch.equal(before[k], after[k]) for k in before)
@@ -208,7 +230,7 @@ def test_precision_is_recorded_and_keys_the_cache(weights_file, recording, tmp_p
 @pytest.mark.skipif(not bf16_supported(), reason="this CPU has no bfloat16 support")
 def test_bf16_run_is_recorded_in_its_trace(weights_file, recording, mass_model, plain):
     det = detector(weights_file, recording, precision="bf16")
-    trace = run(recording, det, mass_model, stride=STRIDE, batch=2)
+    trace = run(recording, det, mass_model, stride=2 * STRIDE, batch=2)  # 2 frames
     assert trace.detector["precision"] == "bf16"
     assert len(trace.detections) > 0 and trace.detections.xyxy.dtype == np.int32
     assert trace.detector != plain[1].detector
@@ -226,15 +248,18 @@ def test_precision_of_a_detector_without_one_is_a_clear_error():
         PipelineOptions(batch=0).check()
 
 
-def test_cli_rejects_fp16_on_a_cpu_in_one_line(samples_dir, capsys):
+def test_cli_rejects_fp16_on_a_cpu_in_one_line(samples_dir, shared_dir, tmp_path, capsys):
     from massviz.cli import main
 
     if torch.cuda.is_available():
         pytest.skip("a CUDA GPU is present: fp16 is allowed")
+    weights = shared_dir / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch"
     code = main(["estimate", str(samples_dir / "cup_handover"), "--detector", "maskrcnn", "--precision", "fp16",
-                 "--detector-weights", "/nonexistent.pth", "--out", "/tmp/never.csv", "--no-cache"])
+                 "--weights", str(weights), "--detector-weights", "/nonexistent.pth", "--out",
+                 str(tmp_path / "never.csv"), "--no-cache"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "fp16 needs a CUDA GPU" in err[0]
+    assert not (tmp_path / "never.csv").exists()
 
 
 # ------------------------------------------------------------------------------------------------ the prefetcher
