@@ -45,7 +45,7 @@ def frame() -> Frame:
 def random_run(frame):
     """(detector, its detections, boxes its mask head saw): MaskRCNNDetector(pretrained=False), rigged classifier."""
     torch.manual_seed(0)
-    det = MaskRCNNDetector(threshold=THRESHOLD, pretrained=False, device="cpu")
+    det = MaskRCNNDetector(threshold=THRESHOLD, pretrained=False, device="cpu", fused=False)  # torchvision's arithmetic
     model = small_images(det.model)
     with torch.no_grad():
         cls = model.roi_heads.box_predictor.cls_score
@@ -114,7 +114,7 @@ def test_detector_weights_file_round_trip(random_run, frame, tmp_path):
     det, dets, _ = random_run
     path = tmp_path / "maskrcnn_state.pth"
     torch.save(det.model.state_dict(), path)
-    loaded = MaskRCNNDetector(threshold=THRESHOLD, weights=path, device="cpu")
+    loaded = MaskRCNNDetector(threshold=THRESHOLD, weights=path, device="cpu", fused=False)
     assert loaded.settings()["weights"].startswith(str(path.resolve()))
     again = small_images(loaded.model) and loaded.detect(frame)
     assert again.xyxy.tolist() == dets.xyxy.tolist()

@@ -42,6 +42,12 @@ def add_pipeline_args(p: argparse.ArgumentParser, selection: bool = True) -> Non
     g.add_argument("--detector-weights", metavar="PATH",
                    help="offline copy of torchvision's Mask R-CNN COCO state_dict")
     g.add_argument("--replay", metavar="PATH", help="with --detector replay: a saved trace (.npz) or detections JSON")
+    g.add_argument("--batch", type=int, metavar="N",
+                   help="frames per Mask R-CNN forward (default: 1 on a CPU, 4 on CUDA); results are identical")
+    g.add_argument("--precision", choices=["fp32", "bf16", "fp16"], default="fp32",
+                   help="Mask R-CNN arithmetic: fp32 (default, the paper's), bf16 (CPUs with bfloat16 support, "
+                   "CUDA) or fp16 (CUDA). Reduced precision is faster but changes results: measure how much with "
+                   "'massviz compare'. Recorded in the trace and its cache key")
     g.add_argument("--cache", metavar="DIR", help="trace cache directory (default: $MASSVIZ_CACHE_DIR or user cache)")
     g.add_argument("--no-cache", action="store_true", help="neither read nor write the trace cache")
     g.add_argument("--quiet", action="store_true", help="no progress bars")

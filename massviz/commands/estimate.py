@@ -83,7 +83,9 @@ def run(args) -> int:
         rows.append({"config_id": rec.config_id, "mass_g": trace.estimate, "exec_time_s": exec_time})
         if not many:
             print(f"{rec.id}: {'not estimated' if trace.estimate < 0 else f'{trace.estimate:.1f} g'} "
-                  f"(K={len(trace.selection)}, {len(trace.detections)} detections, {elapsed:.1f} s)",
+                  f"(K={len(trace.selection)}, {len(trace.detections)} detections, {trace.detector.get('name', '?')}"
+                  + (f" {trace.detector['precision']}" if "precision" in trace.detector else "")
+                  + f", {elapsed:.1f} s)",
                   file=sys.stderr)
     write_challenge_csv(Path(args.out), rows, exact=args.exact)
     done = sum(r["mass_g"] >= 0 for r in rows)

@@ -17,6 +17,9 @@ from pathlib import Path
 from massviz.core.pipeline import FramePipeline, process
 from massviz.errors import MassvizError
 
+#: ``--precision`` choices (``massviz.detect.maskrcnn`` runs them).
+PRECISIONS = ("fp32", "bf16", "fp16")
+
 
 @dataclass(frozen=True)
 class PipelineOptions:
@@ -32,6 +35,10 @@ class PipelineOptions:
     cache: str | None = None
     no_cache: bool = False
     quiet: bool = False
+    #: frames per detector call; None: the detector's default (Mask R-CNN: 1 on a CPU, 4 on CUDA). Results are equal.
+    batch: int | None = None
+    #: Mask R-CNN arithmetic: fp32 (default, the paper's), bf16 (CPU with bf16 support, CUDA) or fp16 (CUDA).
+    precision: str = "fp32"
 
     def check(self) -> "PipelineOptions":
         """``MassvizError`` naming the option when a value is out of range."""
@@ -41,6 +48,10 @@ class PipelineOptions:
             raise MassvizError(f"--k must be >= 1, got {self.k}")
         if self.stride < 1:
             raise MassvizError(f"--stride must be >= 1, got {self.stride}")
+        if self.batch is not None and self.batch < 1:
+            raise MassvizError(f"--batch must be >= 1, got {self.batch}")
+        if self.precision not in PRECISIONS:
+            raise MassvizError(f"--precision must be one of {', '.join(PRECISIONS)}, got {self.precision!r}")
         return self
 
     @classmethod
@@ -71,7 +82,12 @@ class Pipeline:
         """The recording's trace, from the cache when there (``massviz.core.pipeline.process``)."""
         progress = not self.options.quiet if progress is None else progress
         return process(recording, self.detector, self.model, k=self.options.k, stride=self.options.stride,
-                       cache=self.cache, progress=progress, exclude=exclude)
+                       cache=self.cache, progress=progress, exclude=exclude, batch=self.batch)
+
+    @property
+    def batch(self) -> int:
+        """Frames per detector call: ``options.batch``, else the detector's ``default_batch`` (1 without one)."""
+        return int(self.options.batch or getattr(self.detector, "default_batch", 1))
 
     def frame_pipeline(self, recording_info=None) -> FramePipeline:
         """A fresh per-frame step for one recording (live camera, dataset workers, batched runners)."""
@@ -90,7 +106,7 @@ def build_pipeline(options: PipelineOptions | None = None, **kwargs) -> Pipeline
     options.check()
     model = MassNet.from_checkpoint(resolve_weights(options.weights))
     detector = make_detector(options.detector, options.threshold, detector_weights=options.detector_weights,
-                             replay=options.replay, quiet=options.quiet)
+                             replay=options.replay, quiet=options.quiet, precision=options.precision)
     cache = None if options.no_cache else TraceCache(options.cache).check_writable()
     return Pipeline(options, detector, model, cache)
 
@@ -104,4 +120,4 @@ def process_recordings(recordings, options: PipelineOptions | None = None, *, pr
             for r in recordings]
 
 
-__all__ = ["PipelineOptions", "Pipeline", "build_pipeline", "process_recordings"]
+__all__ = ["PipelineOptions", "Pipeline", "build_pipeline", "process_recordings", "PRECISIONS"]

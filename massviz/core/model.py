@@ -200,10 +200,13 @@ class MassNet(nn.Module):
         was_training = self.training
         self.eval()
         device = next(self.parameters()).device
+        # channels_last: the same arithmetic in another order, ~1.5x faster on a CPU (max-pooling most of all)
+        self.to(memory_format=torch.channels_last)
         try:
             out = []
             for i in range(0, len(feats), batch_size):
                 images = preprocess_patches(patches[i:i + batch_size]).to(device)
+                images = images.contiguous(memory_format=torch.channels_last)
                 y = self(images, torch.from_numpy(feats[i:i + batch_size]).to(device))
                 out.append(y[:, 0].float().cpu().numpy())
         finally:

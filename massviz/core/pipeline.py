@@ -115,11 +115,15 @@ class FramePipeline:
     def frames_done(self) -> int:
         return len(self._frames)
 
-    def step(self, frame: Frame, *, detections: Detections | None = None, read_seconds: float = 0.0) -> FrameResult:
-        """Run detect (unless ``detections`` are given), features, predict and the running selection on one frame."""
+    def step(self, frame: Frame, *, detections: Detections | None = None, read_seconds: float = 0.0,
+             detect_seconds: float = 0.0) -> FrameResult:
+        """Run detect (unless ``detections`` are given: then ``detect_seconds`` is this frame's share of the time
+        they took), features, predict and the running selection on one frame."""
         t1 = time.perf_counter()
         dets = self.detector.detect(frame) if detections is None else detections
         t2 = time.perf_counter()
+        if detections is not None:
+            t1 = t2 - detect_seconds
         compute_features(dets, frame.depth)
         t3 = time.perf_counter()
         dets.pred, patches = predict_detections(self.model, frame.rgb, dets)
@@ -176,21 +180,64 @@ class FramePipeline:
                      frame_timings={n: np.asarray(v) for n, v in self._frame_timings.items()})
 
 
+def detect_in_batches(frames, detector: Detector, batch: int = 1):
+    """``(frame, detections, read seconds, detect seconds)`` for each frame of the iterable ``frames``.
+
+    ``batch`` 1: detections are None (``FramePipeline.step`` runs the detector itself). ``batch`` N > 1: N frames are
+    read, then detected in one call of the detector's ``detect_batch`` (frame by frame when it has none); each frame
+    is charged 1/N of that call's time. Either way the caller runs ``step(frame, detections=...)`` frame by frame.
+    """
+    if batch < 1:
+        raise ValueError("batch must be >= 1")
+    detect_batch = getattr(detector, "detect_batch", None) if batch > 1 else None
+    it = iter(frames)
+    while True:
+        group, reads = [], []
+        t0 = time.perf_counter()
+        for frame in it:
+            t1 = time.perf_counter()
+            group.append(frame)
+            reads.append(t1 - t0)
+            if len(group) == batch:
+                break
+            t0 = time.perf_counter()
+        if not group:
+            return
+        if batch == 1:
+            yield group[0], None, reads[0], 0.0
+            continue
+        t2 = time.perf_counter()
+        dets = detect_batch(group) if detect_batch is not None else [detector.detect(f) for f in group]
+        share = (time.perf_counter() - t2) / len(group)
+        for frame, d, r in zip(group, dets, reads):
+            yield frame, d, r, share
+
+
 def run(recording, detector: Detector, model, *, k: int = 5, stride: int = 1, keep_patches: int = KEEP_PATCHES,
-        progress: bool = False) -> Trace:
-    """Run the pipeline over ``recording`` (a loop over ``FramePipeline.step``) and select the ``k`` nearest."""
+        progress: bool = False, batch: int = 1, prefetch: int = 2) -> Trace:
+    """Run the pipeline over ``recording`` (a loop over ``FramePipeline.step``) and select the ``k`` nearest.
+
+    ``batch``: frames per detector call (``detect_in_batches``); ``prefetch``: frames read ahead in a background
+    thread (``massviz.io.prefetch.Prefetcher``, at least ``batch``; 0 reads in this thread). Neither changes the
+    result; the ``read`` timing is then the time spent waiting for frames.
+    """
+    from massviz.io.prefetch import Prefetcher
+
     fp = FramePipeline(detector, model, k=k, stride=stride, recording=recording.info(), keep_patches=keep_patches)
     total = math.ceil(recording.num_frames / stride)
     bar = tqdm(total=total, desc=f"{recording.id}", unit="frame", file=sys.stderr, disable=not progress,
                leave=False)
-    t0 = time.perf_counter()
+    frames = recording.frames(stride=stride)
+    if prefetch > 0:
+        frames = Prefetcher(frames, size=max(int(prefetch), int(batch)))
     try:  # the bar is cleared before any error is reported, so the error line stands alone
-        for frame in recording.frames(stride=stride):
-            fp.step(frame, read_seconds=time.perf_counter() - t0)
+        for frame, dets, read_s, detect_s in detect_in_batches(frames, detector, batch):
+            fp.step(frame, detections=dets, read_seconds=read_s, detect_seconds=detect_s)
             bar.update(1)
-            t0 = time.perf_counter()
     finally:
         bar.close()
+        if isinstance(frames, Prefetcher):
+            frames.close()
     fp.events.extend(Event(-1, note, "warning", "warn") for note in getattr(recording, "notes", ()))
     return fp.finish()
 
@@ -213,10 +260,10 @@ def repredict(trace: Trace, recording, model, progress: bool = False) -> Trace:
 
 
 def process(recording, detector: Detector, model, *, k: int = 5, stride: int = 1, cache=None,
-            progress: bool = False, exclude=None) -> Trace:
+            progress: bool = False, exclude=None, batch: int = 1, prefetch: int = 2) -> Trace:
     """``run`` with the trace cache: reuse cached detections when the recording, detector settings and stride match
     and the cached threshold is <= this one; re-predict only when the model differs. ``cache`` is a
-    ``massviz.io.cache.TraceCache`` or None (no caching)."""
+    ``massviz.io.cache.TraceCache`` or None (no caching). ``batch``/``prefetch``: see ``run``."""
     info = {"name": detector.name, **detector.settings()}
     trace = cache.load(recording, info, stride, detector.threshold) if cache is not None else None
     if trace is not None:
@@ -234,7 +281,7 @@ def process(recording, detector: Detector, model, *, k: int = 5, stride: int = 1
         # the key is the frames' content: the recording's path, meta and intrinsics are today's, not the cached run's
         return dataclasses.replace(trace, recording=recording.info(), events=events,
                                    timings={**trace.timings, **timings})
-    trace = run(recording, detector, model, k=k, stride=stride, progress=progress)
+    trace = run(recording, detector, model, k=k, stride=stride, progress=progress, batch=batch, prefetch=prefetch)
     if cache is not None:
         cache.save(trace, recording, info)
     if exclude is not None:
@@ -242,4 +289,5 @@ def process(recording, detector: Detector, model, *, k: int = 5, stride: int = 1
     return trace
 
 
-__all__ = ["FramePipeline", "FrameResult", "KEEP_PATCHES", "predict_detections", "run", "repredict", "process"]
+__all__ = ["FramePipeline", "FrameResult", "KEEP_PATCHES", "predict_detections", "detect_in_batches", "run",
+           "repredict", "process"]

@@ -33,8 +33,9 @@ def maskrcnn_weights_reachable(timeout: float = 3.0) -> bool:
 
 
 def make_detector(name: str = "auto", threshold: float = 0.4, *, detector_weights: str | Path | None = None,
-                  replay: str | Path | None = None, quiet: bool = False) -> Detector:
-    """Build a detector by name (see module docstring)."""
+                  replay: str | Path | None = None, quiet: bool = False, precision: str = "fp32") -> Detector:
+    """Build a detector by name (see module docstring). ``precision`` (fp32, bf16, fp16) is Mask R-CNN's; the other
+    detectors have only fp32."""
     if name not in DETECTORS:
         raise MassvizError(f"unknown detector {name!r} (choose from {', '.join(DETECTORS)})")
     if name == "auto":
@@ -50,7 +51,10 @@ def make_detector(name: str = "auto", threshold: float = 0.4, *, detector_weight
     if name == "maskrcnn":
         from massviz.detect.maskrcnn import MaskRCNNDetector
 
-        return MaskRCNNDetector(threshold=threshold, weights=detector_weights)
+        return MaskRCNNDetector(threshold=threshold, weights=detector_weights, precision=precision)
+    if precision != "fp32":
+        raise MassvizError(f"--precision {precision} is a Mask R-CNN mode; the {name} detector runs in fp32 only "
+                           "(use --detector maskrcnn, or leave --precision at fp32)")
     if name == "depth":
         from massviz.detect.depth import DepthDetector
 

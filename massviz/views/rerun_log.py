@@ -314,7 +314,9 @@ def summary_markdown(trace: Trace) -> str:
     lines = [f"# {info.id}", "",
              f"- recording: `{info.path}` ({info.width}×{info.height}, "
              f"{info.num_frames} frames; {len(trace.frames)} processed, stride {trace.stride})",
-             f"- detector: {trace.detector.get('name', '?')}, threshold {trace.threshold:g}; "
+             f"- detector: {trace.detector.get('name', '?')}"
+             + (f" ({trace.detector['precision']})" if "precision" in trace.detector else "")
+             + f", threshold {trace.threshold:g}; "
              f"{len(dets)} detections",
              f"- model weights: `{trace.weights_id or '?'}`; K = {trace.k}",
              f"- estimate: {est}" + ("" if gt is None else f"; ground truth {gt:.1f} g"
