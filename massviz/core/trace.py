@@ -5,6 +5,12 @@ Every consumer (Rerun logger, Open3D sink, notebooks, evaluation, training extra
 without running the detector or the model again (every detection already carries its prediction).
 
 A trace saves to a single ``.npz`` (no pickle): JSON header + parallel arrays + packed masks + PNG-encoded patches.
+
+Every trace carries its **tracks** (``detections.track``, ``massviz.core.tracks``) and the **flags** of its selection
+(``flags``, ``massviz.core.flags.analyse``: which chosen patches are probably not the container, and the estimate
+without them). Both are made when a trace is made (untracked detections are tracked, flags of another selection are
+recomputed: ``reselect`` and ``dataclasses.replace`` get fresh flags), saved with it (array ``det_track``, header
+``flags``) and, when a file of format 2 written before them lacks them, computed on load.
 """
 from __future__ import annotations
 
@@ -20,7 +26,9 @@ import numpy as np
 
 from massviz.io.atomic import atomic_path
 from massviz.errors import MassvizError
+from massviz.core.flags import Flags, analyse, selection_key
 from massviz.core.selection import estimate_mass, select_k_nearest
+from massviz.core.tracks import assign_tracks
 from massviz.core.types import Detections, GroundTruth, PackedMask, RecordingInfo, class_name
 
 TRACE_FORMAT = 2  # 2: typed events, recording info as a dataclass
@@ -73,6 +81,7 @@ class Trace:
     - ``measurements``: the 3D stage's measured size of each chosen detection (``massviz.core.geometry.Measurement``
       as dicts, read them with ``geometry3d.measurements_of``); empty when not measured. ``reselect`` drops them
       (they belong to the old selection).
+    - ``flags``: ``massviz.core.flags.Flags`` of the selection (made when the trace is; see the module docstring).
     """
 
     recording: RecordingInfo
@@ -90,11 +99,19 @@ class Trace:
     events: list = field(default_factory=list)
     excluded: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     measurements: list = field(default_factory=list)
+    flags: Flags | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.recording, dict):
             self.recording = RecordingInfo.from_dict(self.recording)
         self.events = [e if isinstance(e, Event) else Event(*e) for e in self.events]
+        dets = self.detections
+        if len(dets) and (dets.track <= 0).any():
+            dets.track = assign_tracks(dets, self.recording.fps)
+        if isinstance(self.flags, dict):
+            self.flags = Flags.from_dict(self.flags)
+        if self.flags is None or self.flags.key != selection_key(self):
+            self.flags = analyse(self)
 
     # -- views -----------------------------------------------------------------------------------------------------
     @property
@@ -165,7 +182,7 @@ class Trace:
             "detect_threshold": self.detect_threshold, "threshold": self.threshold, "k": self.k,
             "stride": self.stride, "estimate": self.estimate, "weights_id": self.weights_id,
             "timings": self.timings, "events": [e.to_list() for e in self.events],
-            "measurements": list(self.measurements),
+            "measurements": list(self.measurements), "flags": self.flags.to_dict(),
         }
         masks = [m if m is not None else PackedMask(np.zeros((0, 0), bool)) for m in dets.masks]
         patch_idx = [i for i, p in enumerate(dets.patches) if p is not None]
@@ -211,13 +228,16 @@ class Trace:
         poff = np.concatenate([[0], np.cumsum(data["patch_sizes"])])
         for j, i in enumerate(data["patch_index"]):
             patches[int(i)] = _decode_png(data["patch_bytes"][poff[j]:poff[j + 1]])
-        dets = Detections(**{name: data[f"det_{name}"] for name in Detections._ARRAYS}, masks=masks, patches=patches)
+        # det_track and the flags are absent from files written before tracks existed: made by __post_init__
+        dets = Detections(**{name: data[f"det_{name}"] for name in Detections._ARRAYS
+                             if name != "track" or "det_track" in data}, masks=masks, patches=patches)
         return cls(recording=RecordingInfo.from_dict(header["recording"]), detector=header["detector"],
                    detect_threshold=header["detect_threshold"], threshold=header["threshold"], k=header["k"],
                    stride=header["stride"], frames=data["frames"], detections=dets, selection=data["selection"],
                    estimate=header["estimate"], weights_id=header["weights_id"], timings=header["timings"],
                    events=[Event(*e) for e in header["events"]], excluded=data["excluded"],
-                   measurements=header.get("measurements", []))
+                   measurements=header.get("measurements", []),
+                   flags=Flags.from_dict(header["flags"]) if isinstance(header.get("flags"), dict) else None)
 
 
 def describe_detection(dets: Detections, i: int) -> str:
