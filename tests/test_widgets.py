@@ -20,7 +20,7 @@ import pytest
 from sample_traces import WEIGHTS, sample_cache
 
 from massviz.evaluation.metrics import score_from_estimates
-from massviz.evaluation.failures import (Exclusion, chosen_table, exclusion_of, load_exclusions, match_exclusions, same_object,
+from massviz.evaluation.failures import (Exclusion, chosen_table, exclusion_of, load_exclusions, match_exclusions, track_of,
                               save_exclusions)
 from massviz.errors import DataError
 from massviz.evaluation.sweep import annotations_from_meta
@@ -117,7 +117,7 @@ def test_excluding_the_pitcher_moves_the_estimate_towards_ground_truth(traces):
     expected = subsample(traces[cup].reselect(exclude=[det]), 6).reselect(k=5)
     assert tuner.current[cup].estimate == pytest.approx(expected.estimate)
     panel.set_mode(det, "exclude track")  # the pitcher standing on the table, in every frame
-    track = same_object(traces[cup], det)
+    track = track_of(traces[cup], det)
     assert len(track) >= 6
     assert tuner.current[cup].estimate == pytest.approx(retune(traces[cup], k=5, stride=6, exclude=track).estimate)
     after = tuner.current[cup].estimate

@@ -153,7 +153,7 @@ def assign_tracks(dets: Detections, fps: float | None = None) -> np.ndarray:
 def track_members(dets: Detections, track: int) -> np.ndarray:
     """Indices of the detections of ``track``, in frame order."""
     idx = np.flatnonzero(np.asarray(dets.track) == int(track))
-    return idx[np.argsort(dets.frame[idx], kind="stable")]
+    return np.array(sorted(idx.tolist(), key=lambda i: (int(dets.frame[i]), i)), dtype=np.int64)
 
 
 __all__ = ["Tracker", "assign_tracks", "track_members", "box_iou", "metric_size", "IOU_MIN", "DEPTH_GATE",
