@@ -50,7 +50,7 @@ def run(args) -> int:
     from tqdm.auto import tqdm
 
     from massviz.io.challenge_csv import write_challenge_csv
-    from massviz.commands._common import build
+    from massviz.commands._common import build, flag_warning
     from massviz.io.recording import collect_recordings
 
     recordings = collect_recordings(args.recordings, args.view)
@@ -76,6 +76,9 @@ def run(args) -> int:
             print(f"{rec.id}: {'not estimated' if trace.estimate < 0 else f'{trace.estimate:.1f} g'} "
                   f"(K={len(trace.selection)}, {len(trace.detections)} detections, {elapsed:.1f} s)",
                   file=sys.stderr)
+        warning = flag_warning("estimate", trace)
+        if warning:
+            tqdm.write(warning, file=sys.stderr)
     write_challenge_csv(Path(args.out), rows, exact=args.exact)
     done = sum(r["mass_g"] >= 0 for r in rows)
     print(f"wrote {args.out}: {len(rows)} recordings, {done} estimated", file=sys.stderr)

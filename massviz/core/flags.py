@@ -172,7 +172,7 @@ class Flags:
         without = (f"without {'it' if n == 1 else 'them'} {self.estimate_without:.1f} g" if self.estimate_without >= 0
                    else "no patch left without them")
         gt = sorted({p.ground_truth for p in bad if p.ground_truth is not None})
-        basis = (f"ground truth: the {', '.join(gt)}" if gt else
+        basis = ("ground truth: " + " and ".join(f"the {g}" for g in gt) if gt else
                  "cues: " + ", ".join(sorted({c.kind.replace('_', ' ') for p in bad for c in p.cues})))
         return f"{n} of {k} chosen {noun} {verb} like another object ({where}): {without} [{basis}]"
 
