@@ -350,15 +350,17 @@ def _cues(trace, i: int, ref: int, ref_size, ref_class, n_frames: int) -> list[C
 
 
 def selection_key(trace, ground_truth: bool = True) -> str:
-    """A short digest of what the flags of ``trace`` depend on: detections (count, tracks), threshold, selection,
-    exclusions, the estimate and whether ground truth was used."""
+    """A short digest of what the flags of ``trace`` depend on: detections (frames, tracks), threshold, selection,
+    exclusions, the estimate and the ground truth's masks (when used) with the recording's folder."""
     dets = trace.detections
     h = hashlib.sha1()
     for part in (np.asarray(trace.selection, np.int64), np.asarray(trace.excluded, np.int64),
                  np.asarray(dets.track, np.int64), np.asarray(dets.frame, np.int64)):
         h.update(part.tobytes())
         h.update(b"|")
-    h.update(f"{float(trace.threshold):.6f}|{float(trace.estimate):.6f}|{int(bool(ground_truth))}".encode())
+    gt = trace.ground_truth
+    masks = (gt.instance_masks, sorted(gt.instances.items())) if ground_truth and gt is not None else None
+    h.update(f"{float(trace.threshold):.6f}|{float(trace.estimate):.6f}|{masks}|{trace.recording.path}".encode())
     return h.hexdigest()[:16]
 
 

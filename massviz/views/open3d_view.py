@@ -222,10 +222,9 @@ def render_geometries(geoms, intr: Intrinsics, *, width: int = 960, height: int 
         for name, g in geoms:
             renderer.scene.add_geometry(name, g, lines if isinstance(g, o3d.geometry.LineSet) else points)
         renderer.scene.set_background(list(background) + [1.0])
-        # linear tone mapping: the palette's colours come out as they are (Filament's default ACES grading washes
-        # them out, so the chosen and flagged colours would not match the Rerun and notebook views)
-        renderer.scene.view.set_color_grading(rendering.ColorGrading(rendering.ColorGrading.Quality.HIGH,
-                                                                     rendering.ColorGrading.ToneMapping.LINEAR))
+        # no post-processing: the palette's and the frame's colours come out as they are (Filament's default tone
+        # mapping washes them out: the flagged red (255, 59, 48) became (235, 159, 141), unlike the other views)
+        renderer.scene.view.set_post_processing(False)
         s = min(width / intr.width, height / intr.height)
         K = np.array([[intr.fx * s, 0, width / 2 + (intr.cx - intr.width / 2) * s],
                       [0, intr.fy * s, height / 2 + (intr.cy - intr.height / 2) * s], [0, 0, 1]])
