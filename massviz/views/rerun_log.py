@@ -460,7 +460,7 @@ def log_frame_clouds(trace, frame: Frame, intr: Intrinsics, stream, *, root: str
             colours = (np.asarray(shown.colors) * 255).astype(np.uint8)
         stream.log(path, rr.Points3D(pts, colors=colours, radii=0.002))
         if m is not None:
-            label = f"#{m.rank} h {m.height_mm:.0f} w {m.width_mm:.0f} d {m.depth_mm:.0f} mm"
+            label = f"★{m.rank} h {m.height_mm:.0f} w {m.width_mm:.0f} d {m.depth_mm:.0f} mm"
             stream.log(f"{path}/box", rr.Transform3D(translation=m.center, mat3x3=np.asarray(m.R)),
                        rr.Boxes3D(half_sizes=[np.asarray(m.extent) / 2], colors=[rgb255(BOX_COLOUR)], labels=[label]))
             stream.log(f"{path}/measurement", rr.AnyValues(
