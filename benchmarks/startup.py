@@ -20,10 +20,12 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def time_help(src: Path) -> float:
+def time_help(src: Path, cwd: Path) -> float:
+    # cwd outside both checkouts: `python -m` puts the working directory first on sys.path
     env = {**os.environ, "PYTHONPATH": str(src)}
     t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "massviz", "--help"], env=env, check=True, stdout=subprocess.DEVNULL)
+    subprocess.run([sys.executable, "-m", "massviz", "--help"], env=env, check=True, stdout=subprocess.DEVNULL,
+                   cwd=cwd)
     return time.perf_counter() - t0
 
 
@@ -39,8 +41,8 @@ def main(argv=None) -> int:
         try:
             times = {"before": [], "after": []}
             for _ in range(args.runs):
-                times["before"].append(time_help(old))
-                times["after"].append(time_help(ROOT))
+                times["before"].append(time_help(old, Path(tmp)))
+                times["after"].append(time_help(ROOT, Path(tmp)))
         finally:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(old)], check=False,
                            capture_output=True)

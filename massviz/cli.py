@@ -2,7 +2,8 @@
 
 Each sub-command lives in ``massviz/commands/<name>.py`` and exposes ``register(subparsers)``, which adds its parser
 and sets ``func`` (a callable taking the parsed args and returning an exit code). Any ``MassvizError`` becomes one
-line on stderr and exit code 2; no traceback reaches the user.
+line on stderr and exit code 2, as does any ``OSError`` (the path and what the OS said); no traceback reaches the
+user.
 """
 from __future__ import annotations
 
@@ -49,6 +50,13 @@ def _quiet_native_logs() -> None:
         os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
 
 
+def os_error_line(err: OSError) -> str:
+    """``PATH: what the OS said`` for an ``OSError`` (both paths of a failed rename), in one line."""
+    what = err.strerror or str(err) or type(err).__name__
+    names = [str(n) for n in (err.filename, err.filename2) if n is not None]
+    return f"{' -> '.join(names)}: {what}" if names else f"{what} ({type(err).__name__})"
+
+
 def main(argv: list[str] | None = None) -> int:
     _quiet_native_logs()
     parser = build_parser()
@@ -67,6 +75,11 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"massviz {args.command}: interrupted", file=sys.stderr)
         return 130
+    except OSError as err:  # a file system refusal the command did not foresee: still one line naming the path
+        if os.environ.get("MASSVIZ_DEBUG"):
+            raise
+        print(f"massviz {args.command}: error: {os_error_line(err)}", file=sys.stderr)
+        return 2
     except Exception as err:  # noqa: BLE001 - last line of defence: one line, no traceback
         if os.environ.get("MASSVIZ_DEBUG"):
             raise

@@ -18,7 +18,12 @@ def measured_trace(args):
     from massviz.core.geometry import skip_reason, with_measurements
     from massviz.io.recording import open_recording
 
-    rec = open_recording(args.recording)
+    from massviz.errors import MassvizError
+
+    rec = open_recording(args.recording, allow_partial=args.allow_partial)
+    frame = getattr(args, "frame", None)
+    if frame is not None and not 0 <= frame < rec.num_frames:
+        raise MassvizError(f"--frame must be >= 0 and < {rec.num_frames} (the recording's frames), got {frame}")
     trace = build(args).process(rec)
     reason = skip_reason(rec)
     if reason:

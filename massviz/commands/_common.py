@@ -45,6 +45,9 @@ def add_pipeline_args(p: argparse.ArgumentParser, selection: bool = True) -> Non
     g.add_argument("--cache", metavar="DIR", help="trace cache directory (default: $MASSVIZ_CACHE_DIR or user cache)")
     g.add_argument("--no-cache", action="store_true", help="neither read nor write the trace cache")
     g.add_argument("--quiet", action="store_true", help="no progress bars")
+    g.add_argument("--allow-partial", action="store_true",
+                   help="process a video cut short (fewer frames decode than its header declares) as far as it "
+                   "decodes, with a warning on stderr and in Rerun's /log (default: that is an error)")
 
 
 def build(args, threshold: float | None = None):

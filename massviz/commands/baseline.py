@@ -45,6 +45,9 @@ def run(args: argparse.Namespace) -> int:
     from massviz.evaluation.metrics import ANN_ID, read_annotations
     from massviz.io.challenge_csv import write_challenge_csv
 
+    from massviz.io.atomic import check_output_file
+
+    check_output_file(args.out, "--out")
     ids = read_annotations(args.annotations)[ANN_ID].tolist()
     if args.method == "random":
         estimates = random_baseline(ids, args.seed)

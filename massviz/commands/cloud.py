@@ -54,13 +54,12 @@ def run(args) -> int:
 
     from massviz.io.atomic import atomic_path
     from massviz.commands._3d import measured_trace
-    from massviz.errors import MassvizError
     from massviz.core.geometry import annotation_size, ground_truth_size, measurements_of, skip_reason
     from massviz.views.open3d_view import write_ply
 
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise MassvizError("exists and is not a folder; --out needs a folder", out)
+    from massviz.io.atomic import check_output_dir
+
+    out = check_output_dir(args.out, "--out")
     rec, trace = measured_trace(args)
     est = "not estimated" if trace.estimate < 0 else f"{trace.estimate:.1f} g"
     if skip_reason(rec):

@@ -53,7 +53,16 @@ def run(args) -> int:
     from massviz.commands._common import build, flag_warning
     from massviz.io.recording import collect_recordings
 
-    recordings = collect_recordings(args.recordings, args.view)
+    from massviz.errors import MassvizError
+    from massviz.io.atomic import check_output_file
+
+    check_output_file(args.out, "--out")
+    recordings = collect_recordings(args.recordings, args.view, allow_partial=args.allow_partial)
+    seen = {}
+    for rec in recordings:  # one CSV row per recording: say so now, not after the work
+        if (first := seen.setdefault(rec.config_id, rec.path)) != rec.path:
+            raise MassvizError(f"configuration id {rec.config_id} is also the id of {first} (one CSV row per id; "
+                               "set distinct ids or config_ids in meta.json)", rec.path)
     exclusions = None
     if args.exclude:
         from massviz.evaluation.failures import load_exclusions

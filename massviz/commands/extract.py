@@ -33,7 +33,10 @@ def run(args) -> int:
     from massviz.evaluation.metrics import read_annotations
     from massviz.training.train import check_extract, extract_patches
 
-    recordings = collect_recordings(args.recordings, args.view)
+    from massviz.io.atomic import check_output_dir
+
+    check_output_dir(args.out, "--out")
+    recordings = collect_recordings(args.recordings, args.view, allow_partial=args.allow_partial)
     table = read_annotations(args.annotations) if args.annotations else None
     labels = check_extract(recordings, args.out, table, args.annotations, force=args.force)
     result = extract_patches(recordings, labels, build(args), args.out, progress=not args.quiet)

@@ -40,9 +40,13 @@ def run(args) -> int:
 
     if not args.rrd and not args.spawn:
         raise MassvizError("say where to log: --rrd OUT.rrd and/or --spawn")
-    if args.rrd and Path(args.rrd).is_dir():
-        raise MassvizError("is a directory; --rrd needs a file path", args.rrd)
-    rec = open_recording(args.recording)
+    from massviz.io.atomic import check_output_dir, check_output_file
+
+    if args.rrd:
+        check_output_file(args.rrd, "--rrd")
+    if args.ply:
+        check_output_dir(args.ply, "--ply")
+    rec = open_recording(args.recording, allow_partial=args.allow_partial)
     trace = build(args).process(rec)
     stats = log_trace(trace, rec, rrd=Path(args.rrd) if args.rrd else None, spawn=args.spawn,
                       progress=not args.quiet, video=args.video)

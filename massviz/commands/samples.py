@@ -7,7 +7,6 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from massviz.errors import MassvizError
 
 
 def register(subparsers) -> None:
@@ -34,8 +33,9 @@ def run(args: argparse.Namespace) -> int:
     from massviz.samples.generator import N_FRAMES, SAMPLES, write_sample
 
     names = args.only or list(SAMPLES)
-    if args.out.exists() and not args.out.is_dir():
-        raise MassvizError("not a folder", args.out)
+    from massviz.io.atomic import check_output_dir
+
+    check_output_dir(args.out, "--out")
     with tqdm(total=N_FRAMES * len(names), desc="rendering", unit="frame", file=sys.stderr) as bar:
         for name in names:
             bar.set_postfix_str(name)

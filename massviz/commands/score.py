@@ -60,6 +60,11 @@ def run(args: argparse.Namespace) -> int:
     from massviz.evaluation.metrics import default_class_of, parse_class_map, read_annotations, read_predictions, score
     from massviz.io.atomic import atomic_path
 
+    from massviz.io.atomic import check_output_file
+
+    for option in ("json", "plot"):
+        if getattr(args, option):
+            check_output_file(getattr(args, option), f"--{option}")
     class_of = parse_class_map(args.classes) if args.classes else default_class_of
     pairs = _pairs(args)
     annotations = {path: read_annotations(path) for path in dict.fromkeys(ann for _, _, ann in pairs)}

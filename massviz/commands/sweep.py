@@ -38,7 +38,7 @@ def run(args) -> int:
 
     from tqdm.auto import tqdm
 
-    from massviz.io.atomic import atomic_path
+    from massviz.io.atomic import atomic_path, check_output_file
     from massviz.commands._common import build
     from massviz.io.recording import collect_recordings
     from massviz.errors import MassvizError
@@ -46,13 +46,18 @@ def run(args) -> int:
     from massviz.evaluation.sweep import best_pair, parse_range, sweep
     from massviz.views.score_plot import plot_heatmap
 
-    thresholds = parse_range(args.threshold, float)
-    ks = parse_range(args.k, int)
-    if min(thresholds) < 0 or max(thresholds) >= 1 or min(ks) < 1:
-        raise MassvizError("thresholds must lie in [0, 1) and K values be >= 1")
+    thresholds = parse_range(args.threshold, float, "--threshold")
+    ks = parse_range(args.k, int, "--k")
+    if min(thresholds) < 0 or max(thresholds) >= 1:
+        raise MassvizError(f"--threshold values must lie in [0, 1), got {args.threshold!r}")
+    if min(ks) < 1:
+        raise MassvizError(f"--k values must be >= 1, got {args.k!r}")
+    for option in ("csv", "plot"):
+        if getattr(args, option):
+            check_output_file(getattr(args, option), f"--{option}")
     ann = read_annotations(args.annotations) if args.annotations else None
     class_of = parse_class_map(args.classes) if args.classes else default_class_of
-    recordings = collect_recordings(args.recordings, args.view)
+    recordings = collect_recordings(args.recordings, args.view, allow_partial=args.allow_partial)
     args.k = 1
     pipeline = build(args, threshold=min(thresholds))
     detector, cache = pipeline.detector, pipeline.cache

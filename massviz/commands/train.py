@@ -45,8 +45,10 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
+    from massviz.io.atomic import check_output_dir
     from massviz.training.train import TrainConfig, resolve_device, train_run
 
+    check_output_dir(args.out, "--out")
     config = TrainConfig(split=args.split, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
                          augment_factor=args.augment, seed=args.seed, device=str(resolve_device(args.device)))
     result = train_run(args.patches, args.out, config, init=args.init, keep_ranges=args.keep_ranges,

@@ -91,7 +91,7 @@ def build_pipeline(options: PipelineOptions | None = None, **kwargs) -> Pipeline
     model = MassNet.from_checkpoint(resolve_weights(options.weights))
     detector = make_detector(options.detector, options.threshold, detector_weights=options.detector_weights,
                              replay=options.replay, quiet=options.quiet)
-    cache = None if options.no_cache else TraceCache(options.cache)
+    cache = None if options.no_cache else TraceCache(options.cache).check_writable()
     return Pipeline(options, detector, model, cache)
 
 

@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import hashlib
 import math
-import string
 from collections import Counter
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -49,6 +48,8 @@ import numpy as np
 
 from massviz.core.tracks import metric_size, track_members
 from massviz.core.types import OBJECT_CLASS_ID, class_name
+from massviz.errors import DataError, MassvizError
+from massviz.io.untrusted import check_image_size, frame_path
 
 CUE_KINDS = ("track", "size", "depth_jump", "time", "class")
 SEVERITIES = ("none", "low", "medium", "high")
@@ -156,6 +157,16 @@ class Flags:
         """The verdict on chosen detection ``detection`` (None when it is not chosen)."""
         return next((p for p in self.patches if p.detection == int(detection)), None)
 
+    def describes(self, trace) -> bool:
+        """Whether these flags are of ``trace``'s selection: same key (``selection_key``) and one verdict per chosen
+        patch, rank by rank, with its frame and track (flags read from an untrusted file are checked with it)."""
+        dets, sel = trace.detections, [int(i) for i in np.asarray(trace.selection, dtype=np.int64)]
+        if self.key != selection_key(trace) or [p.detection for p in self.patches] != sel:
+            return False
+        return all(p.rank == r and p.frame == int(dets.frame[p.detection]) and p.track == int(dets.track[p.detection])
+                   and p.severity in SEVERITIES and all(c.kind in CUE_KINDS for c in p.cues)
+                   for r, p in enumerate(self.patches))
+
     def warning(self) -> str | None:
         """One line, e.g. "3 of 5 chosen patches look like another object (frames 8–10, track 4): without them
         8.3 g", or None when nothing is flagged."""
@@ -210,17 +221,12 @@ def _frames_text(frames) -> str:
 
 
 # ------------------------------------------------------------------------------------------------- ground truth
-def _safe_pattern(pattern: str) -> bool:
-    """A mask path pattern whose only field is ``{frame}`` (with an optional format spec such as ``:06d``)."""
-    try:
-        fields = [f for _, f, spec, conv in string.Formatter().parse(pattern) if f is not None]
-    except ValueError:
-        return False
-    return bool(fields) and all(f == "frame" for f in fields)
-
-
 @lru_cache(maxsize=256)
 def _read_instances(path: str) -> np.ndarray | None:
+    try:  # the header is checked before decoding: a small file may declare gigabytes of pixels
+        check_image_size(path, MassvizError, "ground-truth image")
+    except MassvizError:
+        return None
     if not Path(path).is_file():
         return None
     img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
@@ -229,19 +235,16 @@ def _read_instances(path: str) -> np.ndarray | None:
 
 def ground_truth_masks(trace, frame: int) -> tuple[np.ndarray, dict[int, str]] | None:
     """(instance-id image of ``frame``, {id: name}) from the recording's ``meta.json`` ground truth, or None when
-    unknown (no ``instance_masks`` / ``instances``, a pattern other than ``...{frame...}...``, a path outside the
-    recording folder, a missing or unreadable PNG, or one of another size than the frames)."""
+    unknown (no ``instance_masks`` / ``instances``, a pattern other than ``...{frame}...`` or one leading outside the
+    recording folder (``massviz.io.untrusted.frame_path``), a missing, oversized or unreadable PNG, or one of another
+    size than the frames)."""
     gt = trace.ground_truth
     root = trace.recording.path
-    if gt is None or not gt.instance_masks or not gt.instances or not root or not _safe_pattern(gt.instance_masks):
+    if gt is None or not gt.instance_masks or not gt.instances or not root:
         return None
-    try:
-        rel = gt.instance_masks.format(frame=int(frame))
-    except (ValueError, IndexError, KeyError):
-        return None
-    base = Path(root).resolve()
-    path = (base / rel).resolve()
-    if not path.is_relative_to(base):
+    try:  # the pattern comes from a data file: only {frame}, and inside the recording folder
+        path = frame_path(gt.instance_masks, root, int(frame), root, "instance_masks")
+    except DataError:
         return None
     img = _read_instances(str(path))
     if img is None or (trace.recording.height and img.shape[:2] != (trace.recording.height, trace.recording.width)):

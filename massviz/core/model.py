@@ -76,6 +76,8 @@ class Ranges:
         for lo, hi in zip(values[0::2], values[1::2]):
             if not hi > lo:
                 raise ValueError(f"Ranges: each max must exceed its min, got {values}")
+            if not math.isfinite(hi - lo):
+                raise ValueError(f"Ranges: each max - min must be a finite number, got {values}")
 
     def as_tuple(self) -> tuple[float, ...]:
         """The eight values in :data:`massviz.io.weights.RANGE_KEYS` order."""
@@ -224,8 +226,8 @@ class MassNet(nn.Module):
             sha = sha256_file(path)
             obj = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as e:  # torch raises many types for a corrupt / foreign file
-            raise WeightsError(f"cannot read checkpoint ({type(e).__name__}: {str(e).splitlines()[0][:200]})",
-                               path) from e
+            first = str(e).splitlines()[0][:200] if str(e).strip() else "empty or truncated file"
+            raise WeightsError(f"cannot read checkpoint ({type(e).__name__}: {first})", path) from None
         embedded = None
         if isinstance(obj, dict) and "state_dict" in obj:
             state, embedded = obj["state_dict"], obj.get("ranges")
@@ -244,6 +246,9 @@ class MassNet(nn.Module):
 
         model = cls(ranges=ranges, weights_id=sha[:12])
         _check_state_dict(model, state, path)
+        for name, value in state.items():  # NaN weights would turn every prediction into NaN, silently
+            if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+                raise WeightsError(f"parameter {name} holds NaN or infinite values (a diverged training?)", path)
         model.load_state_dict(state, strict=True)
         return model.eval()
 

@@ -194,6 +194,7 @@ def run(recording, detector: Detector, model, *, k: int = 5, stride: int = 1, ke
             t0 = time.perf_counter()
     finally:
         bar.close()
+    fp.events.extend(Event(-1, note, "warning", "warn") for note in getattr(recording, "notes", ()))
     return fp.finish()
 
 
@@ -233,7 +234,9 @@ def process(recording, detector: Detector, model, *, k: int = 5, stride: int = 1
         events.append(Event(-1, note, "cache", "debug"))
         events.extend(e for e in trace.events if e.is_selection)
         timings = {"cache": time.perf_counter() - t0}
-        return dataclasses.replace(trace, events=events, timings={**trace.timings, **timings})
+        # the key is the frames' content: the recording's path, meta and intrinsics are today's, not the cached run's
+        return dataclasses.replace(trace, recording=recording.info(), events=events,
+                                   timings={**trace.timings, **timings})
     trace = run(recording, detector, model, k=k, stride=stride, progress=progress)
     if cache is not None:
         cache.save(trace, recording, info)

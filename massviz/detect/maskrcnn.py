@@ -100,9 +100,12 @@ class MaskRCNNDetector:
         self._model = None
 
     def settings(self) -> dict:
-        if self.weights is not None:
-            st = self.weights.stat() if self.weights.is_file() else None
-            src = f"{self.weights.resolve()}:{st.st_size if st else 0}"
+        if self.weights is not None:  # by content: another file under the same name is another cache key
+            from massviz.io.filehash import file_digest
+
+            if getattr(self, "_weights_digest", None) is None:  # hashed once per detector (the file is ~170 MB)
+                self._weights_digest = file_digest(self.weights) if self.weights.is_file() else "missing"
+            src = f"{self.weights.resolve()}:{self._weights_digest}"
         else:
             src = "torchvision:COCO_V1" if self.pretrained else "random-init"
         return {"weights": src, "classes": list(self.classes), "mask_threshold": MASK_THRESHOLD}

@@ -14,6 +14,11 @@
   ``box`` is in pixels (x2/y2 exclusive; floats are truncated as the paper's code does); ``class`` is one of cup,
   book, wine glass, bottle, object, or a COCO category id; ``mask`` (optional) is a PNG, relative to the JSON file,
   either full-frame or box-sized, non-zero inside the object; without it the whole box is the mask.
+
+The file is untrusted: ``frame`` must be an integer >= 0, box values finite numbers in [0, 2^31), ``score`` in
+[0, 1]; a ``mask`` must be a relative path that stays inside the JSON file's folder (no ``..``, no absolute path, no
+symlink out) and its PNG header is checked before it is decoded. A box is checked against the frame before its mask
+is allocated. Anything else is one ``DataError`` naming the file and the detection.
 """
 from __future__ import annotations
 
@@ -24,62 +29,83 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from massviz.errors import DataError
 from massviz.core.trace import Trace
-from massviz.core.types import COCO_KEEP, OBJECT_CLASS_ID, Detections, Frame
+from massviz.core.types import COCO_KEEP, OBJECT_CLASS_ID, Detections, Frame, PackedMask
+from massviz.errors import DataError
+from massviz.io.untrusted import MAX_INDEX, check_image_size, confined, number
+
+#: largest replay JSON read.
+MAX_REPLAY_JSON_BYTES = 256 << 20
 
 
 def _class_id(value, path: Path, row: int) -> int:
-    if isinstance(value, int):
+    if isinstance(value, int) and not isinstance(value, bool):
+        if not -1 <= value <= 10_000:
+            raise DataError(f"detection {row}: class id {value} is not a COCO category id", path)
         return value
     if value == "object":
         return OBJECT_CLASS_ID
-    if value in COCO_KEEP:
+    if isinstance(value, str) and value in COCO_KEEP:
         return COCO_KEEP[value]
     raise DataError(f"detection {row}: unknown class {value!r} (use cup, book, wine glass, bottle, object or a "
-                    "COCO id)", path)
+                    "COCO id)"[:300], path)
 
 
-def _load_json(path: Path) -> Detections:
+def _load_json(path: Path) -> tuple[Detections, list[Path]]:
+    """The detections of a replay JSON file (full-box masks left as None: made after the box is checked against
+    the frame) and the mask files it names."""
     try:
+        if path.stat().st_size > MAX_REPLAY_JSON_BYTES:
+            raise ValueError(f"the file is larger than {MAX_REPLAY_JSON_BYTES} bytes")
         data = json.loads(path.read_text())
-        rows = data["detections"]
+        rows = data["detections"] if isinstance(data, dict) else None
         if not isinstance(rows, list):
-            raise TypeError("'detections' must be a list")
-    except (OSError, ValueError, KeyError, TypeError) as err:
-        raise DataError(f"not a replay detections file ({type(err).__name__}: {err})", path) from None
-    frames, boxes, scores, classes, masks = [], [], [], [], []
+            raise TypeError("expected an object whose 'detections' is a list")
+    except (OSError, ValueError, KeyError, TypeError, RecursionError) as err:
+        raise DataError(f"not a replay detections file ({type(err).__name__}: {err})"[:300], path) from None
+    frames, boxes, scores, classes, masks, files = [], [], [], [], [], []
     for row, det in enumerate(rows):
-        try:
-            x1, y1, x2, y2 = (int(v) for v in det["box"])
-            frame, score = int(det["frame"]), float(det.get("score", 1.0))
-        except (KeyError, TypeError, ValueError) as err:
-            raise DataError(f"detection {row}: needs 'frame' and 'box' [x1, y1, x2, y2] ({err})", path) from None
+        where = f"detection {row}:"
+        if not isinstance(det, dict) or "frame" not in det or "box" not in det:
+            raise DataError(f"{where} needs 'frame' and 'box' [x1, y1, x2, y2]", path)
+        box = det["box"]
+        if not isinstance(box, list) or len(box) != 4:
+            raise DataError(f"{where} 'box' must be 4 numbers [x1, y1, x2, y2], got {box!r}"[:300], path)
+        x1, y1, x2, y2 = (int(number(v, f"{where} box {n}", path, lo=0, hi=MAX_INDEX))
+                          for n, v in zip(("x1", "y1", "x2", "y2"), box))
+        frame = number(det["frame"], f"{where} 'frame'", path, lo=0, hi=MAX_INDEX, integral=True)
+        score = number(det.get("score", 1.0), f"{where} 'score'", path, lo=0, hi=1)
         if x2 <= x1 or y2 <= y1:
-            raise DataError(f"detection {row}: empty box {det['box']}", path)
-        mask = np.ones((y2 - y1, x2 - x1), dtype=bool)
-        if det.get("mask"):
-            mpath = path.parent / det["mask"]
+            raise DataError(f"{where} empty box {box}", path)
+        mask = None
+        if det.get("mask") is not None:
+            mpath = confined(path.parent, det["mask"], path, f"{where} mask")
+            check_image_size(mpath, DataError, "mask image")
             img = cv2.imread(str(mpath), cv2.IMREAD_GRAYSCALE)
             if img is None:
-                raise DataError(f"detection {row}: cannot read mask {det['mask']}", path)
-            crop = img if img.shape == mask.shape else img[y1:y2, x1:x2]
-            if crop.shape != mask.shape:
-                raise DataError(f"detection {row}: mask {det['mask']} is {img.shape[1]}x{img.shape[0]}, neither the "
-                                f"box's {x2 - x1}x{y2 - y1} nor a full frame holding the box", path)
+                raise DataError(f"{where} cannot read mask {det['mask']}", path)
+            h, w = y2 - y1, x2 - x1
+            crop = img if img.shape == (h, w) else img[y1:y2, x1:x2]
+            if crop.shape != (h, w):
+                raise DataError(f"{where} mask {det['mask']} is {img.shape[1]}x{img.shape[0]}, neither the "
+                                f"box's {w}x{h} nor a full frame holding the box", path)
             mask = crop > 0
+            files.append(mpath)
         frames.append(frame), boxes.append([x1, y1, x2, y2]), scores.append(score)
         classes.append(_class_id(det.get("class", "object"), path, row)), masks.append(mask)
-    return Detections(frame=frames, xyxy=boxes, score=scores, class_id=classes, masks=masks)
+    return Detections(frame=frames, xyxy=boxes, score=scores, class_id=classes, masks=masks), files
 
 
 def load_detections(path: str | Path) -> Detections:
-    """All detections of a replay source (trace .npz or JSON)."""
-    path = Path(path)
+    """All detections of a replay source (trace .npz or JSON). Full-box masks of a JSON source are None."""
+    return _load(Path(path))[0]
+
+
+def _load(path: Path) -> tuple[Detections, list[Path]]:
     if not path.is_file():
         raise DataError("replay file not found", path)
     if path.suffix == ".npz":
-        return Trace.load(path).detections
+        return Trace.load(path).detections, []
     return _load_json(path)
 
 
@@ -91,15 +117,18 @@ class ReplayDetector:
     def __init__(self, source: str | Path, threshold: float = 0.4):
         self.source = Path(source)
         self.threshold = float(threshold)
-        dets = load_detections(self.source)
+        dets, self._files = _load(self.source)
         self._by_frame = defaultdict(list)
         for i, f in enumerate(dets.frame):
             self._by_frame[int(f)].append(i)
         self._dets = dets
 
     def settings(self) -> dict:
-        st = self.source.stat()
-        return {"source": str(self.source.resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+        """The source by its content (and that of the mask PNGs it names): an edited file is a new cache key."""
+        from massviz.io.filehash import file_digest
+
+        return {"source": str(self.source.resolve()), "digest": file_digest(self.source),
+                "masks": [file_digest(p) for p in self._files]}
 
     def detect(self, frame: Frame) -> Detections:
         idx = self._by_frame.get(frame.index, [])
@@ -111,6 +140,8 @@ class ReplayDetector:
             raise DataError(f"frame {frame.index}: box {dets.xyxy[outside][0].tolist()} lies outside the "
                             f"{frame.width}x{frame.height} frame (is this replay file for this recording?)",
                             self.source)
+        # the whole box is the mask of a detection without one; made only now that the box is known to fit
+        masks = [m if m is not None else PackedMask(np.ones((int(b[3] - b[1]), int(b[2] - b[0])), bool))
+                 for m, b in zip(dets.masks, dets.xyxy)]
         # features and predictions are recomputed by the pipeline on this recording's frames
-        return Detections(frame=dets.frame, xyxy=dets.xyxy, score=dets.score, class_id=dets.class_id,
-                          masks=dets.masks)
+        return Detections(frame=dets.frame, xyxy=dets.xyxy, score=dets.score, class_id=dets.class_id, masks=masks)

@@ -44,6 +44,7 @@ import pandas as pd
 from massviz.io.atomic import atomic_path
 from massviz.errors import DataError
 from massviz.core.flags import GT_MIN_IOU, ground_truth_masks, ground_truth_overlap
+from massviz.io.untrusted import _CONTROL, MAX_INDEX, text_id
 from massviz.core.trace import Trace
 from massviz.core.types import class_name
 
@@ -115,14 +116,20 @@ def load_exclusions(path: str | Path) -> list[Exclusion]:
         rec, frame, box = e.get("recording"), e.get("frame"), e.get("box")
         if not isinstance(rec, str) or not rec:
             raise DataError(f'{where}: "recording" must be a non-empty string (the recording id)', path)
-        if not isinstance(frame, int) or isinstance(frame, bool) or frame < 0:
-            raise DataError(f'{where}: "frame" must be an integer >= 0, got {frame!r}', path)
+        text_id(rec, f'{where}: "recording"', path)
+        if not isinstance(frame, int) or isinstance(frame, bool) or not 0 <= frame <= MAX_INDEX:
+            raise DataError(f'{where}: "frame" must be an integer >= 0 and <= {MAX_INDEX}, got {frame!r}'[:300], path)
         if (not isinstance(box, list) or len(box) != 4
-                or not all(isinstance(v, int) and not isinstance(v, bool) for v in box)
+                or not all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= MAX_INDEX for v in box)
                 or not (box[2] > box[0] and box[3] > box[1])):
-            raise DataError(f'{where}: "box" must be 4 integers [x1, y1, x2, y2] with x2 > x1 and y2 > y1, '
-                            f"got {box!r}", path)
-        out.append(Exclusion(rec, frame, tuple(box), str(e.get("note", ""))))
+            raise DataError(f'{where}: "box" must be 4 integers [x1, y1, x2, y2] in [0, {MAX_INDEX}] with x2 > x1 '
+                            f"and y2 > y1, got {box!r}"[:300], path)
+        note = e.get("note", "")
+        if not isinstance(note, str) or len(note) > 2000:
+            raise DataError(f'{where}: "note" must be a string of at most 2000 characters', path)
+        if _CONTROL.search(note.replace("\n", "").replace("\t", "")):
+            raise DataError(f'{where}: "note" contains control characters', path)
+        out.append(Exclusion(rec, frame, tuple(box), note))
     return out
 
 

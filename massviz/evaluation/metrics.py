@@ -19,9 +19,9 @@ Notebook use::
 """
 from __future__ import annotations
 
-import csv
 import json
 import math
+import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,6 +36,8 @@ from massviz.errors import DataError
 PRED_ID, PRED_MASS = "Configuration ID", "Container mass"
 #: Recording id, container id and empty container mass (g) columns of the CCM annotation CSV.
 ANN_ID, ANN_CONTAINER, ANN_MASS = "id", "container id", "container mass"
+#: Size columns of the CCM annotation CSV read as numbers (the 3D stage compares with them).
+ANN_SIZES = ("width at the top", "width at the bottom", "height", "depth", "container capacity")
 #: The paper's classes, in the order of its tables and figure.
 CLASS_ORDER = ("cup", "glass", "box")
 
@@ -49,45 +51,75 @@ class _Row(NamedTuple):
     fields: list[str]
 
 
+_RAGGED = re.compile(r"Expected (\d+) fields in line (\d+), saw (\d+)")
+
+
 def _read_table(path: Path, required: Sequence[str]) -> tuple[list[str], list[_Row]]:
-    """Header and data rows of a CSV file, checking it is text, has the ``required`` columns and a rectangular shape."""
-    rows: list[_Row] = []
+    """Header and data rows of a CSV file (``pandas.read_csv``, every field as text), checking it is UTF-8 text,
+    has the ``required`` columns and a rectangular shape. Blank lines are skipped; rows keep their line numbers."""
     try:
-        with open(path, newline="", encoding="utf-8-sig") as f:
-            reader = csv.reader(f)
-            header = [name.strip() for name in next(reader, [])]
-            for fields in reader:
-                if fields:  # blank lines are skipped
-                    rows.append(_Row(len(rows) + 1, reader.line_num, fields))
+        # header=None: the header is read as row 0, so its length is what every row must have (pandas then names
+        # the line of a longer row); shorter rows come back padded with NaN
+        frame = pd.read_csv(path, dtype=str, keep_default_na=False, skip_blank_lines=False, encoding="utf-8-sig",
+                            header=None, engine="python", on_bad_lines="error")
     except UnicodeDecodeError:
         raise DataError("not a CSV file (not UTF-8 text)", path) from None
-    except csv.Error as err:
-        raise DataError(f"line {reader.line_num}: not a valid CSV file ({err})", path) from None
+    except pd.errors.EmptyDataError:
+        raise DataError("empty file: no header row", path) from None
+    except pd.errors.ParserError as err:
+        m = _RAGGED.search(str(err))
+        if m is None:
+            raise DataError(f"not a valid CSV file ({str(err).splitlines()[0]})", path) from None
+        n_header, line, n_fields = (int(g) for g in m.groups())
+        number = _data_row_number(path, line)
+        raise DataError(f"row {number} (line {line}): {n_fields} fields, but the header has only {n_header}",
+                        path) from None
     except OSError as err:
         raise DataError(f"cannot read the file ({err.strerror})", path) from None
+    header = [str(name).strip() for name in frame.iloc[0].fillna("")]
+    frame = frame.iloc[1:]
     if not any(header):
         raise DataError("empty file: no header row", path)
     for name in required:
         if name not in header:
             raise DataError(f"header: missing column '{name}' (expected a CSV with columns "
                             f"{', '.join(repr(n) for n in required)})", path)
-    for row in rows:
-        if len(row.fields) < len(header):
-            raise DataError(f"row {row.number} (line {row.line}), column '{header[len(row.fields)]}': missing "
+    rows: list[_Row] = []
+    missing = frame.isna().to_numpy()
+    values = frame.to_numpy()
+    for i in range(len(frame)):
+        if missing[i].all():
+            continue  # a blank line
+        row = _Row(len(rows) + 1, i + 2, [str(v) for v, m in zip(values[i], missing[i]) if not m])
+        if missing[i].any():
+            first = int(missing[i].argmax())
+            raise DataError(f"row {row.number} (line {row.line}), column '{header[first]}': missing "
                             f"(the row has {len(row.fields)} fields, the header {len(header)})", path)
-        if len(row.fields) > len(header):
-            raise DataError(f"row {row.number} (line {row.line}): {len(row.fields)} fields, "
-                            f"but the header has only {len(header)}", path)
+        rows.append(row)
     return header, rows
 
 
+def _data_row_number(path: Path, line: int) -> int:
+    """The data-row number (blank lines not counted) of file line ``line``."""
+    with open(path, encoding="utf-8-sig", errors="replace") as f:
+        lines = f.read().splitlines()[1:line]
+    return sum(1 for text in lines if text.strip())
+
+
+#: largest recording / container id read from a CSV (ids are indices, never near this).
+MAX_ID = 2**31 - 1
+
+
 def _integer(text: str) -> int:
+    """A recording or container id: an integer in [0, MAX_ID] (``1e30`` would overflow the int64 columns)."""
     try:
         value = float(text)
     except ValueError:
         raise ValueError(f"{text!r} is not an integer" if text else "empty value") from None
     if not value.is_integer():
         raise ValueError(f"{text!r} is not an integer")
+    if not 0 <= value <= MAX_ID:
+        raise ValueError(f"{text!r} must be >= 0 and <= {MAX_ID}")
     return int(value)
 
 
@@ -148,15 +180,17 @@ def read_predictions(path: str | Path) -> pd.DataFrame:
 def read_annotations(path: str | Path) -> pd.DataFrame:
     """Read a CCM annotation CSV (``id``, ``container id``, ..., ``container mass``, ...) into a frame.
 
-    ``id`` and ``container id`` are ints, ``container mass`` (g) a float > 0; every other column is kept, numeric
-    where all its values parse as numbers. Raises ``DataError`` (naming file, row and column) for an unreadable or
+    ``id`` and ``container id`` are ints in [0, 2^31), ``container mass`` (g) a finite float > 0, the size columns
+    (:data:`ANN_SIZES`, mm / mL; -1 = not given) finite floats; every other column is kept, numeric where all its
+    values parse as numbers. Raises ``DataError`` (naming file, row and column) for an unreadable or
     non-CSV file, a missing column, a ragged row, a non-numeric value, a mass ≤ 0, a repeated id or no data rows.
     """
     path = Path(path)
     header, rows = _read_table(path, (ANN_ID, ANN_CONTAINER, ANN_MASS))
     if not rows:
         raise DataError("no annotated recordings (only a header)", path)
-    parsers = {ANN_ID: _integer, ANN_CONTAINER: _integer, ANN_MASS: _positive_mass}
+    parsers = {ANN_ID: _integer, ANN_CONTAINER: _integer, ANN_MASS: _positive_mass,
+               **{name: _number for name in ANN_SIZES}}
     data = {}
     for name in header:
         if name in parsers:
@@ -200,7 +234,11 @@ def parse_class_map(spec: str) -> dict[int, str]:
             raise DataError(f"class mapping: {key.strip()!r} is not a container id (expected e.g. 1=cup,2=cup)") from None
         if not name.strip():
             raise DataError(f"class mapping: container {container} has no class name (expected e.g. {container}=cup)")
-        mapping[container] = name.strip()
+        if not 0 <= container <= MAX_ID:
+            raise DataError(f"class mapping: container id {container} must be >= 0 and <= {MAX_ID}")
+        from massviz.io.untrusted import text_id
+
+        mapping[container] = text_id(name.strip(), f"class mapping: the class name of container {container}", None)
     if not mapping:
         raise DataError("class mapping is empty (expected e.g. 1=cup,2=cup,4=glass)")
     return mapping

@@ -20,23 +20,38 @@ from massviz.core.selection import NearestOrder, estimate_mass
 from massviz.core.trace import Trace
 
 
-def parse_range(spec: str, kind=float) -> list:
-    """``"0.3:0.9:0.05"`` (start:stop:step, stop included), ``"1:10"`` (step 1), ``"0.4"`` or ``"1,3,5"``."""
+#: most values a range may expand to (a step of 1e-9 would otherwise ask for a billion).
+MAX_RANGE_VALUES = 10_000
+
+
+def parse_range(spec: str, kind=float, option: str = "range") -> list:
+    """``"0.3:0.9:0.05"`` (start:stop:step, stop included), ``"1:10"`` (step 1), ``"0.4"`` or ``"1,3,5"``.
+
+    Every value must be finite and the range at most :data:`MAX_RANGE_VALUES` long (counted before anything is
+    allocated); ``MassvizError`` starting with ``option`` otherwise."""
+    usage = f"{option} {spec!r}: use start:stop[:step], a list a,b,c or one value"
     try:
-        if ":" in spec:
-            parts = [kind(p) for p in spec.split(":")]
-            if len(parts) not in (2, 3):
-                raise ValueError
-            start, stop = parts[0], parts[1]
-            step = parts[2] if len(parts) == 3 else kind(1)
-            if step <= 0 or stop < start:
-                raise ValueError
-            n = int(math.floor((stop - start) / step + 1e-9)) + 1
-            values = [start + i * step for i in range(n)]
-            return [round(v, 10) for v in values] if kind is float else [int(v) for v in values]
-        return [kind(p) for p in spec.split(",")]
-    except ValueError:
-        raise MassvizError(f"bad range {spec!r}: use start:stop[:step], a list a,b,c or one value") from None
+        parts = [kind(p) for p in spec.split(":" if ":" in spec else ",")]
+    except (ValueError, OverflowError):
+        raise MassvizError(f"{usage} (of {'integers' if kind is int else 'numbers'})") from None
+    if not all(math.isfinite(v) for v in parts):
+        raise MassvizError(f"{option} {spec!r}: every value must be a finite number")
+    if ":" not in spec:
+        if len(parts) > MAX_RANGE_VALUES:
+            raise MassvizError(f"{option} {spec!r}: {len(parts)} values (at most {MAX_RANGE_VALUES})")
+        return parts
+    if len(parts) not in (2, 3):
+        raise MassvizError(usage)
+    start, stop = parts[0], parts[1]
+    step = parts[2] if len(parts) == 3 else kind(1)
+    if step <= 0 or stop < start:
+        raise MassvizError(f"{usage} (step > 0, stop >= start)")
+    count = math.floor((stop - start) / step + 1e-9) + 1
+    if count > MAX_RANGE_VALUES:
+        raise MassvizError(f"{option} {spec!r} would give {count} values (at most {MAX_RANGE_VALUES}); use a larger "
+                           "step")
+    values = [start + i * step for i in range(count)]
+    return [round(v, 10) for v in values] if kind is float else [int(v) for v in values]
 
 
 class SweepTable:

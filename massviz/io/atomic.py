@@ -61,3 +61,55 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+# ------------------------------------------------------------------------------------------- checking outputs first
+def _probe_writable(folder: Path, path: Path) -> None:
+    """Create and remove a temporary file in ``folder`` (the only sure test: modes, read-only mounts, quotas)."""
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as err:
+        raise MassvizError(f"cannot write in folder {folder} ({err.strerror or err})", path) from None
+
+
+def _existing_ancestor(path: Path) -> Path:
+    for parent in path.parents:
+        if parent.exists():
+            return parent
+    return Path(".")
+
+
+def check_output_file(path: str | Path, option: str | None = None) -> Path:
+    """Check, before any work starts, that ``path`` can be written as a file: it is not a folder, its folder
+    exists, is a folder and is writable. ``MassvizError`` naming ``path`` otherwise. Nothing is left behind."""
+    path = Path(path)
+    needs = f"; {option} needs a file path" if option else ""
+    if path.is_dir():
+        raise MassvizError(f"is a directory{needs}", path)
+    parent = path.parent
+    if not parent.exists():
+        raise MassvizError(f"cannot write: folder {parent} does not exist", path)
+    if not parent.is_dir():
+        raise MassvizError(f"cannot write: {parent} is not a folder", path)
+    if path.exists() and not os.access(path, os.W_OK) and os.geteuid() != 0:
+        raise MassvizError("cannot write: the file is read-only", path)
+    _probe_writable(parent, path)
+    return path
+
+
+def check_output_dir(path: str | Path, option: str | None = None) -> Path:
+    """Check, before any work starts, that ``path`` is a writable folder or can be created as one (every existing
+    part of it is a folder, the nearest existing one writable). ``MassvizError`` naming ``path`` otherwise."""
+    path = Path(path)
+    needs = f"; {option} needs a folder" if option else ""
+    if path.exists():
+        if not path.is_dir():
+            raise MassvizError(f"exists and is not a folder{needs}", path)
+        _probe_writable(path, path)
+        return path
+    ancestor = _existing_ancestor(path)
+    if not ancestor.is_dir():
+        raise MassvizError(f"cannot create the folder: {ancestor} is not a folder", path)
+    _probe_writable(ancestor, path)
+    return path

@@ -13,7 +13,7 @@ from typing import Any
 
 from massviz.io.atomic import atomic_path
 
-#: The challenge CSV header, in order (``/work/shared/ccm/README.md``).
+#: The challenge CSV header, in order (the CORSMAL challenge format; shared/ccm/README.md in the reference data).
 COLUMNS = (
     "Configuration ID", "Container capacity", "Container mass", "Filling mass", "None", "Pasta", "Rice", "Water",
     "Filling type", "Empty", "Half-full", "Full", "Filling level", "Width at the top", "Width at the bottom",
@@ -54,7 +54,7 @@ def write_challenge_csv(path: str | Path, rows: Iterable[Any], *, exact: bool = 
         config_id = str(_field(row, "config_id")).strip()
         if config_id.lstrip("-").isdigit():
             config_id = str(int(config_id))
-        elif not config_id or any(c in config_id for c in ',"\n\r'):
+        elif not config_id or any(c in config_id for c in "\n\r\x00"):  # commas and quotes are quoted
             raise ValueError(f"recording id {config_id!r} cannot be written in a CSV field")
         if config_id in seen:
             raise ValueError(f"recording {config_id} appears twice")

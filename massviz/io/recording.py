@@ -18,12 +18,23 @@ Two layouts are read:
 Frames are streamed (``Recording.frames``): nothing is accumulated, so memory does not grow with the recording's
 length. Problems are reported as ``RecordingError`` naming the file, checked up front where that is cheap (so a
 long run does not fail half-way) and again per frame.
+
+Every file is untrusted (``massviz.io.untrusted``): calibration pickles go through a restricted unpickler, every
+number is checked where it is read (finite, in range, integral where it must be), ids are text without control
+characters, image sizes are bounded from their headers before anything is decoded, and a path pattern in meta.json
+must stay inside the recording.
+
+A video that decodes fewer frames than its header declares (a file cut short) is an error naming both counts, unless
+``open_recording(..., allow_partial=True)`` (CLI ``--allow-partial``): then the decoded frames are used and the
+shortfall is said on stderr and kept in ``Recording.notes`` (the pipeline puts them in the trace's events, so they
+show in Rerun's ``/log``).
 """
 from __future__ import annotations
 
 import hashlib
 import json
-import pickle
+import math
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
@@ -32,7 +43,8 @@ import cv2
 import numpy as np
 
 from massviz.errors import RecordingError
-from massviz.core.types import Frame, Intrinsics, RecordingInfo
+from massviz.io.untrusted import MAX_IMAGE_SIDE, MAX_INDEX, check_image_size, load_calibration_pickle, number, text_id
+from massviz.core.types import Frame, GroundTruth, Intrinsics, RecordingInfo
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
@@ -53,6 +65,11 @@ class Recording:
     rgb_files: list[Path] | None = None
     intrinsics: Intrinsics | None = None
     meta: dict = field(default_factory=dict)
+    #: frames the video's header declares when fewer decode (``allow_partial``); None when all decode.
+    declared_frames: int | None = None
+    #: warnings about the data (e.g. a partial video), one line each; the pipeline adds them to the trace's events.
+    notes: list = field(default_factory=list)
+    allow_partial: bool = False
 
     # -- identity --------------------------------------------------------------------------------------------------
     @property
@@ -62,13 +79,29 @@ class Recording:
             return str(int(self.id))
         return str(self.meta.get("config_id", self.id))
 
-    def fingerprint(self) -> str:
-        """A cheap content key (paths, sizes and modification times of every input file)."""
-        h = hashlib.sha1()
+    def input_files(self) -> list[Path]:
+        """Every file the frames are read from (RGB video or images, then depth images)."""
         files = [self.rgb_video] if self.rgb_video else list(self.rgb_files or [])
-        for p in [*files, *self.depth_files]:
-            st = p.stat()
-            h.update(f"{p.resolve()}|{st.st_size}|{st.st_mtime_ns}\n".encode())
+        return [*files, *self.depth_files]
+
+    def fingerprint(self, hasher=None) -> str:
+        """The content key of the recording's frames: a digest of each input file's *bytes* (BLAKE2b), so any edit
+        changes it, even one that keeps the size and sets the modification time back. ``hasher``
+        (``massviz.io.filehash.FileHasher``, the trace cache's) remembers each file's digest by (path, size, mtime,
+        ctime, inode), so a dataset is hashed once, not on every run."""
+        from massviz.io.filehash import FileHasher
+
+        hasher = hasher or FileHasher()
+        files = self.input_files()
+        root = self.path.parent if self.path.is_file() else self.path
+        h = hashlib.blake2b(digest_size=16)
+        h.update(f"{self.kind}|{self.num_frames}\n".encode())
+        for p, digest in zip(files, hasher.digests(files, group=str(Path(self.path).resolve()))):
+            try:
+                name = str(p.relative_to(root))
+            except ValueError:
+                name = p.name
+            h.update(f"{name}|{digest}\n".encode())
         return h.hexdigest()
 
     def info(self) -> RecordingInfo:
@@ -114,6 +147,7 @@ class Recording:
             i = 0
             while i <= last:
                 if not cap.grab():
+                    self._video_ended(i)
                     break
                 if keep(i):
                     ok, bgr = cap.retrieve()
@@ -125,8 +159,27 @@ class Recording:
             cap.release()
 
 
+    def _video_ended(self, decoded: int) -> None:
+        """The video stopped decoding at frame ``decoded`` although ``num_frames`` were expected."""
+        if decoded >= self.num_frames:
+            return
+        declared = self.declared_frames or self.num_frames
+        if not self.allow_partial:
+            raise RecordingError(partial_message(decoded, declared), self.rgb_video)
+        note = f"{self.rgb_video}: {partial_message(decoded, declared)}; processed the {decoded} that decode"
+        if note not in self.notes:
+            self.notes.append(note)
+            print(f"massviz: warning: {note}", file=sys.stderr)
+
+
+def partial_message(decoded: int, declared: int) -> str:
+    return (f"video is cut short: only {decoded} of the {declared} frames its header declares decode "
+            "(a partial download or copy?)")
+
+
 # ---------------------------------------------------------------------------------------------------------------
 def _read_rgb(path: Path, width: int | None = None, height: int | None = None) -> np.ndarray:
+    check_image_size(path, RecordingError, "RGB image")
     bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if bgr is None:
         raise RecordingError("cannot read image (missing, empty or not an image)", path)
@@ -136,6 +189,7 @@ def _read_rgb(path: Path, width: int | None = None, height: int | None = None) -
 
 
 def _read_depth(path: Path, width: int, height: int) -> np.ndarray:
+    check_image_size(path, RecordingError, "depth image")
     depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if depth is None:
         raise RecordingError("cannot read depth image (missing, empty or not a PNG)", path)
@@ -155,8 +209,10 @@ def _sorted_images(folder: Path, suffixes=IMAGE_SUFFIXES) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in suffixes)
 
 
-def _probe_video(path: Path) -> tuple[int, int, int, float]:
-    """(width, height, frame count, fps) of a video, checking that its first frame decodes."""
+def _probe_video(path: Path) -> tuple[int, int, int, float, int]:
+    """(width, height, decodable frames, fps, frames the header declares) of a video, checking that its first frame
+    decodes and, cheaply, that its last declared frame does (a seek); only when that fails are the frames counted
+    by decoding them, so a good file costs two frame decodes."""
     if path.stat().st_size == 0:
         raise RecordingError("cannot decode video: the file is empty", path)
     cap = cv2.VideoCapture(str(path))
@@ -164,46 +220,117 @@ def _probe_video(path: Path) -> tuple[int, int, int, float]:
         ok, bgr = cap.read() if cap.isOpened() else (False, None)
         if not ok or bgr is None:
             raise RecordingError("cannot decode video (not a readable video file)", path)
-        count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
-        fps = float(cap.get(cv2.CAP_PROP_FPS)) or 30.0
-        return bgr.shape[1], bgr.shape[0], max(count, 1), fps
+        height, width = bgr.shape[:2]
+        if width > MAX_IMAGE_SIDE or height > MAX_IMAGE_SIDE:
+            raise RecordingError(f"video frames are {width}x{height} (at most {MAX_IMAGE_SIDE} per side)", path)
+        count = cap.get(cv2.CAP_PROP_FRAME_COUNT)
+        declared = int(count) if math.isfinite(count) and 0 < count <= MAX_INDEX else 0
+        fps = float(cap.get(cv2.CAP_PROP_FPS))
+        fps = fps if math.isfinite(fps) and 0 < fps <= 1000 else 30.0
+        if declared > 1:
+            cap.set(cv2.CAP_PROP_POS_FRAMES, declared - 1)
+            if cap.grab():
+                return width, height, declared, fps, declared
+    finally:
+        cap.release()
+    decoded = _count_frames(path, declared or MAX_INDEX)
+    return width, height, decoded, fps, declared or decoded
+
+
+def _count_frames(path: Path, limit: int) -> int:
+    cap = cv2.VideoCapture(str(path))
+    try:
+        n = 0
+        while n < limit and cap.grab():
+            n += 1
+        return n
     finally:
         cap.release()
 
 
+def _video_frames(path: Path, allow_partial: bool) -> tuple[int, int, int, float, int | None, list[str]]:
+    """``_probe_video`` with the partial-video rule applied: (width, height, frames, fps, declared or None, notes)."""
+    width, height, decoded, fps, declared = _probe_video(path)
+    if decoded >= declared:
+        return width, height, decoded, fps, None, []
+    if not allow_partial:
+        raise RecordingError(f"{partial_message(decoded, declared)}; pass --allow-partial to process the "
+                             f"{decoded} that decode", path)
+    note = f"{path}: {partial_message(decoded, declared)}; processed the {decoded} that decode"
+    print(f"massviz: warning: {note}", file=sys.stderr)
+    return width, height, decoded, fps, declared, [note]
+
+
+#: largest meta.json / intrinsics.json read (the samples' are a few KB).
+MAX_JSON_BYTES = 16 << 20
+
+
 def _load_json(path: Path) -> dict:
     try:
+        if path.stat().st_size > MAX_JSON_BYTES:
+            raise RecordingError(f"is {path.stat().st_size} bytes; at most {MAX_JSON_BYTES} are read", path)
         data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise RecordingError(f"not valid JSON ({err})", path) from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
+        raise RecordingError(f"not valid JSON ({type(err).__name__}: {err})", path) from None
     if not isinstance(data, dict):
         raise RecordingError("expected a JSON object", path)
     return data
 
 
+def check_intrinsics(values: dict, path: Path, width: int | None = None, height: int | None = None) -> Intrinsics:
+    """``Intrinsics`` from {fx, fy, cx, cy[, width, height]}, every value checked: fx, fy finite and > 0, width and
+    height integers in [1, MAX_IMAGE_SIDE], cx in [0, width], cy in [0, height]. ``RecordingError`` naming ``path``."""
+    def num(key, **kw):
+        if key not in values:
+            raise RecordingError(f"intrinsics need fx, fy, cx, cy, width, height; '{key}' is missing", path)
+        return number(values[key], key, path, error=RecordingError, **kw)
+
+    w = width if width is not None else num("width", lo=1, hi=MAX_IMAGE_SIDE, integral=True)
+    h = height if height is not None else num("height", lo=1, hi=MAX_IMAGE_SIDE, integral=True)
+    return Intrinsics(num("fx", lo=0, lo_open=True), num("fy", lo=0, lo_open=True), num("cx", lo=0, hi=w),
+                      num("cy", lo=0, hi=h), w, h)
+
+
 def _intrinsics_json(path: Path) -> Intrinsics:
-    data = _load_json(path)
-    try:
-        intr = Intrinsics.from_dict(data)
-    except (KeyError, TypeError, ValueError) as err:
-        raise RecordingError(f"intrinsics need numeric fx, fy, cx, cy, width, height ({err!s} is wrong)",
-                             path) from None
-    if intr.fx <= 0 or intr.fy <= 0:
-        raise RecordingError("intrinsics fx and fy must be positive", path)
-    return intr
+    return check_intrinsics(_load_json(path), path)
 
 
 def _intrinsics_ccm(path: Path, width: int, height: int) -> Intrinsics:
-    """Intrinsics of the RGB camera from a CCM calibration pickle ([0]['rgb'] is the 3×3 camera matrix)."""
+    """Intrinsics of the RGB camera from a CCM calibration pickle ([0]['rgb'] is the 3×3 camera matrix), read with
+    the restricted unpickler (``massviz.io.untrusted.load_calibration_pickle``): nothing in the file runs."""
+    calib = load_calibration_pickle(path, RecordingError)
     try:
-        with open(path, "rb") as fh:
-            calib = pickle.load(fh, encoding="latin1")
-        k = np.asarray(calib[0]["rgb"], dtype=np.float64)
-        if k.shape != (3, 3):
-            raise ValueError(f"rgb camera matrix has shape {k.shape}")
-    except Exception as err:  # noqa: BLE001 - any unpickling problem is a malformed file
-        raise RecordingError(f"not a CCM calibration pickle ({type(err).__name__}: {err})", path) from None
-    return Intrinsics(float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]), width, height)
+        k = calib[0]["rgb"]
+    except (TypeError, KeyError, IndexError) as err:
+        raise RecordingError(f"not a CCM calibration pickle: expected a list whose item 0 is a dict with the 3x3 "
+                             f"'rgb' camera matrix ({type(err).__name__}: {err})", path) from None
+    if not isinstance(k, np.ndarray) or k.shape != (3, 3) or k.dtype.kind not in "iuf":
+        shape = k.shape if isinstance(k, np.ndarray) else type(k).__name__
+        raise RecordingError(f"the 'rgb' camera matrix must be a 3x3 array of numbers, got shape {shape}", path)
+    k = k.astype(np.float64)
+    return check_intrinsics({"fx": k[0, 0], "fy": k[1, 1], "cx": k[0, 2], "cy": k[1, 2]}, path, width, height)
+
+
+def check_meta(meta: dict, path: Path, folder: Path) -> dict:
+    """Check the fields of a meta.json massviz reads (``RecordingError`` naming ``path``): ``id`` and ``config_id``
+    are text without control characters (``config_id`` may be an integer), ``fps`` a finite number in (0, 1000],
+    ``container`` an object whose ``mass_g`` is finite and > 0 and whose sizes are finite, ``instances`` maps
+    integer ids to names, and ``instance_masks`` is a ``{frame}`` pattern of a path inside the recording."""
+    err = RecordingError
+    if "id" in meta:
+        text_id(meta["id"], "'id'", path, err)
+    if "config_id" in meta:
+        cid = meta["config_id"]
+        if isinstance(cid, int) and not isinstance(cid, bool):
+            number(cid, "'config_id'", path, lo=0, hi=MAX_INDEX, integral=True, error=err)
+        elif isinstance(cid, str):
+            text_id(cid, "'config_id'", path, err)
+        else:
+            raise err(f"'config_id' must be a string or an integer, got {cid!r}"[:200], path)
+    if "fps" in meta:
+        number(meta["fps"], "'fps'", path, lo=0, lo_open=True, hi=1000, error=err)
+    GroundTruth.check_meta(meta, path, folder, err)
+    return meta
 
 
 def _check_counts(depth_dir: Path, n_depth: int, n_rgb: int) -> None:
@@ -214,8 +341,11 @@ def _check_counts(depth_dir: Path, n_depth: int, n_rgb: int) -> None:
                              depth_dir)
 
 
-def open_recording(path: str | Path) -> Recording:
-    """Open and check a recording: a massviz folder, or a CCM video path (ROOT/viewN/rgb/NNNNNN.mp4)."""
+def open_recording(path: str | Path, *, allow_partial: bool = False) -> Recording:
+    """Open and check a recording: a massviz folder, or a CCM video path (ROOT/viewN/rgb/NNNNNN.mp4).
+
+    ``allow_partial``: a video cut short is processed as far as it decodes (a warning on stderr and in
+    ``Recording.notes``) instead of being an error."""
     path = Path(path)
     if not path.exists():
         raise RecordingError("no such file or directory", path)
@@ -223,16 +353,20 @@ def open_recording(path: str | Path) -> Recording:
         if path.suffix.lower() != ".mp4":
             raise RecordingError("not a recording: give a recording folder or a CCM video (.../viewN/rgb/NNNNNN.mp4)",
                                  path)
-        return _open_ccm(path)
-    return _open_folder(path)
+        rec = _open_ccm(path, allow_partial)
+    else:
+        rec = _open_folder(path, allow_partial)
+    rec.allow_partial = allow_partial
+    return rec
 
 
-def _open_ccm(video: Path) -> Recording:
+def _open_ccm(video: Path, allow_partial: bool = False) -> Recording:
     view = video.parent.parent
     depth_dir = view / "depth" / video.stem
+    text_id(video.stem, "recording id (the video's name)", video, RecordingError)
     if not depth_dir.is_dir():
         raise RecordingError(f"missing depth folder for this CCM video (expected {depth_dir})", video)
-    width, height, n_rgb, fps = _probe_video(video)
+    width, height, n_rgb, fps, declared, notes = _video_frames(video, allow_partial)
     depth_files = _sorted_images(depth_dir, (".png",))
     _check_counts(depth_dir, len(depth_files), n_rgb)
     _read_depth(depth_files[0], width, height)
@@ -240,15 +374,17 @@ def _open_ccm(video: Path) -> Recording:
     intr = _intrinsics_ccm(calib, width, height) if calib.is_file() else None
     return Recording(path=video, kind="ccm", id=video.stem, depth_files=depth_files, width=width, height=height,
                      num_frames=n_rgb, fps=fps, rgb_video=video, intrinsics=intr,
-                     meta={"view": view.name, "dataset_root": str(view.parent)})
+                     meta={"view": view.name, "dataset_root": str(view.parent)}, declared_frames=declared,
+                     notes=notes)
 
 
-def _open_folder(folder: Path) -> Recording:
+def _open_folder(folder: Path, allow_partial: bool = False) -> Recording:
     video = folder / "rgb.mp4"
     rgb_dir = folder / "rgb"
     rgb_files = None
+    declared, notes = None, []
     if video.is_file():
-        width, height, n_rgb, fps = _probe_video(video)
+        width, height, n_rgb, fps, declared, notes = _video_frames(video, allow_partial)
     elif rgb_dir.is_dir():
         rgb_files = _sorted_images(rgb_dir)
         if not rgb_files:
@@ -267,24 +403,25 @@ def _open_folder(folder: Path) -> Recording:
     depth_files = _sorted_images(depth_dir, (".png",))
     _check_counts(depth_dir, len(depth_files), n_rgb)
     _read_depth(depth_files[0], width, height)
-    meta = _load_json(folder / "meta.json") if (folder / "meta.json").is_file() else {}
-    try:
-        fps = float(meta.get("fps", fps))
-    except (TypeError, ValueError):
-        raise RecordingError(f"'fps' must be a number, got {meta['fps']!r}", folder / "meta.json") from None
+    meta = check_meta(_load_json(folder / "meta.json"), folder / "meta.json", folder) \
+        if (folder / "meta.json").is_file() else {}
+    fps = float(meta.get("fps", fps))
+    rec_id = str(meta.get("id", folder.name))
+    if "id" not in meta:
+        text_id(rec_id, "recording id (the folder's name)", folder, RecordingError)
     intr = _intrinsics_json(folder / "intrinsics.json") if (folder / "intrinsics.json").is_file() else None
     if intr is not None and (intr.width, intr.height) != (width, height):
         raise RecordingError(f"intrinsics are for {intr.width}x{intr.height} but the frames are {width}x{height}",
                              folder / "intrinsics.json")
-    return Recording(path=folder, kind="folder", id=str(meta.get("id", folder.name)), depth_files=depth_files,
+    return Recording(path=folder, kind="folder", id=rec_id, depth_files=depth_files,
                      width=width, height=height, num_frames=n_rgb, fps=fps, rgb_video=video, rgb_files=rgb_files,
-                     intrinsics=intr, meta=meta)
+                     intrinsics=intr, meta=meta, declared_frames=declared, notes=notes)
 
 
-def collect_recordings(paths, view: int = 3) -> list[Recording]:
+def collect_recordings(paths, view: int = 3, *, allow_partial: bool = False) -> list[Recording]:
     """Expand dataset roots (``find_recordings``) and open (check) every recording before any work starts."""
     found = [p for path in paths for p in find_recordings(path, view=view)]
-    return [open_recording(p) for p in found]
+    return [open_recording(p, allow_partial=allow_partial) for p in found]
 
 
 def find_recordings(root: str | Path, view: int = 3) -> list[Path]:

@@ -56,6 +56,7 @@ from tqdm.auto import tqdm
 
 from massviz.errors import DataError, MassvizError
 from massviz.io.atomic import atomic_dir
+from massviz.io.untrusted import check_image_size, confined, number, safe_filename, text_id
 from massviz.evaluation.metrics import ANN_CONTAINER, ANN_ID, ANN_MASS
 from massviz.core.types import GroundTruth
 from massviz.core.model import MassNet, Ranges, preprocess_patch, save_checkpoint
@@ -80,6 +81,8 @@ FOLDS = {"fold1": (3, 6, 9), "fold2": (2, 5, 8), "fold3": (1, 4, 7)}
 SPLITS = ("random", *FOLDS)
 #: how many times augmentation multiplies the training set (the patch itself + augmented copies).
 AUGMENT_FACTOR = {"random": 5, **{f: 3 for f in FOLDS}}
+#: largest augmentation factor (the training set is this many times as long).
+MAX_AUGMENT = 100
 DEFAULT_EPOCHS = {"random": 300, **{f: 100 for f in FOLDS}}
 
 
@@ -130,7 +133,7 @@ def patch_rows(trace, annotation: Annotation) -> list[tuple[str, np.ndarray, dic
         if patch is None:
             raise MassvizError(f"recording {rec.id}: the trace kept no patch for its rank-{rank} detection "
                                "(K larger than the patches a cached trace keeps); rerun with --no-cache")
-        name = f"{IMAGES_DIR}/{rec.id}_{rank}.png"
+        name = f"{IMAGES_DIR}/{safe_filename(rec.id)}_{rank}.png"  # an id from meta.json is text, not a path
         x1, y1, x2, y2 = (int(v) for v in selected.xyxy[rank])
         row = {"file": name, "recording": rec.id, "config_id": rec.config_id, "rank": rank,
                "frame": int(selected.frame[rank]), "a": float(selected.a[rank]), "b": float(selected.b[rank]),
@@ -162,6 +165,12 @@ def check_extract(recordings: Sequence, out: str | Path, annotations: pd.DataFra
     ids = [r.id for r in recordings]
     if dup := sorted({i for i in ids if ids.count(i) > 1}):
         raise MassvizError(f"recording id {dup[0]} appears more than once; extract each dataset on its own")
+    names = {}
+    for r in recordings:
+        other = names.setdefault(safe_filename(r.id), r.id)
+        if other != r.id:
+            raise MassvizError(f"recording ids {other!r} and {r.id!r} give the same image file names "
+                               f"({safe_filename(r.id)}_*.png); extract them separately", r.path)
     return [annotation_for(r, annotations, annotations_path) for r in recordings]
 
 
@@ -218,10 +227,20 @@ def read_index(patches: str | Path) -> pd.DataFrame:
             bad = int(np.flatnonzero(~np.isfinite(values))[0])
             raise DataError(f"row {bad + 1}, column '{col}': not a finite number ({table[col].iloc[bad]!r})", path)
         table[col] = values.astype(np.float64)
-    table["container_id"] = pd.to_numeric(table["container_id"], errors="coerce").fillna(-1).astype(int)
-    for i, name in enumerate(table["file"]):
-        if not (patches / name).is_file():
-            raise DataError(f"row {i + 1}: image {name} is missing", patches / name)
+    ids = pd.to_numeric(table["container_id"], errors="coerce")
+    bad = ~(ids.isna() | (np.isfinite(ids) & (ids == ids.round()) & (ids >= -1) & (ids <= 2**31 - 1)))
+    if bad.any():
+        i = int(np.flatnonzero(bad.to_numpy())[0])
+        raise DataError(f"row {i + 1}, column 'container_id': {table['container_id'].iloc[i]!r} is not an integer "
+                        "id >= -1", path)
+    table["container_id"] = ids.fillna(-1).astype(np.int64)
+    for i, rec in enumerate(table["recording"]):
+        text_id(rec if isinstance(rec, str) else "", f"row {i + 1}, column 'recording'", path)
+    for i, name in enumerate(table["file"]):  # a path from a data file: it must stay inside the patch set
+        image = confined(patches, name if isinstance(name, str) else None, path, f"row {i + 1}, column 'file'")
+        if not image.is_file():
+            raise DataError(f"row {i + 1}: image {name} is missing", image)
+        check_image_size(image, DataError, "patch image")
     return table
 
 
@@ -346,8 +365,13 @@ class TrainConfig:
             raise MassvizError(f"unknown split {self.split!r} (choose from {', '.join(SPLITS)})")
         cfg = replace(self, epochs=DEFAULT_EPOCHS[self.split] if self.epochs is None else self.epochs,
                       augment_factor=AUGMENT_FACTOR[self.split] if self.augment_factor is None else self.augment_factor)
-        if cfg.epochs < 1 or cfg.batch_size < 2 or cfg.augment_factor < 1 or not 0 < cfg.val_fraction < 1:
-            raise MassvizError("need epochs >= 1, batch size >= 2, augmentation factor >= 1 and 0 < val fraction < 1")
+        checks = (("--epochs", cfg.epochs, 1, 1_000_000, True), ("--batch-size", cfg.batch_size, 2, 1_000_000, True),
+                  ("--augment", cfg.augment_factor, 1, MAX_AUGMENT, True), ("--lr", cfg.lr, 0, 10.0, False),
+                  ("val fraction", cfg.val_fraction, 0, 1, False))
+        for option, value, lo, hi, integral in checks:
+            number(value, option, lo=lo, hi=hi, lo_open=not integral, integral=integral, error=MassvizError)
+        if not cfg.val_fraction < 1:
+            raise MassvizError(f"val fraction must be < 1, got {cfg.val_fraction}")
         return cfg
 
 
