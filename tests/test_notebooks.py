@@ -6,6 +6,7 @@ Execution uses the venv's ``python3`` kernel spec (ipykernel), cwd ``notebooks/`
 """
 from __future__ import annotations
 
+import logging
 import os
 import sys
 import time
@@ -53,6 +54,21 @@ def _outputs_text(book) -> str:
     return "\n".join(parts)
 
 
+#: what the notebook client logged while running each notebook (warnings and above)
+CLIENT_LOG: dict[str, list[str]] = {}
+#: lines that must not clutter a notebook's outputs (Open3D's WebVisualizer, Filament's start-up) or the run's log
+CLUTTER = ("WebVisualizer", "WebRTC", "FEngine", "Vulkan device driver", "No handler found for comm target")
+
+
+class _Collect(logging.Handler):
+    def __init__(self):
+        super().__init__(logging.WARNING)
+        self.lines: list[str] = []
+
+    def emit(self, record):
+        self.lines.append(record.getMessage())
+
+
 @pytest.fixture(scope="module")
 def executed(shared_dir, samples_dir, tmp_path_factory):
     """Run the three notebooks once (in order, sharing one trace cache); returns {name: executed notebook}."""
@@ -70,7 +86,13 @@ def executed(shared_dir, samples_dir, tmp_path_factory):
         t0 = time.perf_counter()
         client = NotebookClient(book, timeout=300, kernel_name="python3",
                                 resources={"metadata": {"path": str(NOTEBOOKS)}})
-        client.execute(env=env)
+        handler = _Collect()
+        client.log.addHandler(handler)  # e.g. "No handler found for comm target 'dash'" (a comm nobody handles)
+        try:
+            client.execute(env=env)
+        finally:
+            client.log.removeHandler(handler)
+        CLIENT_LOG[name] = handler.lines
         seconds[name] = time.perf_counter() - t0
         out[name] = book
     print("notebook execution times (s):", {k: round(v, 1) for k, v in seconds.items()})
@@ -108,3 +130,19 @@ def test_notebook_03_flags_the_pitcher(executed):
     text = _outputs_text(executed["03_failure_cases.ipynb"])
     assert "FLAGGED" in text and "pitcher" in text
     assert "after excluding the pitcher" in text
+    assert "57.4 g -> 8.3 g" in text and "chosen frames [8, 9, 10] removed" in text  # one exclude-track
+    assert "cues alone flag ['★0', '★1', '★2'] ; ground truth flags ['★0', '★1', '★2']" in text
+
+
+def test_notebook_01_shows_the_flags(executed):
+    text = _outputs_text(executed["01_inspect_recording.ipynb"])
+    assert "3 of 5 chosen patches look like another object (frames 8–10, track 1): without them 8.3 g" in text
+    assert "★0 frame   9 track  1: FLAGGED" in text
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_notebook_outputs_are_not_cluttered(executed, name):
+    outputs = _outputs_text(executed[name])
+    for line in CLUTTER:
+        assert line not in outputs, f"{name}: {line!r} in the outputs"
+        assert not any(line in m for m in CLIENT_LOG.get(name, [])), f"{name}: {line!r} logged while running"

@@ -20,7 +20,7 @@ import pytest
 from sample_traces import WEIGHTS, sample_cache
 
 from massviz.evaluation.metrics import score_from_estimates
-from massviz.evaluation.failures import (Exclusion, chosen_table, exclusion_of, load_exclusions, match_exclusions, same_object,
+from massviz.evaluation.failures import (Exclusion, chosen_table, exclusion_of, load_exclusions, match_exclusions, track_of,
                               save_exclusions)
 from massviz.errors import DataError
 from massviz.evaluation.sweep import annotations_from_meta
@@ -117,7 +117,7 @@ def test_excluding_the_pitcher_moves_the_estimate_towards_ground_truth(traces):
     expected = subsample(traces[cup].reselect(exclude=[det]), 6).reselect(k=5)
     assert tuner.current[cup].estimate == pytest.approx(expected.estimate)
     panel.set_mode(det, "exclude track")  # the pitcher standing on the table, in every frame
-    track = same_object(traces[cup], det)
+    track = track_of(traces[cup], det)
     assert len(track) >= 6
     assert tuner.current[cup].estimate == pytest.approx(retune(traces[cup], k=5, stride=6, exclude=track).estimate)
     after = tuner.current[cup].estimate
@@ -213,3 +213,26 @@ def test_slider_latency_for_ten_recordings(traces):
     print(f"slider update over 10 recordings: median {1000 * np.median(seconds):.0f} ms, "
           f"max {1000 * max(seconds):.0f} ms ({len(seconds)} changes)")
     assert all(s > 0 for s in seconds)
+
+
+def test_set_moves_the_sliders_and_sliders_move_the_state(traces):
+    tuner = Tuner(traces)
+    panel = TuningPanel(tuner)
+    panel.set(stride=6, k=3, threshold=0.5)
+    assert (panel.stride.value, panel.k.value, panel.threshold.value) == (6, 3, 0.5)
+    assert (tuner.stride, tuner.k, tuner.threshold) == (6, 3, 0.5)
+    assert "stride 6" in panel.estimate.value and "K=3" in panel.estimate.value
+    panel.k.value = 7  # what dragging the K slider does
+    assert tuner.k == 7 and tuner.stride == 6 and len(tuner.selection(panel.i)) <= 7
+    panel.set(stride=1)
+    assert panel.stride.value == 1 and panel.k.value == 7 and tuner.stride == 1
+    # tiles: ★rank numbering, flagged ones outlined in the flagged colour
+    from massviz.views.palette import FLAGGED_HEX
+
+    cup = _pos(traces, "cup_handover")
+    panel.set(k=5, threshold=0.4)
+    panel.recording.value = cup
+    captions = [tile.children[1].value for tile in panel.patches.children]
+    assert captions[0].startswith("<small>★0 ") and "⚑ flagged" in captions[0]
+    assert [FLAGGED_HEX in tile.layout.border for tile in panel.patches.children] == \
+        [p.flagged for p in tuner.current[cup].flags.patches]

@@ -63,3 +63,11 @@ def build(args, threshold: float | None = None):
 
     overrides = {} if threshold is None else {"threshold": threshold}
     return build_pipeline(PipelineOptions.from_args(args, **overrides))
+
+
+def flag_warning(command: str, trace) -> str | None:
+    """The one line a command prints (stderr) for a recording whose chosen patches are flagged (``trace.flags``),
+    e.g. "massviz log: warning: cup_handover: 3 of 5 chosen patches look like another object (frames 8–10, track 1):
+    without them 8.3 g [ground truth: the pitcher]"; None when nothing is flagged."""
+    line = trace.flags.warning()
+    return None if line is None else f"massviz {command}: warning: {trace.recording.id}: {line}"

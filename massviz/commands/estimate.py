@@ -50,7 +50,7 @@ def run(args) -> int:
     from tqdm.auto import tqdm
 
     from massviz.io.challenge_csv import write_challenge_csv
-    from massviz.commands._common import build
+    from massviz.commands._common import build, flag_warning
     from massviz.io.recording import collect_recordings
 
     from massviz.errors import MassvizError
@@ -87,6 +87,9 @@ def run(args) -> int:
                   + (f" {trace.detector['precision']}" if "precision" in trace.detector else "")
                   + f", {elapsed:.1f} s)",
                   file=sys.stderr)
+        warning = flag_warning("estimate", trace)
+        if warning:
+            tqdm.write(warning, file=sys.stderr)
     write_challenge_csv(Path(args.out), rows, exact=args.exact)
     done = sum(r["mass_g"] >= 0 for r in rows)
     print(f"wrote {args.out}: {len(rows)} recordings, {done} estimated", file=sys.stderr)

@@ -34,7 +34,7 @@ def register(sub) -> None:
 def run(args) -> int:
     from pathlib import Path
 
-    from massviz.commands._common import build
+    from massviz.commands._common import build, flag_warning
     from massviz.errors import MassvizError
     from massviz.io.recording import open_recording
     from massviz.views.rerun_log import log_trace
@@ -60,4 +60,7 @@ def run(args) -> int:
     print(f"{rec.id}: {est}" + (f" (ground truth {gt:.1f} g)" if gt is not None else "")
           + (f"; wrote {args.rrd}" if args.rrd else "") + f" [logging took {stats.get('log_seconds', 0):.1f} s]",
           file=sys.stderr)
+    warning = flag_warning("log", trace)
+    if warning:
+        print(warning, file=sys.stderr)
     return 0

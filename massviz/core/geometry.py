@@ -42,7 +42,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import open3d as o3d
+from massviz._open3d import o3d
 
 from massviz.errors import MassvizError
 from massviz.core.trace import Event

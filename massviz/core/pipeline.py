@@ -2,7 +2,10 @@
 
 Stages, per processed frame (every ``stride``-th): **read** the RGB-D frame, **detect** containers, compute the
 **features** (d, a, b) of every detection, **predict** the mass of every detection's patch with the mass CNN, and
-**select** the K nearest detections seen so far (the running estimate). ``FramePipeline`` holds that running state:
+**select** the K nearest detections seen so far (the running estimate); each frame's detections are also linked to
+the object tracks of the earlier frames (``massviz.core.tracks.Tracker``; ``detections.track``). After the last frame
+the selection's **flags** are analysed (``massviz.core.flags``: chosen patches that are probably not the container).
+``FramePipeline`` holds that running state:
 
     fp = FramePipeline(detector, model, k=5)
     for frame in recording.frames():
@@ -32,6 +35,7 @@ from tqdm.auto import tqdm
 from massviz.core.patches import crop
 from massviz.core.selection import compute_features, estimate_mass, select_k_nearest
 from massviz.core.trace import Event, Trace, describe_detection, describe_selection
+from massviz.core.tracks import Tracker
 from massviz.core.types import Detections, Frame, RecordingInfo
 from massviz.detect.base import Detector
 
@@ -110,6 +114,7 @@ class FramePipeline:
         self._sel_d = np.zeros(0)
         self._sel_pred = np.zeros(0)
         self._start = time.perf_counter()
+        self._tracker = Tracker(recording.fps if recording is not None else None)
 
     @property
     def frames_done(self) -> int:
@@ -125,6 +130,7 @@ class FramePipeline:
         if detections is not None:
             t1 = t2 - detect_seconds
         compute_features(dets, frame.depth)
+        dets.track = self._tracker.update(frame.index, dets)
         t3 = time.perf_counter()
         dets.pred, patches = predict_detections(self.model, frame.rgb, dets)
         t4 = time.perf_counter()

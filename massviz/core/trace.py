@@ -5,6 +5,12 @@ Every consumer (Rerun logger, Open3D sink, notebooks, evaluation, training extra
 without running the detector or the model again (every detection already carries its prediction).
 
 A trace saves to a single ``.npz`` (no pickle): JSON header + parallel arrays + packed masks + PNG-encoded patches.
+
+Every trace carries its **tracks** (``detections.track``, ``massviz.core.tracks``) and the **flags** of its selection
+(``flags``, ``massviz.core.flags.analyse``: which chosen patches are probably not the container, and the estimate
+without them). Both are made when a trace is made (untracked detections are tracked, flags of another selection are
+recomputed: ``reselect`` and ``dataclasses.replace`` get fresh flags), saved with it (array ``det_track``, header
+``flags``) and, when a file of format 2 written before them lacks them, computed on load.
 """
 from __future__ import annotations
 
@@ -20,7 +26,9 @@ import numpy as np
 
 from massviz.io.atomic import atomic_path
 from massviz.errors import MassvizError
+from massviz.core.flags import Flags, analyse
 from massviz.core.selection import NearestOrder, estimate_mass, select_k_nearest
+from massviz.core.tracks import assign_tracks
 from massviz.core.types import Detections, GroundTruth, PackedMask, RecordingInfo, class_name
 
 TRACE_FORMAT = 2  # 2: typed events, recording info as a dataclass
@@ -75,6 +83,7 @@ class Trace:
       (they belong to the old selection).
     - ``frame_timings``: seconds per stage for each processed frame (stage -> array aligned with ``frames``; empty
       for traces made before massviz recorded them).
+    - ``flags``: ``massviz.core.flags.Flags`` of the selection (made when the trace is; see the module docstring).
     """
 
     recording: RecordingInfo
@@ -93,11 +102,19 @@ class Trace:
     excluded: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     measurements: list = field(default_factory=list)
     frame_timings: dict = field(default_factory=dict)
+    flags: Flags | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.recording, dict):
             self.recording = RecordingInfo.from_dict(self.recording)
         self.events = [e if isinstance(e, Event) else Event(*e) for e in self.events]
+        dets = self.detections
+        if len(dets) and (dets.track <= 0).any():
+            dets.track = assign_tracks(dets, self.recording.fps)
+        if isinstance(self.flags, dict):
+            self.flags = Flags.from_dict(self.flags)
+        if self.flags is None or not self.flags.describes(self):
+            self.flags = analyse(self)
 
     # -- views -----------------------------------------------------------------------------------------------------
     @property
@@ -192,7 +209,8 @@ class Trace:
             "detect_threshold": self.detect_threshold, "threshold": self.threshold, "k": self.k,
             "stride": self.stride, "estimate": self.estimate, "weights_id": self.weights_id,
             "timings": self.timings, "events": [e.to_list() for e in self.events],
-            "measurements": list(self.measurements), "frame_timing_stages": list(self.frame_timings),
+            "measurements": list(self.measurements), "flags": self.flags.to_dict(),
+            "frame_timing_stages": list(self.frame_timings),
         }
         masks = [m if m is not None else PackedMask(np.zeros((0, 0), bool)) for m in dets.masks]
         patch_idx = [i for i, p in enumerate(dets.patches) if p is not None]
@@ -245,13 +263,16 @@ class Trace:
         poff = np.concatenate([[0], np.cumsum(data["patch_sizes"])])
         for j, i in enumerate(data["patch_index"]):
             patches[int(i)] = _decode_png(data["patch_bytes"][poff[j]:poff[j + 1]])
-        dets = Detections(**{name: data[f"det_{name}"] for name in Detections._ARRAYS}, masks=masks, patches=patches)
+        # det_track and the flags are absent from files written before tracks existed: made by __post_init__
+        dets = Detections(**{name: data[f"det_{name}"] for name in Detections._ARRAYS
+                             if name != "track" or "det_track" in data}, masks=masks, patches=patches)
         return cls(recording=RecordingInfo.from_dict(header["recording"]), detector=header["detector"],
                    detect_threshold=header["detect_threshold"], threshold=header["threshold"], k=header["k"],
                    stride=header["stride"], frames=data["frames"], detections=dets, selection=data["selection"],
                    estimate=header["estimate"], weights_id=header["weights_id"], timings=header["timings"],
                    events=[Event(*e) for e in header["events"]], excluded=data["excluded"],
                    measurements=header.get("measurements", []),
+                   flags=Flags.from_dict(header["flags"]) if isinstance(header.get("flags"), dict) else None,
                    frame_timings={name: data[f"frame_time_{i}"]
                                   for i, name in enumerate(header.get("frame_timing_stages", []))})
 
@@ -282,6 +303,8 @@ def check_trace_arrays(header: dict, data: dict) -> None:
     if boxes.shape != (n, 4) or not ((boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1])).all():
         raise ValueError(f"det_xyxy: every box must be 4 integers x1 < x2, y1 < y2 (one per detection, {n})")
     ints("det_class_id", lo=-1, hi=10_000)
+    if "det_track" in data and len(ints("det_track", hi=_MAX_INDEX)) != n:  # absent in files from before tracks
+        raise ValueError(f"det_track: one track id >= 0 per detection ({n})")
     for name in ("det_score", "det_d", "det_a", "det_b", "det_pred"):
         a = np.asarray(data[name])
         if a.dtype.kind != "f" or a.shape != (n,):

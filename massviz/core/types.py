@@ -111,6 +111,7 @@ class Detections:
     - ``a``, ``b``: box width / image width and box height / image height, rounded to 2 decimals.
     - ``pred``: the mass CNN's prediction for this detection's patch (grams; NaN when not predicted).
     - ``patches``: the RGB crop of each box (H×W×3 uint8), or ``None`` entries when not kept.
+    - ``track``: the object track of each detection (``massviz.core.tracks``; ids >= 1, 0 = not tracked yet).
     """
 
     frame: np.ndarray = field(default_factory=lambda: _empty(np.int32))
@@ -123,8 +124,9 @@ class Detections:
     b: np.ndarray = field(default_factory=lambda: _empty(np.float64))
     pred: np.ndarray = field(default_factory=lambda: _empty(np.float32))
     patches: list = field(default_factory=list)
+    track: np.ndarray = field(default_factory=lambda: _empty(np.int64))
 
-    _ARRAYS = ("frame", "xyxy", "score", "class_id", "d", "a", "b", "pred")
+    _ARRAYS = ("frame", "xyxy", "score", "class_id", "d", "a", "b", "pred", "track")
     _LISTS = ("masks", "patches")
 
     def __post_init__(self) -> None:
@@ -137,6 +139,7 @@ class Detections:
             arr = getattr(self, name)
             setattr(self, name, np.full(n, np.nan) if len(arr) == 0 and n else np.asarray(arr, np.float64).reshape(n))
         self.pred = np.full(n, np.nan, np.float32) if len(self.pred) == 0 and n else np.asarray(self.pred, np.float32).reshape(n)
+        self.track = np.zeros(n, np.int64) if len(self.track) == 0 and n else np.asarray(self.track, np.int64).reshape(n)
         if not self.masks and n:
             self.masks = [None] * n
         self.masks = [m if m is None or isinstance(m, PackedMask) else PackedMask(m) for m in self.masks]

@@ -4,18 +4,14 @@ manipulated container, and user exclusions that survive a re-run.
 **Why chosen.** A patch is chosen because it is among the K detections with the smallest d (mean depth over its
 mask) among those with score > threshold; ``chosen_table`` lists rank, d, score and frame of each.
 
-**Flagging** (``chosen_table``; column ``flagged`` and ``flag_reason``):
+**Flagging**: the trace's own flags (``trace.flags``, ``massviz.core.flags``: the analysis stage every trace runs
+after selection, with the object tracks of ``massviz.core.tracks``); ``chosen_table`` shows them per patch
+(columns ``track``, ``flagged``, ``severity``, ``cues``, ``flag_gt``, ``flag_reason``): ground-truth instance masks
+where the recording has them (flagged exactly when the patch is not the container), else cues that need no ground
+truth (track, size, depth jump, time, class). Both are listed whenever possible so the cues can be checked against the
+ground truth.
 
-* *Ground truth, where known* (massviz recordings whose ``meta.json`` has ``instance_masks``, a per-frame PNG of
-  instance ids, and ``instances``, id → name): the detection's mask is compared with the container's instance mask
-  of its frame. IoU < :data:`GT_MIN_IOU` → flagged, naming the instance that covers most of the detection's mask
-  (``pitcher``, ``hand``, ...; ``container`` when the detection is only a part of it, e.g. a glass's rim).
-* *Otherwise*, cues (column ``cues``): robust z-scores, z = 0.6745 (x − median) / MAD, of each patch against the
-  *other* chosen patches (leave-one-out; the MAD is floored so that identical patches do not make every difference
-  infinite): size (``a``, ``b``), depth ``d`` and time (``frame``); |z| > :data:`Z_MAX` is a cue. A class different
-  from the most common class of the chosen patches is a cue too. Any cue flags the patch.
-
-Both are computed whenever possible (``flag_gt`` and ``cues``) so the cues can be checked against the ground truth.
+**Tracks**: ``track_of`` (every detection of a detection's track) is what "exclude track" excludes.
 
 **Exclusions** (``Exclusion``, ``save_exclusions``, ``load_exclusions``, ``match_exclusions``): detections the user
 rules out, identified by recording id, frame and box, never by position in a trace, so the file stays valid when the
@@ -38,29 +34,21 @@ detector with slightly different settings); entries that match nothing are repor
 from __future__ import annotations
 
 import json
-from collections import Counter
 from dataclasses import dataclass
-from functools import lru_cache
 from pathlib import Path
 from typing import Iterable, Sequence
 
-import cv2
 import numpy as np
 import pandas as pd
 
 from massviz.io.atomic import atomic_path
-from massviz.errors import DataError, MassvizError
-from massviz.io.untrusted import _CONTROL, MAX_INDEX, check_image_size, frame_path, text_id
+from massviz.errors import DataError
+from massviz.core.flags import GT_MIN_IOU, ground_truth_masks, ground_truth_overlap
+from massviz.io.untrusted import _CONTROL, MAX_INDEX, text_id
 from massviz.core.trace import Trace
 from massviz.core.types import class_name
 
 EXCLUSIONS_FORMAT = "massviz.exclusions/1"
-#: a chosen patch whose mask has IoU below this with the ground-truth container mask is flagged.
-GT_MIN_IOU = 0.5
-#: robust z-score beyond which a feature is a cue.
-Z_MAX = 3.5
-#: floors of the MAD per feature (a, b as image fractions, d in mm, frames).
-MAD_FLOOR = {"a": 0.02, "b": 0.02, "d_mm": 20.0, "frame": 2.0}
 #: IoU a box must reach to match an exclusion entry whose exact box is not found.
 MATCH_MIN_IOU = 0.9
 
@@ -194,119 +182,42 @@ def same_object(trace: Trace, index: int, min_iou: float = 0.7, max_dd_mm: float
 
 
 # ------------------------------------------------------------------------------------------------------- flagging
-def robust_z(values: np.ndarray, others: np.ndarray, floor: float) -> np.ndarray:
-    """z = 0.6745 (x − median(others)) / max(MAD(others), floor) for each x in ``values``."""
-    others = np.asarray(others, dtype=np.float64)
-    others = others[np.isfinite(others)]
-    if len(others) == 0:
-        return np.zeros(len(values))
-    med = np.median(others)
-    mad = max(float(np.median(np.abs(others - med))), floor)
-    return 0.6745 * (np.asarray(values, dtype=np.float64) - med) / mad
-
-
-@lru_cache(maxsize=256)
-def _gt_frame(path: str) -> np.ndarray | None:
-    try:
-        check_image_size(path, MassvizError, "ground-truth image")
-    except MassvizError:
-        return None
-    img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
-    return None if img is None else (img if img.ndim == 2 else img[..., 0])
-
-
-def ground_truth_masks(trace: Trace, frame: int) -> tuple[np.ndarray, dict[int, str]] | None:
-    """(instance-id image of ``frame``, {id: name}) from the recording's meta.json, or None when unknown."""
-    gt = trace.ground_truth
-    if gt is None or not gt.instance_masks or not gt.instances or not trace.recording.path:
-        return None
-    try:  # the pattern comes from a data file: only {frame}, and inside the recording folder
-        path = frame_path(gt.instance_masks, trace.recording.path, int(frame), trace.recording.path,
-                          "instance_masks")
-    except DataError:
-        return None
-    img = _gt_frame(str(path))
-    if img is None:
-        return None
-    return img, dict(gt.instances)
-
-
-def ground_truth_overlap(trace: Trace, index: int) -> dict | None:
-    """For detection ``index``: ``iou_container`` (IoU of its mask with the container's), ``overlaps`` (name of
-    the instance covering most of its mask, "background" for none) and ``fraction`` (of the mask it covers); None
-    without ground truth."""
-    dets = trace.detections
-    gt = ground_truth_masks(trace, int(dets.frame[index]))
-    if gt is None:
-        return None
-    img, names = gt
-    mask = dets.full_mask(index, *img.shape[:2])
-    container = [i for i, n in names.items() if n == "container"]
-    cmask = np.isin(img, container)
-    union = int((mask | cmask).sum())
-    iou = float((mask & cmask).sum() / union) if union else 0.0
-    ids, counts = np.unique(img[mask], return_counts=True)
-    if len(ids) == 0:
-        return {"iou_container": iou, "overlaps": "background", "fraction": 0.0}
-    best = int(np.argmax(counts))
-    name = names.get(int(ids[best]), "background" if ids[best] == 0 else f"instance {ids[best]}")
-    return {"iou_container": iou, "overlaps": name, "fraction": float(counts[best] / counts.sum())}
-
-
-def _cues(trace: Trace, selection: np.ndarray) -> list[list[str]]:
-    dets = trace.detections
-    feats = {"a": dets.a[selection], "b": dets.b[selection], "d_mm": dets.d[selection],
-             "frame": dets.frame[selection].astype(np.float64)}
-    labels = {"a": "width a", "b": "height b", "d_mm": "depth d", "frame": "time (frame)"}
-    classes = [class_name(c) for c in dets.class_id[selection]]
-    common = Counter(classes).most_common(1)[0][0] if classes else None
-    out = []
-    for j in range(len(selection)):
-        others = np.delete(np.arange(len(selection)), j)
-        cues = []
-        if len(others) >= 2:
-            for name, values in feats.items():
-                z = float(robust_z(values[j:j + 1], values[others], MAD_FLOOR[name])[0])
-                if abs(z) > Z_MAX:
-                    cues.append(f"{labels[name]} z={z:+.1f}")
-        if classes[j] != common:
-            cues.append(f"class {classes[j]} (others mostly {common})")
-        out.append(cues)
-    return out
+def track_of(trace: Trace, index: int) -> np.ndarray:
+    """Every detection of ``trace`` on the same object track as detection ``index`` (``detections.track``; the
+    lifted pitcher of ``cup_handover`` in frames 0-23 is one track), ascending. Includes ``index``."""
+    tracks = np.asarray(trace.detections.track)
+    return np.union1d(np.flatnonzero(tracks == tracks[int(index)]), [int(index)]).astype(np.int64)
 
 
 def chosen_table(trace: Trace, extra: Sequence[int] = ()) -> pd.DataFrame:
     """One row per chosen patch (nearest first), then one per ``extra`` detection (e.g. excluded ones, rank -1):
-    ``detection`` (index), ``rank``, ``frame``, ``class``, ``score``, ``d_mm``, ``a``, ``b``, ``pred_g``, ``why``
-    (why it was chosen), ``gt_iou`` / ``gt_overlaps`` (NaN / "" without ground truth), ``flag_gt`` (None without),
-    ``cues``, ``flagged`` and ``flag_reason``."""
+    ``detection`` (index), ``rank`` (0 = nearest, as ★0 in every view), ``frame``, ``track``, ``class``, ``score``,
+    ``d_mm``, ``a``, ``b``, ``pred_g``, ``why`` (why it was chosen), ``gt_iou`` / ``gt_overlaps`` (NaN / "" without
+    ground truth), ``flag_gt`` (None without), ``cues`` (no ground truth needed), ``flagged``, ``severity`` and
+    ``flag_reason``, from ``trace.flags``. Extra rows are not flagged (they are not chosen)."""
     dets = trace.detections
     sel = np.asarray(trace.selection, dtype=np.int64)
     rows_idx = list(sel) + [int(i) for i in extra if int(i) not in set(sel.tolist())]
-    cues = _cues(trace, sel) + [[] for _ in range(len(rows_idx) - len(sel))]
     n_active = int((trace.active() & np.isfinite(dets.d)).sum())
     rows = []
     for r, i in enumerate(rows_idx):
         rank = r if r < len(sel) else -1
-        why = (f"rank {rank + 1} of K={trace.k}: d={dets.d[i]:.0f} mm, among the {trace.k} smallest of "
-               f"{n_active} detections with score > {trace.threshold:.2f} (score {dets.score[i]:.2f}, frame "
-               f"{int(dets.frame[i])})") if rank >= 0 else "not chosen (excluded)"
-        gt = ground_truth_overlap(trace, i)
-        flag_gt = None if gt is None else gt["iou_container"] < GT_MIN_IOU
-        if flag_gt is None:
-            flagged, reason = bool(cues[r]), "; ".join(cues[r])
-        elif flag_gt:
-            part = " (only part of the container)" if gt["overlaps"] == "container" else ""
-            flagged, reason = True, (f"ground truth: IoU {gt['iou_container']:.2f} < {GT_MIN_IOU} with the container; "
-                                     f"{gt['fraction']:.0%} of its mask is on the {gt['overlaps']}{part}")
-        else:
-            flagged, reason = False, ""
+        why = (f"★{rank}: rank {rank} (0 = nearest) of the K={trace.k} chosen, d={dets.d[i]:.0f} mm, among the "
+               f"{trace.k} smallest of {n_active} detections with score > {trace.threshold:.2f} (score "
+               f"{dets.score[i]:.2f}, frame {int(dets.frame[i])})") if rank >= 0 else "not chosen (excluded)"
+        flag = trace.flags.of(i) if rank >= 0 else None
+        gt = ground_truth_overlap(trace, i) if flag is None else None
+        gt_name = flag.ground_truth if flag is not None else (None if gt is None else gt["overlaps"])
+        gt_iou = flag.gt_iou if flag is not None else (None if gt is None else gt["iou_container"])
         rows.append({
-            "detection": int(i), "rank": rank, "frame": int(dets.frame[i]), "class": class_name(dets.class_id[i]),
-            "score": float(dets.score[i]), "d_mm": float(dets.d[i]), "a": float(dets.a[i]), "b": float(dets.b[i]),
-            "pred_g": float(dets.pred[i]), "why": why,
-            "gt_iou": np.nan if gt is None else gt["iou_container"], "gt_overlaps": "" if gt is None else gt["overlaps"],
-            "flag_gt": flag_gt, "cues": "; ".join(cues[r]), "flagged": flagged, "flag_reason": reason,
+            "detection": int(i), "rank": rank, "frame": int(dets.frame[i]), "track": int(dets.track[i]),
+            "class": class_name(dets.class_id[i]), "score": float(dets.score[i]), "d_mm": float(dets.d[i]),
+            "a": float(dets.a[i]), "b": float(dets.b[i]), "pred_g": float(dets.pred[i]), "why": why,
+            "gt_iou": np.nan if gt_iou is None else gt_iou, "gt_overlaps": gt_name or "",
+            "flag_gt": None if gt_iou is None else bool(gt_iou < GT_MIN_IOU),
+            "cues": "" if flag is None else "; ".join(c.message for c in flag.cues),
+            "flagged": bool(flag is not None and flag.flagged), "severity": "none" if flag is None else flag.severity,
+            "flag_reason": "" if flag is None or not flag.flagged else flag.reason,
         })
     return pd.DataFrame(rows)
 
@@ -329,6 +240,6 @@ def rank_by_error(traces: Sequence[Trace]) -> pd.DataFrame:
     return table.sort_values("eps", ascending=False, kind="stable").reset_index(drop=True)
 
 
-__all__ = ["EXCLUSIONS_FORMAT", "GT_MIN_IOU", "Z_MAX", "Exclusion", "exclusion_of", "save_exclusions",
-           "load_exclusions", "match_exclusions", "box_iou", "same_object", "robust_z", "ground_truth_masks",
+__all__ = ["EXCLUSIONS_FORMAT", "GT_MIN_IOU", "Exclusion", "exclusion_of", "save_exclusions",
+           "load_exclusions", "match_exclusions", "box_iou", "same_object", "track_of", "ground_truth_masks",
            "ground_truth_overlap", "chosen_table", "rank_by_error", "recording_id"]

@@ -27,7 +27,7 @@ from typing import Callable, Iterable
 
 import cv2
 import numpy as np
-import open3d as o3d
+from massviz._open3d import o3d
 
 from massviz import __version__
 from massviz.errors import MassvizError

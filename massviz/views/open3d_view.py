@@ -14,14 +14,14 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
-import open3d as o3d
+from massviz._open3d import o3d
 
 from massviz.core.geometry import (DEPTH_TRUNC_M, _by_frame, detection_cloud, measure_cloud, measurements_of,
                                    require_intrinsics, rgbd_cloud, scene_cloud, skip_reason)
 from massviz.core.types import Intrinsics
 from massviz.errors import MassvizError
 from massviz.io.atomic import atomic_path
-from massviz.views.palette import BOX_COLOUR, CHOSEN_COLOUR
+from massviz.views.palette import BOX_COLOUR, CHOSEN_COLOUR, FLAGGED_COLOUR, rgb255
 
 # ------------------------------------------------------------------------------------------------ files
 def save_cloud(path: str | Path, pcd: o3d.geometry.PointCloud) -> Path:
@@ -83,13 +83,22 @@ def box_lineset(obb: o3d.geometry.OrientedBoundingBox, colour=BOX_COLOUR) -> o3d
 def frame_geometries(trace, recording, frame_index: int | None = None, *, depth_trunc: float = DEPTH_TRUNC_M
                      ) -> tuple[int, list[tuple[str, object]]]:
     """(frame, [(name, geometry)]) to draw: the scene cloud with the chosen detections' points recoloured
-    (``CHOSEN_COLOUR``) and their oriented boxes as line sets. ``frame_index`` defaults to the frame of the nearest
-    chosen detection (else the first processed frame)."""
+    (``CHOSEN_COLOUR``, flagged ones ``FLAGGED_COLOUR``: the palette the Rerun and notebook views use) and their
+    oriented boxes as line sets (a flagged one's in ``FLAGGED_COLOUR``). ``frame_index`` defaults to the frame of the
+    nearest chosen detection; a frame without a chosen patch (or a trace without any) is a ``MassvizError`` naming
+    the frames that have one (a view orbiting nothing in particular is unreadable)."""
     intr = require_intrinsics(recording)
     dets = trace.detections
+    chosen_frames = sorted({int(dets.frame[i]) for i in trace.selection})
+    if not chosen_frames:
+        raise MassvizError("no patch was chosen in this recording (not estimated): there is no container to show",
+                           recording.path)
     if frame_index is None:
-        frame_index = (int(dets.frame[trace.selection[0]]) if len(trace.selection)
-                       else int(trace.frames[0]) if len(trace.frames) else 0)
+        frame_index = int(dets.frame[trace.selection[0]])
+    elif int(frame_index) not in chosen_frames:
+        raise MassvizError(f"frame {int(frame_index)} has no chosen patch, so there is no container to centre the "
+                           f"view on; chosen patches are in frame(s) {', '.join(map(str, chosen_frames))} (or leave "
+                           "out the frame for the nearest one)", recording.path)
     frame = recording.read_frame(int(frame_index))
     chosen = [int(i) for i in trace.selection if int(dets.frame[i]) == frame.index]
     highlight = np.zeros((frame.height, frame.width), bool)
@@ -101,13 +110,15 @@ def frame_geometries(trace, recording, frame_index: int | None = None, *, depth_
     stored = {m.detection: m for m in measurements_of(trace)}
     for r, i in enumerate(chosen):
         pcd = detection_cloud(frame, dets, i, intr, depth_trunc=depth_trunc)
-        pcd.paint_uniform_color(CHOSEN_COLOUR)
+        flag = trace.flags.of(i)
+        flagged = flag is not None and flag.flagged
+        pcd.paint_uniform_color(FLAGGED_COLOUR if flagged else CHOSEN_COLOUR)
         geoms.append((f"chosen_{i}", pcd))
         m = stored.get(i)
         size = measure_cloud(pcd) if m is None else None
         obb = m.obb() if m is not None else (size.obb() if size is not None else None)
         if obb is not None:
-            geoms.append((f"box_{i}", box_lineset(obb)))
+            geoms.append((f"box_{i}", box_lineset(obb, FLAGGED_COLOUR if flagged else BOX_COLOUR)))
     return frame.index, geoms
 
 
@@ -143,17 +154,47 @@ def render_png(trace, recording, out: str | Path, *, frame_index: int | None = N
     """Draw ``frame_geometries`` with Open3D's offscreen renderer (CPU: Filament on Mesa's llvmpipe, no display)
     into ``out`` (.png, atomically). The camera orbits the nearest chosen detection (or the scene's median point)
     from the recording camera's viewpoint by ``yaw_deg``/``pitch_deg``; 0/0 reproduces the recording's view.
-    Returns {"frame", "path", "seconds"}."""
+    A caption names the frame and each chosen patch drawn, a flagged one as FLAGGED with why (``trace.flags``).
+    Returns {"frame", "path", "seconds", "chosen" (ranks drawn), "flagged" (their ``PatchFlag``s)}."""
     t0 = time.perf_counter()
     intr = require_intrinsics(recording)
     frame, geoms = frame_geometries(trace, recording, frame_index)
     image = render_geometries(geoms, intr, width=width, height=height, yaw_deg=yaw_deg, pitch_deg=pitch_deg,
                               point_size=point_size, background=background)
+    here = [p for p in trace.flags.patches if p.frame == frame]
+    image = _caption(image, f"{recording.id} - frame {frame}", here)
     out = Path(out)
     with atomic_path(out) as tmp:
         if not o3d.io.write_image(str(tmp), o3d.geometry.Image(image)):
             raise MassvizError("Open3D could not write the image", out)
-    return {"frame": frame, "path": str(out), "seconds": time.perf_counter() - t0}
+    return {"frame": frame, "path": str(out), "seconds": time.perf_counter() - t0, "chosen": [p.rank for p in here],
+            "flagged": [p for p in here if p.flagged]}
+
+
+def _caption(image: np.ndarray, title: str, patches) -> np.ndarray:
+    """The rendered image with a caption strip on top: ``title`` and one line per chosen patch of the frame, in the
+    palette's chosen colour, or its flagged colour with "FLAGGED" and why (OpenCV's fonts are ASCII-only)."""
+    import cv2
+
+    scale = max(image.shape[1] / 960, 0.5)
+    line_h = int(round(22 * scale))
+    lines = [(title, (40, 40, 40))]
+    for p in patches:
+        if p.flagged:
+            why = (f"ground truth: the {p.ground_truth}" if p.ground_truth is not None
+                   else "cues: " + ", ".join(k.replace("_", " ") for k in p.cue_kinds))
+            lines.append((f"chosen patch rank {p.rank} (track {p.track}): FLAGGED, probably not the container ({why})",
+                          rgb255(FLAGGED_COLOUR)))
+        else:
+            lines.append((f"chosen patch rank {p.rank} (track {p.track})", rgb255(CHOSEN_COLOUR)))
+    out = np.ascontiguousarray(image[..., :3]).copy()
+    strip = out[: line_h * len(lines) + line_h // 2]
+    strip[:] = (0.35 * strip + 0.65 * 255).astype(np.uint8)
+    for n, (text, colour) in enumerate(lines):
+        cv2.putText(out, text.encode("ascii", "replace").decode(), (int(8 * scale), line_h * (n + 1)),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.5 * scale, tuple(int(c) for c in colour), max(1, int(round(scale))),
+                    cv2.LINE_AA)
+    return out
 
 
 def _orbit_target(geoms) -> np.ndarray:
@@ -172,7 +213,7 @@ def render_geometries(geoms, intr: Intrinsics, *, width: int = 960, height: int 
     from open3d.visualization import rendering
 
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
-    with _stdout_to_stderr():
+    with _native_output_captured():
         renderer = rendering.OffscreenRenderer(int(width), int(height))
         points = rendering.MaterialRecord()
         points.shader, points.point_size = "defaultUnlit", float(point_size) * width / 960
@@ -181,6 +222,9 @@ def render_geometries(geoms, intr: Intrinsics, *, width: int = 960, height: int 
         for name, g in geoms:
             renderer.scene.add_geometry(name, g, lines if isinstance(g, o3d.geometry.LineSet) else points)
         renderer.scene.set_background(list(background) + [1.0])
+        # no post-processing: the palette's and the frame's colours come out as they are (Filament's default tone
+        # mapping washes them out: the flagged red (255, 59, 48) became (235, 159, 141), unlike the other views)
+        renderer.scene.view.set_post_processing(False)
         s = min(width / intr.width, height / intr.height)
         K = np.array([[intr.fx * s, 0, width / 2 + (intr.cx - intr.width / 2) * s],
                       [0, intr.fy * s, height / 2 + (intr.cy - intr.height / 2) * s], [0, 0, 1]])
@@ -191,18 +235,32 @@ def render_geometries(geoms, intr: Intrinsics, *, width: int = 960, height: int 
 
 
 @contextmanager
-def _stdout_to_stderr():
-    """Send what native code prints on stdout (Filament's start-up lines) to stderr while the block runs, so that
-    commands keep stdout for their output."""
+def _native_output_captured():
+    """Capture what native code prints on stdout and stderr while the block runs (Filament's start-up lines:
+    "FEngine ...", "Vulkan device driver ..."), so that neither a command's output nor a notebook cell is cluttered
+    with them; when the block fails they are written to stderr, where they may explain why."""
+    import tempfile
+
     sys.stdout.flush()
-    saved = os.dup(1)
-    try:
-        os.dup2(2, 1)
-        yield
-    finally:
-        sys.stdout.flush()
-        os.dup2(saved, 1)
-        os.close(saved)
+    sys.stderr.flush()
+    saved = os.dup(1), os.dup(2)
+    with tempfile.TemporaryFile() as log:
+        failed = False
+        try:
+            os.dup2(log.fileno(), 1)
+            os.dup2(log.fileno(), 2)
+            yield
+        except BaseException:
+            failed = True
+            raise
+        finally:
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            os.close(saved[0])
+            os.close(saved[1])
+            if failed:
+                log.seek(0)
+                sys.stderr.write(log.read().decode(errors="replace"))
 
 
 def has_display() -> bool:

@@ -14,9 +14,11 @@ from matplotlib.patches import Rectangle
 from massviz.evaluation.metrics import ScoreReport
 from massviz.core.trace import Trace
 from massviz.core.types import Frame, Intrinsics, class_name
+from massviz.views.palette import (CHOSEN_COLOUR, CHOSEN_HEX, FLAGGED_HEX, OTHER_HEX, WITHOUT_FLAGGED_COLOUR,
+                                    hex_colour)
 
 #: colour of chosen patches (rank shown) and of the other detections.
-CHOSEN, OTHER, FLAGGED = "#ffd400", "#38b6ff", "#ff3b30"
+CHOSEN, OTHER, FLAGGED = CHOSEN_HEX, OTHER_HEX, FLAGGED_HEX  # massviz.views.palette: the same in every view
 
 
 def frame_detections(trace: Trace, frame_index: int) -> np.ndarray:
@@ -31,10 +33,13 @@ def best_frame(trace: Trace) -> int:
     return int(trace.frames[0]) if len(trace.frames) else 0
 
 
-def frame_figure(trace: Trace, frame: Frame, flagged: Sequence[int] = (), width: float = 7.0) -> Figure:
+def frame_figure(trace: Trace, frame: Frame, flagged: Sequence[int] | None = None, width: float = 7.0) -> Figure:
     """RGB frame with every detection of that frame: mask tinted, box, "class score · d mm" and the rank of chosen
-    patches (★rank, yellow); flagged detections in red."""
+    patches (★rank, in the palette's chosen colour); flagged detections (default: the trace's flags) in its flagged
+    colour with ⚑."""
     dets = trace.detections
+    if flagged is None:
+        flagged = [p.detection for p in trace.flags.flagged]
     rank_of = {int(i): r for r, i in enumerate(trace.selection)}
     fig = Figure(figsize=(width, width * frame.height / frame.width + 0.4))
     ax = fig.add_subplot()
@@ -52,11 +57,11 @@ def frame_figure(trace: Trace, frame: Frame, flagged: Sequence[int] = (), width:
         ax.add_patch(Rectangle((x1, y1), x2 - x1, y2 - y1, fill=False, edgecolor=colour, linewidth=2))
         label = f"{class_name(dets.class_id[i])} {dets.score[i]:.2f} · {dets.d[i]:.0f} mm"
         if chosen:
-            label += f" ★{rank_of[int(i)]}"
+            label += f" ★{rank_of[int(i)]}" + (" ⚑" if int(i) in set(flagged) else "")
         ax.text(x1, max(y1 - 3, 8), label, color="black", fontsize=8,
                 bbox={"facecolor": colour, "alpha": 0.85, "pad": 1, "edgecolor": "none"})
     ax.set_title(f"{trace.recording.id} · frame {frame.index}: masks and boxes "
-                 f"(yellow: chosen, ★rank; blue: other detections)", fontsize=9)
+                 f"(magenta: chosen, ★rank; red ⚑: flagged; blue: other detections)", fontsize=9)
     ax.set_axis_off()
     fig.tight_layout()
     return fig
@@ -89,7 +94,7 @@ def point_cloud_figure(trace: Trace, frame: Frame, intrinsics: Intrinsics, step:
             chosen |= trace.detections.full_mask(int(i), frame.height, frame.width)
     highlight = chosen[::step, ::step][sub]
     cols = colours.astype(np.float32) / 255.0
-    cols[highlight] = [1.0, 0.83, 0.0]
+    cols[highlight] = CHOSEN_COLOUR
     near = points[:, 2] <= max_depth_m
     points, cols = points[near], cols[near]
     fig = Figure(figsize=(width, width * 0.75))
@@ -100,7 +105,7 @@ def point_cloud_figure(trace: Trace, frame: Frame, intrinsics: Intrinsics, step:
     ax.set_ylabel("z: distance from camera (m)")
     ax.set_zlabel("up (m)")
     ax.view_init(elev=12, azim=-65)
-    ax.set_title(f"frame {frame.index}: depth as a point cloud ({len(points)} points; chosen patch in yellow)",
+    ax.set_title(f"frame {frame.index}: depth as a point cloud ({len(points)} points; chosen patch in magenta)",
                  fontsize=9)
     fig.tight_layout()
     return fig
@@ -108,10 +113,13 @@ def point_cloud_figure(trace: Trace, frame: Frame, intrinsics: Intrinsics, step:
 
 def patches_figure(trace: Trace, indices: Sequence[int] | None = None, flags: dict | None = None,
                    columns: int = 5, patch_source=None) -> Figure:
-    """The chosen patches (or ``indices``), one tile each titled with rank, frame, a, b, d and the prediction;
-    ``flags`` ({index: short reason}) are drawn in red. ``patch_source(i)`` returns the RGB patch of detection i
-    when the trace did not keep it (default: a grey tile)."""
+    """The chosen patches (or ``indices``), one tile each titled with ★rank, frame, track, a, b, d and the prediction,
+    outlined in the palette's chosen colour; ``flags`` ({index: short reason}, default: the trace's own flags) are
+    drawn in its flagged colour with ⚑. ``patch_source(i)`` returns the RGB patch of detection i when the trace did
+    not keep it (default: a grey tile)."""
     dets = trace.detections
+    if flags is None:
+        flags = {p.detection: _short_reason(p) for p in trace.flags.flagged}
     idx = [int(i) for i in (trace.selection if indices is None else indices)]
     rank_of = {int(i): r for r, i in enumerate(trace.selection)}
     n = max(len(idx), 1)
@@ -122,31 +130,60 @@ def patches_figure(trace: Trace, indices: Sequence[int] | None = None, flags: di
         ax = fig.add_subplot(rows, cols, j + 1)
         patch = dets.patches[i] if dets.patches[i] is not None else (patch_source(i) if patch_source else None)
         ax.imshow(patch if patch is not None else np.full((8, 8, 3), 200, np.uint8))
-        rank = f"#{rank_of[i]}" if i in rank_of else "excluded"
-        title = (f"{rank} · frame {int(dets.frame[i])}\na={dets.a[i]:.2f} b={dets.b[i]:.2f} d={dets.d[i]:.0f}mm\n"
-                 f"pred {dets.pred[i]:.1f} g")
-        red = flags is not None and i in flags
+        rank = f"★{rank_of[i]}" if i in rank_of else "excluded"
+        title = (f"{rank} · frame {int(dets.frame[i])} · track {int(dets.track[i])}\n"
+                 f"a={dets.a[i]:.2f} b={dets.b[i]:.2f} d={dets.d[i]:.0f}mm\npred {dets.pred[i]:.1f} g")
+        red = i in flags
         ax.set_title(title + (f"\n⚑ {flags[i]}" if red else ""), fontsize=8, color=FLAGGED if red else "black")
-        ax.set_axis_off()
+        ax.set_xticks([])
+        ax.set_yticks([])
+        for side in ax.spines.values():
+            side.set_edgecolor(FLAGGED if red else (CHOSEN if i in rank_of else "#999999"))
+            side.set_linewidth(3 if red else 2)
     if not idx:
         fig.text(0.5, 0.5, "no patch chosen", ha="center")
     fig.tight_layout()
     return fig
 
 
+def _short_reason(flag) -> str:
+    if flag.ground_truth is not None:
+        return f"not the container: {flag.ground_truth}"
+    return "cues: " + ", ".join(k.replace("_", " ") for k in flag.cue_kinds)
+
+
+def flags_text(trace: Trace) -> str:
+    """The flags of the trace's chosen patches in a few lines (notebooks): the summary line, then one line per
+    chosen patch (★rank, frame, track, flagged or not and why)."""
+    flags = trace.flags
+    lines = [f"⚑ {flags.warning()}" if flags.flagged else
+             f"no chosen patch is flagged: all {len(flags.patches)} look like the container"]
+    for p in flags.patches:
+        state = f"FLAGGED ({p.severity})" if p.flagged else "ok"
+        lines.append(f"  ★{p.rank} frame {p.frame:>3} track {p.track:>2}: {state}" + (f": {p.reason}" if p.reason
+                                                                                        else ""))
+    return "\n".join(lines)
+
+
 def estimate_figure(trace: Trace) -> Figure:
-    """Each chosen patch's prediction (bars, by rank), their mean (the estimate) and the ground truth when known."""
+    """Each chosen patch's prediction (bars by rank, flagged ones in the flagged colour), their mean (the estimate),
+    the estimate without the flagged patches and the ground truth when known."""
     pred = trace.detections.pred[trace.selection]
+    flagged = {p.rank for p in trace.flags.flagged}
     fig = Figure(figsize=(6, 3))
     ax = fig.add_subplot()
-    ax.bar(np.arange(len(pred)), pred, color="#7f7f7f", label="patch prediction")
+    ax.bar(np.arange(len(pred)), pred, color=[FLAGGED if r in flagged else CHOSEN for r in range(len(pred))],
+           label="patch prediction" + (" (red: flagged)" if flagged else ""))
     if trace.estimate >= 0:
         ax.axhline(trace.estimate, color="#1f77b4", linewidth=2, label=f"estimate {trace.estimate:.1f} g")
+    if flagged and trace.flags.estimate_without >= 0:
+        ax.axhline(trace.flags.estimate_without, color=hex_colour(WITHOUT_FLAGGED_COLOUR), linestyle=":", linewidth=2,
+                   label=f"without flagged {trace.flags.estimate_without:.1f} g")
     gt = trace.ground_truth_mass
     if gt is not None:
         ax.axhline(gt, color="#2ca02c", linestyle="--", linewidth=2, label=f"ground truth {gt:.1f} g")
     ax.set_xticks(np.arange(len(pred)))
-    ax.set_xlabel("chosen patch (rank; 0 = nearest)")
+    ax.set_xlabel("chosen patch (★rank; 0 = nearest)")
     ax.set_ylabel("mass (g)")
     ax.set_title(f"{trace.recording.id}: K={trace.k}, threshold {trace.threshold:.2f}", fontsize=9)
     ax.legend(fontsize=8, loc="best")
@@ -205,5 +242,5 @@ def score_figure(report: ScoreReport, label: str = "samples") -> Figure:
     return plot_score_analysis([report], [label])
 
 
-__all__ = ["frame_figure", "depth_figure", "point_cloud_figure", "patches_figure", "estimate_figure",
+__all__ = ["flags_text", "frame_figure", "depth_figure", "point_cloud_figure", "patches_figure", "estimate_figure",
            "timings_figure", "score_figure", "best_frame", "frame_detections"]

@@ -17,32 +17,42 @@ entity                         what is logged
                                frame file's bytes; an mp4 Rerun cannot decode (e.g. CCM's MPEG-4 Part 2 'mp4v'):
                                JPEG ``EncodedImage`` per processed frame, with a warning in ``/log``
 ``/camera/depth``              ``DepthImage`` (uint16 mm, ``meter=1000``, turbo colormap)
-``/camera/detections``         ``Boxes2D`` (XYXY) labelled "class score · d mm", class ids for colour; chosen patches
-                               get class id ``CHOSEN_ID + rank`` and the label suffix "★rank"
+``/camera/detections``         ``Boxes2D`` (XYXY) labelled "class score · d mm · track t", with class ids and
+                               ``AnyValues`` track, detection; boxes coloured by object track, chosen patches in the
+                               palette's chosen colour (class id ``CHOSEN_ID + rank``, label suffix "★rank"),
+                               flagged ones in its flagged colour (class id ``FLAGGED_ID + rank``, "★rank ⚑ flagged")
 ``/camera/masks``              ``SegmentationImage`` of the same class ids (chosen masks drawn on top)
 ``/world``                     ``ViewCoordinates.RDF`` (static): the 3D world is the camera frame
 ``/world/points``              ``Points3D``: depth back-projected (Open3D) to metres in the camera frame, every ``step``-th pixel,
                                at most ``max_points``, coloured by RGB (only with intrinsics)
 ``/patches/<rank>``            ``Image`` of chosen patch ``rank`` (0 = nearest) as the model saw it (zero-padded
                                square, 112×112) at its source frame, with ``AnyValues`` a, b, d_mm, frame, class,
-                               score, pred_g, detection
+                               score, pred_g, detection, track, flagged, flag
+``/patches/<rank>/outline``    ``Boxes2D`` around the tile: chosen colour, or flagged colour labelled "⚑ flagged: why"
 ``/predictions/patch_<rank>``  ``Scalars``: that patch's prediction (g), at its source frame and the last frame
 ``/predictions/estimate``      ``Scalars``: the estimate (g) at the last processed frame (absent when not estimated)
+``/predictions/estimate_without_flagged``  ``Scalars``: the mean prediction of the chosen patches not flagged
+                               (``trace.flags``), at the last processed frame (only when some are flagged and
+                               some are not)
 ``/predictions/ground_truth``  ``Scalars``: the container's mass from the recording's meta (``container.mass_g``), at
                                the first and the last processed frame (absent when unknown)
 ``/world/detections/<id>``     ``Points3D``: detection ``id``'s cleaned Open3D cloud (chosen ones highlighted), with
                                ``/box`` (``Boxes3D``, measured box of a chosen one) and ``/measurement`` (AnyValues);
                                see ``log_frame_clouds`` (clouds from ``massviz.core.geometry``) (only with intrinsics; ``clouds=False`` skips)
 ``/log``                       ``TextLog`` of the decisions (trace events, missing intrinsics, video fallback) with
-                               levels, at their frames
+                               levels, at their frames; one WARN per flagged patch at its frame and the flags'
+                               summary line ("3 of 5 chosen patches look like another object ...") at the last
 ``/summary``                   ``TextDocument`` (static, markdown): recording, detector, K, estimate, chosen patches
+                               with their track and flag
 ``/timings``                   ``TextDocument`` (static, markdown): seconds per pipeline stage and for logging
 ``/timings/<stage>``           ``Scalars`` (static): seconds of each stage of ``trace.timings`` and ``log`` (this
                                logging's own cost)
 =============================  ========================================================================================
 
 Class ids (``AnnotationContext`` at ``/camera``): 0 background, 1 cup, 2 book, 3 wine glass, 4 bottle, 5 object
-(class-agnostic depth detector), 6 other COCO class, 7 below the trace's threshold, ``CHOSEN_ID + rank`` chosen patch.
+(class-agnostic depth detector), 6 other COCO class, 7 below the trace's threshold, ``CHOSEN_ID + rank`` chosen patch,
+``FLAGGED_ID + rank`` chosen patch flagged as probably not the container. Colours come from ``massviz.views.palette``
+(the same chosen and flagged colours as the notebooks' figures and the Open3D render).
 """
 from __future__ import annotations
 
@@ -68,7 +78,8 @@ from massviz.core.geometry import (Measurement, depth_to_points, detection_cloud
                                    skip_reason)
 from massviz.core.patches import crop, model_view
 from massviz.core.types import Detections, Frame, Intrinsics, class_name
-from massviz.views.palette import BOX_COLOUR, CHOSEN_COLOUR, rgb255
+from massviz.views.palette import (BELOW_THRESHOLD_COLOUR, BOX_COLOUR, CHOSEN_COLOUR, FLAGGED_COLOUR,
+                                    WITHOUT_FLAGGED_COLOUR, rgb255, track_colour)
 
 APPLICATION_ID = "massviz"
 #: every ``POINT_STEP``-th pixel (in x and y) of the depth image becomes a point of ``/world/points``.
@@ -77,12 +88,10 @@ POINT_STEP = 4
 MAX_POINTS = 50_000
 
 # ---------------------------------------------------------------------------------------------- annotation context
-BACKGROUND_ID, OTHER_ID, BELOW_THRESHOLD_ID, CHOSEN_ID = 0, 6, 7, 10
+BACKGROUND_ID, OTHER_ID, BELOW_THRESHOLD_ID, CHOSEN_ID, FLAGGED_ID = 0, 6, 7, 10, 200
 CLASS_IDS = {"cup": 1, "book": 2, "wine glass": 3, "bottle": 4, "object": 5}
 _CLASS_COLOURS = {1: (31, 119, 180), 2: (148, 103, 189), 3: (23, 190, 207), 4: (44, 160, 44), 5: (188, 189, 34),
                   OTHER_ID: (140, 86, 75), BELOW_THRESHOLD_ID: (127, 127, 127)}
-_CHOSEN_COLOURS = [(255, 40, 40), (255, 140, 0), (255, 215, 0), (255, 0, 160), (255, 100, 100), (230, 80, 0),
-                   (255, 180, 90), (200, 0, 80)]
 
 
 def class_id_of(name: str) -> int:
@@ -97,8 +106,10 @@ def log_annotation_context(rec: rr.RecordingStream, k: int) -> None:
     infos += [rr.AnnotationInfo(id=OTHER_ID, label="other class", color=_CLASS_COLOURS[OTHER_ID]),
               rr.AnnotationInfo(id=BELOW_THRESHOLD_ID, label="below threshold",
                                 color=_CLASS_COLOURS[BELOW_THRESHOLD_ID])]
-    infos += [rr.AnnotationInfo(id=CHOSEN_ID + r, label=f"chosen ★{r}", color=_CHOSEN_COLOURS[r % len(_CHOSEN_COLOURS)])
-              for r in range(max(k, 1))]
+    ranks = range(min(max(k, 1), FLAGGED_ID - CHOSEN_ID))
+    infos += [rr.AnnotationInfo(id=CHOSEN_ID + r, label=f"chosen ★{r}", color=rgb255(CHOSEN_COLOUR)) for r in ranks]
+    infos += [rr.AnnotationInfo(id=FLAGGED_ID + r, label=f"flagged ★{r}", color=rgb255(FLAGGED_COLOUR))
+              for r in ranks]
     rec.log("/camera", rr.AnnotationContext(infos), static=True)
 
 
@@ -190,12 +201,13 @@ def log_points(rec: rr.RecordingStream, depth: np.ndarray, rgb: np.ndarray, intr
 
 
 # ------------------------------------------------------------------------------------------ detections and masks
-def detection_class_ids(dets: Detections, idx: list[int], rank_of: dict[int, int], threshold: float) -> np.ndarray:
-    """Annotation class id of each detection in ``idx``: chosen rank, below threshold, or its class."""
+def detection_class_ids(dets: Detections, idx: list[int], rank_of: dict[int, int], threshold: float,
+                        flagged=frozenset()) -> np.ndarray:
+    """Annotation class id of each detection in ``idx``: flagged or chosen rank, below threshold, or its class."""
     out = []
     for i in idx:
         if i in rank_of:
-            out.append(CHOSEN_ID + rank_of[i])
+            out.append((FLAGGED_ID if i in flagged else CHOSEN_ID) + rank_of[i])
         elif dets.score[i] <= threshold:
             out.append(BELOW_THRESHOLD_ID)
         else:
@@ -203,10 +215,25 @@ def detection_class_ids(dets: Detections, idx: list[int], rank_of: dict[int, int
     return np.asarray(out, dtype=np.uint16)
 
 
-def detection_label(dets: Detections, i: int, rank: int | None) -> str:
+def detection_label(dets: Detections, i: int, rank: int | None, flagged: bool = False) -> str:
     d = "no depth" if not np.isfinite(dets.d[i]) else f"{dets.d[i]:.0f} mm"
-    star = "" if rank is None else f" ★{rank}"
-    return f"{class_name(dets.class_id[i])} {dets.score[i]:.2f} · {d}{star}"
+    star = "" if rank is None else f" ★{rank}" + (" ⚑ flagged" if flagged else "")
+    return f"{class_name(dets.class_id[i])} {dets.score[i]:.2f} · {d} · track {int(dets.track[i])}{star}"
+
+
+def detection_colours(dets: Detections, idx: list[int], class_ids: np.ndarray) -> np.ndarray:
+    """RGB of each box: flagged / chosen colour, grey below the threshold, else its track's colour (palette)."""
+    out = []
+    for i, cid in zip(idx, class_ids):
+        if cid >= FLAGGED_ID:
+            out.append(rgb255(FLAGGED_COLOUR))
+        elif cid >= CHOSEN_ID:
+            out.append(rgb255(CHOSEN_COLOUR))
+        elif cid == BELOW_THRESHOLD_ID:
+            out.append(rgb255(BELOW_THRESHOLD_COLOUR))
+        else:
+            out.append(rgb255(track_colour(int(dets.track[i]))))
+    return np.asarray(out, dtype=np.uint8).reshape(-1, 3)
 
 
 def log_detections(rec: rr.RecordingStream, dets: Detections, idx: list[int], class_ids: np.ndarray,
@@ -218,7 +245,9 @@ def log_detections(rec: rr.RecordingStream, dets: Detections, idx: list[int], cl
         return
     rec.log("/camera/detections", rr.Boxes2D(
         array=dets.xyxy[idx].astype(np.float32), array_format=rr.Box2DFormat.XYXY, class_ids=class_ids,
-        labels=[detection_label(dets, i, rank_of.get(i)) for i in idx]))
+        colors=detection_colours(dets, idx, class_ids),
+        labels=[detection_label(dets, i, rank_of.get(i), bool(c >= FLAGGED_ID)) for i, c in zip(idx, class_ids)]),
+        rr.AnyValues(track=dets.track[idx].astype(np.int64), detection=np.asarray(idx, np.int64)))
 
 
 def log_masks(rec: rr.RecordingStream, dets: Detections, idx: list[int], class_ids: np.ndarray,
@@ -232,12 +261,28 @@ def log_masks(rec: rr.RecordingStream, dets: Detections, idx: list[int], class_i
 
 
 # ------------------------------------------------------------------------------------------------------- patches
-def log_patch(rec: rr.RecordingStream, rank: int, dets: Detections, i: int, patch: np.ndarray) -> None:
-    """``/patches/<rank>`` at its source frame: the model's input image and the numbers that went with it."""
-    rec.log(f"/patches/{rank}", rr.Image(model_view(patch)), rr.AnyValues(
+def log_patch(rec: rr.RecordingStream, rank: int, dets: Detections, i: int, patch: np.ndarray, flag=None) -> None:
+    """``/patches/<rank>`` at its source frame: the model's input image and the numbers that went with it, and
+    ``/patches/<rank>/outline`` around it in the chosen colour, or the flagged colour with why (``flag``, a
+    ``massviz.core.flags.PatchFlag``)."""
+    image = model_view(patch)
+    flagged = flag is not None and flag.flagged
+    rec.log(f"/patches/{rank}", rr.Image(image), rr.AnyValues(
         a=float(dets.a[i]), b=float(dets.b[i]), d_mm=float(dets.d[i]), frame=int(dets.frame[i]),
         class_name=class_name(dets.class_id[i]), score=float(dets.score[i]), pred_g=float(dets.pred[i]),
-        detection=int(i)))
+        detection=int(i), track=int(dets.track[i]), flagged=bool(flagged), flag="" if not flagged else flag.reason))
+    h, w = image.shape[:2]
+    label = f"★{rank} ⚑ flagged: {_short_reason(flag)}" if flagged else f"★{rank}"
+    rec.log(f"/patches/{rank}/outline", rr.Boxes2D(
+        array=[[0.5, 0.5, w - 0.5, h - 0.5]], array_format=rr.Box2DFormat.XYXY, labels=[label],
+        colors=[rgb255(FLAGGED_COLOUR if flagged else CHOSEN_COLOUR)], radii=[2.0 if flagged else 1.0]))
+
+
+def _short_reason(flag) -> str:
+    """What a flagged patch is, in a few words (tile labels, series names)."""
+    if flag.ground_truth is not None:
+        return f"the {flag.ground_truth}" + (" (a part of it)" if flag.ground_truth == "container" else "")
+    return ", ".join(k.replace("_", " ") for k in flag.cue_kinds)
 
 
 # --------------------------------------------------------------------------------------------------- predictions
@@ -250,8 +295,11 @@ def log_predictions(rec: rr.RecordingStream, trace: Trace) -> None:
     dets = trace.detections
     for rank, i in enumerate(trace.selection):
         path = f"/predictions/patch_{rank}"
-        rec.log(path, rr.SeriesLines(names=f"patch {rank} ({class_name(dets.class_id[i])}, {dets.d[i]:.0f} mm)",
-                                     colors=_CHOSEN_COLOURS[rank % len(_CHOSEN_COLOURS)]), static=True)
+        flag = trace.flags.of(int(i))
+        flagged = flag is not None and flag.flagged
+        name = f"patch ★{rank} ({class_name(dets.class_id[i])}, {dets.d[i]:.0f} mm)" + (" ⚑ flagged" if flagged else "")
+        rec.log(path, rr.SeriesLines(names=name, colors=rgb255(FLAGGED_COLOUR if flagged else CHOSEN_COLOUR)),
+                static=True)
         for t in sorted({int(dets.frame[i]), last}):
             rec.set_time("frame", sequence=t)
             rec.log(path, rr.Scalars(float(dets.pred[i])))
@@ -261,6 +309,15 @@ def log_predictions(rec: rr.RecordingStream, trace: Trace) -> None:
                 static=True)
         rec.set_time("frame", sequence=last)
         rec.log("/predictions/estimate", rr.Scalars(float(trace.estimate)))
+    flags = trace.flags
+    if flags.flagged and flags.estimate_without >= 0:
+        path = "/predictions/estimate_without_flagged"
+        colour = rgb255(WITHOUT_FLAGGED_COLOUR)
+        rec.log(path, rr.SeriesLines(names="estimate without flagged patches", colors=colour, widths=2),
+                rr.SeriesPoints(names="estimate without flagged patches", colors=colour, markers="diamond",
+                                marker_sizes=6), static=True)
+        rec.set_time("frame", sequence=last)
+        rec.log(path, rr.Scalars(float(flags.estimate_without)))
     gt = trace.ground_truth_mass
     if gt is not None:
         rec.log("/predictions/ground_truth", rr.SeriesLines(names="ground truth", colors=(0, 200, 0), widths=2),
@@ -307,6 +364,21 @@ def log_events(rec: rr.RecordingStream, events, first_frame: int) -> None:
         rec.log("/log", rr.TextLog(str(e.message), level=_LEVELS.get(e.level, rr.TextLogLevel.INFO)))
 
 
+def log_flags(rec: rr.RecordingStream, trace: Trace) -> None:
+    """``/log`` WARN entries of ``trace.flags``: each flagged patch at its frame, the summary line at the last frame."""
+    flags = trace.flags
+    if not flags.flagged:
+        return
+    for p in flags.flagged:
+        rec.set_time("frame", sequence=p.frame)
+        rec.log("/log", rr.TextLog(f"flagged patch ★{p.rank} (frame {p.frame}, track {p.track}, severity "
+                                   f"{p.severity}): probably not the container: {p.reason}",
+                                   level=rr.TextLogLevel.WARN))
+    last = int(trace.frames[-1]) if len(trace.frames) else max(p.frame for p in flags.patches)
+    rec.set_time("frame", sequence=last)
+    rec.log("/log", rr.TextLog(flags.warning(), level=rr.TextLogLevel.WARN))
+
+
 def summary_markdown(trace: Trace) -> str:
     info, dets = trace.recording, trace.detections
     est = "**not estimated** (no detection with depth)" if trace.estimate < 0 else f"**{trace.estimate:.1f} g**"
@@ -322,12 +394,17 @@ def summary_markdown(trace: Trace) -> str:
              f"- estimate: {est}" + ("" if gt is None else f"; ground truth {gt:.1f} g"
                                       + ("" if trace.estimate < 0 else f" (error {trace.estimate - gt:+.1f} g)")),
              ""]
+    warning = trace.flags.warning()
+    if warning:
+        lines[-1:-1] = [f"- **⚑ {warning}**"]
     if len(trace.selection):
-        lines += ["| rank | frame | class | score | d (mm) | a | b | prediction (g) |",
-                  "|---:|---:|---|---:|---:|---:|---:|---:|"]
-        lines += [f"| {r} | {dets.frame[i]} | {class_name(dets.class_id[i])} | {dets.score[i]:.2f} | "
-                  f"{dets.d[i]:.0f} | {dets.a[i]:.2f} | {dets.b[i]:.2f} | {dets.pred[i]:.1f} |"
-                  for r, i in enumerate(trace.selection)]
+        flag_of = {p.detection: p for p in trace.flags.patches}
+        lines += ["| rank | frame | track | class | score | d (mm) | a | b | prediction (g) | flag |",
+                  "|---:|---:|---:|---|---:|---:|---:|---:|---:|---|"]
+        lines += [f"| ★{r} | {dets.frame[i]} | {dets.track[i]} | {class_name(dets.class_id[i])} | {dets.score[i]:.2f} | "
+                  f"{dets.d[i]:.0f} | {dets.a[i]:.2f} | {dets.b[i]:.2f} | {dets.pred[i]:.1f} | "
+                  + (f"⚑ {_short_reason(flag_of[int(i)])} |" if int(i) in flag_of and flag_of[int(i)].flagged
+                     else "|") for r, i in enumerate(trace.selection)]
     return "\n".join(lines) + "\n"
 
 
@@ -346,10 +423,11 @@ def log_timings(rec: rr.RecordingStream, timings: dict, n_frames: int) -> None:
 
 
 # ------------------------------------------------------------------------------------------------------ blueprint
-def default_blueprint(n_patches: int, *, has_3d: bool = True, depth_in_3d: bool = False) -> rrb.Blueprint:
+def default_blueprint(n_patches: int, *, has_3d: bool = True, flagged=(), depth_in_3d: bool = False) -> rrb.Blueprint:
     """RGB + detections + masks, depth and 3D on the left; the chosen patches, predictions and text on the right.
-    ``depth_in_3d``: the 3D view also shows ``/camera/depth`` (Rerun back-projects it through the Pinhole; live
-    mode logs no ``/world/points``)."""
+    ``flagged``: ranks of flagged patches (their tiles are named "patch ★r ⚑ flagged"). ``depth_in_3d``: the 3D view
+    also shows ``/camera/depth`` (Rerun back-projects it through the Pinhole; live mode logs no ``/world/points``)."""
+    flagged = {int(r) for r in flagged}
     camera = rrb.Spatial2DView(name="RGB · detections · masks", origin="/camera",
                                contents=["/camera/rgb", "/camera/detections", "/camera/masks"])
     depth = rrb.Spatial2DView(name="Depth", origin="/camera", contents=["/camera/depth"])
@@ -359,7 +437,8 @@ def default_blueprint(n_patches: int, *, has_3d: bool = True, depth_in_3d: bool 
                                        contents=["/world/**", "/camera", "/camera/rgb",
                                                  *(["/camera/depth"] if depth_in_3d else [])]))
     if n_patches:
-        patches = rrb.Grid(*[rrb.Spatial2DView(name=f"patch ★{r}", origin=f"/patches/{r}") for r in range(n_patches)],
+        patches = rrb.Grid(*[rrb.Spatial2DView(name=f"patch ★{r}" + (" ⚑ flagged" if r in flagged else ""),
+                                               origin=f"/patches/{r}") for r in range(n_patches)],
                            name="Chosen patches (model input)")
     else:
         patches = rrb.TextDocumentView(name="Summary", origin="/summary")
@@ -382,7 +461,8 @@ def default_blueprint(n_patches: int, *, has_3d: bool = True, depth_in_3d: bool 
 def log_frame_clouds(trace, frame: Frame, intr: Intrinsics, stream, *, root: str = "world/detections",
                      voxel_m: float = 0.004) -> list[str]:
     """Log each detection of ``frame`` (above the trace's threshold) as ``/<root>/<id>`` (Points3D, its colours;
-    chosen ones in ``CHOSEN_COLOUR`` with their box as ``<id>/box`` Boxes3D labelled with the measured size).
+    chosen ones in ``CHOSEN_COLOUR``, flagged ones in ``FLAGGED_COLOUR``, with their box as ``<id>/box`` Boxes3D
+    labelled with the measured size).
     Call it with the stream's time already set to the frame. ``voxel_m`` thins the clouds (0: every point).
     Returns the entity paths logged."""
     dets = trace.detections
@@ -403,12 +483,14 @@ def log_frame_clouds(trace, frame: Frame, intr: Intrinsics, stream, *, root: str
         pts = np.asarray(shown.points, np.float32)
         path = f"{root}/{i}"
         if i in rank_of:
-            colours = np.tile(np.array(rgb255(CHOSEN_COLOUR), np.uint8), (len(pts), 1))
+            flag = trace.flags.of(i)
+            colour = FLAGGED_COLOUR if flag is not None and flag.flagged else CHOSEN_COLOUR
+            colours = np.tile(np.array(rgb255(colour), np.uint8), (len(pts), 1))
         else:
             colours = (np.asarray(shown.colors) * 255).astype(np.uint8)
         stream.log(path, rr.Points3D(pts, colors=colours, radii=0.002))
         if m is not None:
-            label = f"#{m.rank} h {m.height_mm:.0f} w {m.width_mm:.0f} d {m.depth_mm:.0f} mm"
+            label = f"★{m.rank} h {m.height_mm:.0f} w {m.width_mm:.0f} d {m.depth_mm:.0f} mm"
             stream.log(f"{path}/box", rr.Transform3D(translation=m.center, mat3x3=np.asarray(m.R)),
                        rr.Boxes3D(half_sizes=[np.asarray(m.extent) / 2], colors=[rgb255(BOX_COLOUR)], labels=[label]))
             stream.log(f"{path}/measurement", rr.AnyValues(
@@ -455,6 +537,8 @@ def _log_all(rec: rr.RecordingStream, trace: Trace, recording: Recording, *, vid
     dets, frames = trace.detections, [int(f) for f in trace.frames]
     first = frames[0] if frames else 0
     rank_of = {int(i): r for r, i in enumerate(trace.selection)}
+    flag_of = {p.detection: p for p in trace.flags.patches}
+    flagged = frozenset(p.detection for p in trace.flags.flagged)
     by_frame: dict[int, list[int]] = defaultdict(list)
     for i, f in enumerate(dets.frame):
         by_frame[int(f)].append(i)
@@ -490,7 +574,7 @@ def _log_all(rec: rr.RecordingStream, trace: Trace, recording: Recording, *, vid
         rgb.log_frame(rec, frame.index, frame.rgb)
         log_depth(rec, frame.depth)
         idx = by_frame.get(frame.index, [])
-        class_ids = detection_class_ids(dets, idx, rank_of, trace.threshold)
+        class_ids = detection_class_ids(dets, idx, rank_of, trace.threshold, flagged)
         log_detections(rec, dets, idx, class_ids, rank_of)
         log_masks(rec, dets, idx, class_ids, frame.depth.shape[:2])
         if intr is not None:
@@ -498,7 +582,7 @@ def _log_all(rec: rr.RecordingStream, trace: Trace, recording: Recording, *, vid
         for i in idx:
             if i in rank_of:
                 patch = dets.patches[i] if dets.patches[i] is not None else crop(frame.rgb, dets.xyxy[i])
-                log_patch(rec, rank_of[i], dets, i, patch)
+                log_patch(rec, rank_of[i], dets, i, patch, flag_of.get(i))
         if cloud_frames:  # in this same pass, so the frames are decoded once
             for path in shown:
                 rec.log(path, rr.Clear(recursive=True))
@@ -509,6 +593,7 @@ def _log_all(rec: rr.RecordingStream, trace: Trace, recording: Recording, *, vid
     log_predictions(rec, trace)
     log_running(rec, trace)
     log_events(rec, trace.events, first)
+    log_flags(rec, trace)
     rec.reset_time()
     return {"frames": len(frames), "detections": len(dets), "chosen": len(rank_of), "points": n_points,
             "clouds": n_clouds, "rgb": rgb.mode, "notes": notes}
@@ -537,7 +622,8 @@ def log_trace(trace: Trace, recording: Recording, *, rrd: str | Path | None = No
         raise ValueError("nothing to log to: give rrd, spawn=True or stream")
     _check_match(trace, recording)
     t0 = time.perf_counter()
-    blueprint = default_blueprint(len(trace.selection), has_3d=recording.intrinsics is not None)
+    blueprint = default_blueprint(len(trace.selection), has_3d=recording.intrinsics is not None,
+                                  flagged=[p.rank for p in trace.flags.flagged])
 
     def log_into(rec: rr.RecordingStream) -> dict:
         rec.send_blueprint(blueprint, make_active=True, make_default=True)
@@ -619,5 +705,5 @@ def rrd_entities(path: str | Path) -> set[str]:
     return set(rrd_contents(path))
 
 
-__all__ = ["log_trace", "default_blueprint", "log_clouds", "log_frame_clouds", "rrd_entities", "rrd_contents", "RgbLogger",
-           "CLASS_IDS", "CHOSEN_ID", "POINT_STEP", "MAX_POINTS"]
+__all__ = ["log_trace", "log_flags", "default_blueprint", "log_clouds", "log_frame_clouds", "rrd_entities", "rrd_contents", "RgbLogger",
+           "CLASS_IDS", "CHOSEN_ID", "FLAGGED_ID", "POINT_STEP", "MAX_POINTS"]

@@ -7,8 +7,13 @@
   the estimate and the CORSMAL score with its per-class table (notebook 02). Slider callbacks only set widget values
   (HTML, PNG bytes), so an update stays fast; ``last_update_s`` is the time of the last one.
 * ``FailurePanel``: recordings ranked by error, the chosen patches of one with why each was chosen and whether it is
-  flagged (``massviz.evaluation.failures.chosen_table``), a keep / exclude / exclude-track toggle per patch, the re-estimate,
-  and an export of the exclusions to the JSON file ``massviz estimate --exclude`` reads (notebook 03).
+  flagged (``trace.flags`` via ``massviz.evaluation.failures.chosen_table``), a keep / exclude / exclude-track toggle
+  per patch ("exclude track" excludes every detection of that patch's object track, ``detections.track``, in one
+  action), the re-estimate, and an export of the exclusions to the JSON file ``massviz estimate --exclude`` reads
+  (notebook 03).
+
+Patch tiles are outlined in the palette's chosen colour, flagged ones in its flagged colour (``massviz.views.palette``)
+and numbered ★rank (0 = nearest) as in Rerun. ``TuningPanel.set`` also moves the sliders to the values it sets.
 
 Traces come from ``massviz.process_recordings`` (the pipeline builder, cached); the widgets only read them.
 
@@ -27,9 +32,11 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from massviz.evaluation.failures import (Exclusion, chosen_table, exclusion_of, rank_by_error, same_object, save_exclusions)
+from massviz.evaluation.failures import (Exclusion, chosen_table, exclusion_of, rank_by_error, save_exclusions,
+                                         track_of)
 from massviz.core.trace import Trace
 from massviz.evaluation.tuning import original_selection, retune, score_traces
+from massviz.views.palette import CHOSEN_HEX, FLAGGED_HEX
 
 MODES = ("keep", "exclude", "exclude track")
 
@@ -56,10 +63,11 @@ class Tuner:
 
     # -- exclusions -------------------------------------------------------------------------------------------------
     def excluded(self, i: int) -> np.ndarray:
-        """Detection indices of trace ``i`` excluded by the user's choices (tracks expanded)."""
+        """Detection indices of trace ``i`` excluded by the user's choices ("exclude track": every detection of
+        that detection's object track, ``detections.track``)."""
         out: set[int] = set()
         for det, mode in self.modes[i].items():
-            out.update(same_object(self.traces[i], det).tolist() if mode == "exclude track" else [det])
+            out.update(track_of(self.traces[i], det).tolist() if mode == "exclude track" else [det])
         return np.array(sorted(out), dtype=np.int64)
 
     def set_mode(self, i: int, detection: int, mode: str) -> None:
@@ -184,6 +192,18 @@ def estimate_html(trace: Trace) -> str:
     return text + f" · K={trace.k}, threshold {trace.threshold:.2f}, stride {trace.stride}"
 
 
+def _tile_border(flagged: bool, chosen: bool = True) -> str:
+    """CSS border of a patch tile: the palette's flagged or chosen colour (the same as in Rerun, Open3D, figures)."""
+    return f"3px solid {FLAGGED_HEX}" if flagged else (f"2px solid {CHOSEN_HEX}" if chosen else "2px dashed #999")
+
+
+def _flag_caption(flag) -> str:
+    if not flag.flagged:
+        return ""
+    what = f"not the container: {flag.ground_truth}" if flag.ground_truth else ", ".join(flag.cue_kinds)
+    return f"<br><small style='color:{FLAGGED_HEX}'>⚑ flagged ({html.escape(what)})</small>"
+
+
 class TuningPanel:
     """Sliders (threshold, K, stride) + recording picker → chosen patches, predictions, estimate, score."""
 
@@ -213,15 +233,27 @@ class TuningPanel:
         self.refresh()
 
     def set(self, *, threshold: float | None = None, k: int | None = None, stride: int | None = None) -> float:
-        """What a slider change does (also for tests): re-estimate, refresh the views; returns the seconds taken."""
+        """What a slider change does (also for tests, and from code: the sliders then show the new values):
+        re-estimate, refresh the views; returns the seconds taken."""
         t0 = time.perf_counter()
         self.tuner.update(k=k, threshold=threshold, stride=stride)
+        self._sync_sliders()
         self.refresh()
         self.last_update_s = time.perf_counter() - t0
         self.timing.value = f"<small>updated in {1000 * self.last_update_s:.0f} ms</small>"
         return self.last_update_s
 
+    def _sync_sliders(self) -> None:
+        """Show the tuner's state on the sliders without their callbacks re-estimating again."""
+        self._syncing = True
+        try:
+            self.threshold.value, self.k.value, self.stride.value = self.tuner.threshold, self.tuner.k, self.tuner.stride
+        finally:
+            self._syncing = False
+
     def _on_slider(self, change) -> None:
+        if getattr(self, "_syncing", False):
+            return
         self.set(threshold=self.threshold.value, k=self.k.value, stride=self.stride.value)
 
     def _on_recording(self, change) -> None:
@@ -232,17 +264,19 @@ class TuningPanel:
         import ipywidgets as W
 
         trace = self.tuner.traces[i]
+        flagged = {p.rank for p in self.tuner.current[i].flags.flagged}
         return [W.VBox([W.Image(value=self.images.png(trace, d), format="png"), W.HTML(c)],
-                       layout=W.Layout(margin="2px 6px"))
-                for d, c in zip(indices, captions)]
+                       layout=W.Layout(margin="2px 6px", border=_tile_border(r in flagged)))
+                for r, (d, c) in enumerate(zip(indices, captions))]
 
     def refresh(self) -> None:
         i, tuner = self.i, self.tuner
         cur = tuner.current[i]
         self.estimate.value = estimate_html(cur)
         table = tuner.patch_table(i)
-        captions = [f"<small>#{r.rank} · f{r.frame}<br>d={r.d_mm:.0f} mm<br>{r.pred_g:.1f} g</small>"
-                    for r in table.itertuples()]
+        flags = cur.flags.patches
+        captions = [f"<small>★{r.rank} · f{r.frame} · track {flags[r.rank].track}<br>d={r.d_mm:.0f} mm<br>"
+                    f"{r.pred_g:.1f} g</small>" + _flag_caption(flags[r.rank]) for r in table.itertuples()]
         self.patches.children = self.tiles(i, table["detection"].tolist(), captions)
         self.predictions.value = _table_html(table)
         self.score.value = score_html(tuner.report)
@@ -314,17 +348,18 @@ class FailurePanel(TuningPanel):
         rows = []
         self.toggles = {}
         for r in table.itertuples():
-            flag = (f"<span style='color:#d00'>⚑ flagged: {html.escape(r.flag_reason)}</span>" if r.flagged
-                    else "<span style='color:#080'>not flagged</span>")
-            cues = f"<br><small>cues: {html.escape(r.cues)}</small>" if r.cues and r.flag_gt is not None else ""
-            rank = f"#{r.rank}" if r.rank >= 0 else "excluded"
-            text = (f"<b>{rank}</b> · frame {r.frame} · d={r.d_mm:.0f} mm · score {r.score:.2f} · "
+            flag = (f"<span style='color:{FLAGGED_HEX}'>⚑ flagged ({r.severity}): {html.escape(r.flag_reason)}</span>"
+                    if r.flagged else "<span style='color:#080'>not flagged</span>")
+            cues = f"<br><small>cues: {html.escape(r.cues)}</small>" if r.cues and not r.flagged else ""
+            rank = f"★{r.rank}" if r.rank >= 0 else "excluded"
+            text = (f"<b>{rank}</b> · frame {r.frame} · track {r.track} · d={r.d_mm:.0f} mm · score {r.score:.2f} · "
                     f"a={r.a:.2f} b={r.b:.2f} · pred {r.pred_g:.1f} g"
                     f"<br><small>{html.escape(r.why)}</small><br>{flag}{cues}")
             toggle = W.ToggleButtons(options=list(MODES), value=r.mode, style={"button_width": "90px"})
             toggle.observe(lambda ch, d=int(r.detection): self.set_mode(d, ch["new"]), names="value")
             self.toggles[int(r.detection)] = toggle
-            img = W.Image(value=self.images.png(tuner.traces[i], int(r.detection)), format="png")
+            img = W.Image(value=self.images.png(tuner.traces[i], int(r.detection)), format="png",
+                          layout=W.Layout(border=_tile_border(bool(r.flagged), r.rank >= 0)))
             rows.append(W.HBox([img, W.VBox([W.HTML(text), toggle])], layout=W.Layout(margin="4px 0")))
         self.rows.children = rows
 
