@@ -124,9 +124,12 @@ class RecordingWorker:
     def ready(self) -> str:
         return self.name
 
-    def run(self, task: Task, *, fault: Callable | None = None, debug: bool = False,
-            progress: bool = False) -> Outcome:
+    def run(self, task: Task, *, collect: Callable | None = None, fault: Callable | None = None,
+            debug: bool = False, progress: bool = False) -> Outcome:
+        """Process one task (``collect``: instead of the worker's own); errors become a failed ``Outcome``."""
         from massviz.io.recording import open_recording
+
+        collect = collect if collect is not None else self.collect
 
         t0 = time.perf_counter()
         out = Outcome(task.index, task.id, task.path, "failed", worker=self.name)
@@ -135,7 +138,7 @@ class RecordingWorker:
             if fault is not None:
                 fault(rec)
             trace = self.pipeline.process(rec, progress=progress)
-            out.value = self.collect(trace, rec, task.extra) if self.collect is not None else None
+            out.value = collect(trace, rec, task.extra) if collect is not None else None
             out.status = "cached" if "cache" in trace.timings else "done"
             out.frames = 0 if out.status == "cached" else len(trace.frames)
         except MassvizError as err:

@@ -68,12 +68,12 @@ def connect(address: str | None, log=None):
 class RayWorker(RecordingWorker):
     """A ``RecordingWorker`` living in a Ray actor; ``fault_id``: the test-only hook (``FAULT_ENV``)."""
 
-    def __init__(self, options, collect, threads, fault_id: str | None = None):
-        super().__init__(options, collect, threads)
+    def __init__(self, options, threads, fault_id: str | None = None):
+        super().__init__(options, None, threads)
         self.fault_id = fault_id
 
-    def process(self, task) -> Outcome:
-        return self.run(task, fault=self._fault if self.fault_id else None)
+    def process(self, task, collect) -> Outcome:
+        return self.run(task, collect=collect, fault=self._fault if self.fault_id else None)
 
     def _fault(self, recording) -> None:
         """Die (the whole worker process, as a crash would) in the middle of the recording the hook names, once:
@@ -97,6 +97,11 @@ def plan(resources: dict, workers: int | None, threads: int | None) -> tuple[int
     return n, {"num_cpus": per_actor}, threads or max(1, int(cpus // n))
 
 
+#: actor pools kept between runs in a Ray this module did not start (a notebook's, the tests'): a second run with
+#: the same pipeline options starts at once. Keyed by (options, threads, actors, resources, fault hook).
+_POOLS: dict = {}
+
+
 def run_ray(tasks, options, collect, *, workers=None, threads=None, address=None, record, log=None,
             stats=None) -> None:
     """Run ``tasks`` on a pool of Ray actors; ``record(outcome)`` is called on the driver as results arrive (it may
@@ -105,12 +110,16 @@ def run_ray(tasks, options, collect, *, workers=None, threads=None, address=None
     t0 = time.perf_counter()
     ray, started = connect(address, log)
     actors: list = []
+    keep = False
     try:
         n, resources, nthreads = plan(ray.cluster_resources(), workers, threads)
         n = max(1, min(n, len(tasks)))
-        remote = ray.remote(max_restarts=MAX_RETRIES, max_task_retries=MAX_RETRIES)(RayWorker)
         fault = os.environ.get(FAULT_ENV) or None
-        actors = [remote.options(**resources).remote(options, collect, nthreads, fault) for _ in range(n)]
+        key = (options, nthreads, n, tuple(sorted(resources.items())), fault)
+        actors = [] if started else _POOLS.pop(key, [])
+        if not actors:
+            remote = ray.remote(max_restarts=MAX_RETRIES, max_task_retries=MAX_RETRIES)(RayWorker)
+            actors = [remote.options(**resources).remote(options, nthreads, fault) for _ in range(n)]
         try:  # wait for every actor to have built its pipeline: a worker that cannot start is one clear error
             _wait(ray, [a.ready.remote() for a in actors])
         except ray.exceptions.RayActorError as err:
@@ -119,15 +128,30 @@ def run_ray(tasks, options, collect, *, workers=None, threads=None, address=None
         if log is not None:
             log(f"massviz: {n} Ray worker(s) ready ({nthreads} torch thread(s) each) in "
                 f"{time.perf_counter() - t0:.1f} s")
-        _dispatch(ray, actors, tasks, record)
+        keep = _dispatch(ray, actors, tasks, record, collect) and not started
+        if keep:
+            _POOLS[key] = actors
     finally:
-        for actor in actors:
-            try:
-                ray.kill(actor, no_restart=True)
-            except Exception:  # noqa: BLE001 - already dead, or Ray going down
-                pass
+        if not keep:
+            for actor in actors:
+                try:
+                    ray.kill(actor, no_restart=True)
+                except Exception:  # noqa: BLE001 - already dead, or Ray going down
+                    pass
         if started:
             ray.shutdown()
+
+
+def release_pools() -> None:
+    """Kill the actor pools kept between runs (``_POOLS``); call before ``ray.shutdown()`` of your own Ray."""
+    import ray
+
+    while _POOLS:
+        for actor in _POOLS.popitem()[1]:
+            try:
+                ray.kill(actor, no_restart=True)
+            except Exception:  # noqa: BLE001
+                pass
 
 
 def _wait(ray, refs):
@@ -146,7 +170,8 @@ def _cause(err) -> str:
     return lines[0] if lines else type(err).__name__
 
 
-def _dispatch(ray, actors, tasks, record) -> None:
+def _dispatch(ray, actors, tasks, record, collect) -> bool:
+    """Keep every actor busy until every task has an outcome; True when every actor is still alive."""
     queue = deque(tasks)
     tries: dict[int, int] = {}
     inflight: dict = {}  # ObjectRef -> (actor, task)
@@ -155,7 +180,7 @@ def _dispatch(ray, actors, tasks, record) -> None:
     def submit(actor) -> None:
         if queue:
             task = queue.popleft()
-            inflight[actor.process.remote(task)] = (actor, task)
+            inflight[actor.process.remote(task, collect)] = (actor, task)
 
     for _ in range(IN_FLIGHT):
         for actor in alive:
@@ -188,6 +213,7 @@ def _dispatch(ray, actors, tasks, record) -> None:
                 task = queue.popleft()
                 record(Outcome(task.index, task.id, task.path, "failed", internal=True,
                                error=f"{task.path}: not run: every Ray worker died"))
+    return len(alive) == len(actors)
 
 
-__all__ = ["MAX_RETRIES", "LOCAL_ONLY_ENV", "RayWorker", "connect", "plan", "run_ray"]
+__all__ = ["MAX_RETRIES", "LOCAL_ONLY_ENV", "RayWorker", "connect", "plan", "release_pools", "run_ray"]
