@@ -48,15 +48,22 @@ def connect(address: str | None, log=None):
     if ray.is_initialized():
         return ray, False
     t0 = time.perf_counter()
-    try:
-        if address is None:
-            ray.init(num_cpus=os.cpu_count() or 1, include_dashboard=False, logging_level="WARNING")
-        else:
-            ray.init(address=address, logging_level="WARNING")
-    except (ConnectionError, RuntimeError, ValueError) as err:
-        where = "start a local Ray instance" if address is None else f"join the Ray cluster at {address}"
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise MassvizError(f"cannot {where}: {first}") from None
+    for attempt in (1, 2):  # Ray gives its raylet 30 s to register (hard-coded): a loaded machine may need a retry
+        try:
+            if address is None:
+                ray.init(num_cpus=os.cpu_count() or 1, include_dashboard=False, logging_level="WARNING")
+            else:
+                ray.init(address=address, logging_level="WARNING")
+            break
+        except Exception as err:  # noqa: BLE001 - Ray raises bare Exception, RuntimeError, ConnectionError, ...
+            ray.shutdown()
+            first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            if attempt == 1 and address is None and "timed out" in first:
+                if log is not None:
+                    log(f"massviz: Ray did not start in time ({first}); trying once more")
+                continue
+            where = "start a local Ray instance" if address is None else f"join the Ray cluster at {address}"
+            raise MassvizError(f"cannot {where}: {first}") from None
     if log is not None:
         res = ray.cluster_resources()
         what = "started a local Ray instance" if address is None else f"joined the Ray cluster at {address}"
@@ -97,9 +104,12 @@ def plan(resources: dict, workers: int | None, threads: int | None) -> tuple[int
     return n, {"num_cpus": per_actor}, threads or max(1, int(cpus // n))
 
 
-#: actor pools kept between runs in a Ray this module did not start (a notebook's, the tests'): a second run with
-#: the same pipeline options starts at once. Keyed by (options, threads, actors, resources, fault hook).
-_POOLS: dict = {}
+#: opt-in (``=1``): keep the actor pool after a run in a Ray this module did not start (a notebook's, the tests'), so
+#: a next run with the same pipeline options starts at once. Off by default: a kept pool holds the cluster's CPUs, and
+#: another driver's run would wait for them. One pool at most (a run with other options kills it first); free it
+#: with ``release_pools()``.
+KEEP_ENV = "MASSVIZ_RAY_KEEP_WORKERS"
+_POOLS: dict = {}  # (options, threads, actors, resources, fault hook) -> actors
 
 
 def run_ray(tasks, options, collect, *, workers=None, threads=None, address=None, record, log=None,
@@ -118,17 +128,20 @@ def run_ray(tasks, options, collect, *, workers=None, threads=None, address=None
         key = (options, nthreads, n, tuple(sorted(resources.items())), fault)
         actors = [] if started else _POOLS.pop(key, [])
         if not actors:
+            release_pools()
             remote = ray.remote(max_restarts=MAX_RETRIES, max_task_retries=MAX_RETRIES)(RayWorker)
             actors = [remote.options(**resources).remote(options, nthreads, fault) for _ in range(n)]
         try:  # wait for every actor to have built its pipeline: a worker that cannot start is one clear error
-            _wait(ray, [a.ready.remote() for a in actors])
+            _wait(ray, [a.ready.remote() for a in actors], log, f"massviz: still waiting for Ray to place {n} "
+                  f"worker(s) of {resources}; is the cluster busy?")
         except ray.exceptions.RayActorError as err:
             raise MassvizError(f"a Ray worker could not start: {_cause(err)}") from None
         stats.update(workers=n, threads=nthreads, resources=resources, startup_s=time.perf_counter() - t0)
         if log is not None:
             log(f"massviz: {n} Ray worker(s) ready ({nthreads} torch thread(s) each) in "
                 f"{time.perf_counter() - t0:.1f} s")
-        keep = _dispatch(ray, actors, tasks, record, collect) and not started
+        keep = (_dispatch(ray, actors, tasks, record, collect) and not started
+                and os.environ.get(KEEP_ENV) == "1")
         if keep:
             _POOLS[key] = actors
     finally:
@@ -154,11 +167,14 @@ def release_pools() -> None:
                 pass
 
 
-def _wait(ray, refs):
-    """``ray.get`` in short waits, so that Ctrl-C is seen at once."""
-    pending = list(refs)
+def _wait(ray, refs, log=None, slow: str = "", after: float = 60.0):
+    """``ray.get`` in short waits, so that Ctrl-C is seen at once (``slow`` is logged once after ``after`` s)."""
+    pending, t0 = list(refs), time.monotonic()
     while pending:
         _, pending = ray.wait(pending, num_returns=len(pending), timeout=0.5)
+        if pending and slow and time.monotonic() - t0 > after:
+            (log or (lambda m: print(m, file=sys.stderr)))(slow)
+            slow = ""
     return ray.get(list(refs))
 
 
@@ -216,4 +232,4 @@ def _dispatch(ray, actors, tasks, record, collect) -> bool:
     return len(alive) == len(actors)
 
 
-__all__ = ["MAX_RETRIES", "LOCAL_ONLY_ENV", "RayWorker", "connect", "plan", "release_pools", "run_ray"]
+__all__ = ["MAX_RETRIES", "LOCAL_ONLY_ENV", "KEEP_ENV", "RayWorker", "connect", "plan", "release_pools", "run_ray"]
