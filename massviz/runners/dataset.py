@@ -216,7 +216,8 @@ def run_dataset(tasks: Sequence[Task], options, collect: Callable | None = None,
         raise MassvizError("--workers and --ray-address need --engine ray")
     stats = {} if stats is None else stats
     stats.update(engine=engine, on_error=on_error)
-    bar = Progress(len(tasks) + len(failed), progress, desc)
+    total = len(tasks) + len(failed)
+    bar = Progress(total, progress and total > 1, desc)  # one recording: its frame bar (local) says enough
     outcomes: dict[int, Outcome] = {}
 
     def record(outcome: Outcome) -> None:
