@@ -5,6 +5,7 @@ import argparse
 import sys
 
 from massviz.commands._common import PIPELINE_HELP, add_dataset_args, add_pipeline_args
+from massviz.commands._runner import ENGINE_HELP, add_engine_args
 
 
 def register(sub) -> None:
@@ -14,10 +15,13 @@ def register(sub) -> None:
         description="Score every (threshold, K) pair over a dataset without running any detector: the "
         "detections cached at the lowest threshold of the grid serve every higher threshold, and each detection "
         "already carries its mass prediction. Recordings missing from the cache are processed once (at the "
-        "lowest threshold) first, unless --cached-only.",
+        "lowest threshold) first, unless --cached-only; --engine says where (when every recording is cached, the cache "
+        "is read in this process whatever the engine).",
         epilog="examples:\n"
         "  massviz sweep data_samples --detector depth --threshold 0.3:0.9:0.05 --k 1:10 --plot heatmap.png\n"
-        "  massviz sweep /data/CCM/train --annotations Val_annotations.csv --csv sweep.csv\n" + PIPELINE_HELP)
+        "  massviz sweep /data/CCM/train --annotations Val_annotations.csv --csv sweep.csv\n"
+        "  massviz sweep /data/CCM/train --engine ray --ray-address auto --threshold 0.3:0.9:0.05\n"
+        + PIPELINE_HELP + ENGINE_HELP)
     add_dataset_args(p, metavar="DATASET")
     p.add_argument("--annotations", metavar="ANN.csv",
                    help="CCM annotation CSV (default: ground truth from each recording's meta.json)")
@@ -30,17 +34,26 @@ def register(sub) -> None:
     p.add_argument("--cached-only", action="store_true",
                    help="fail instead of running the detector for recordings not in the cache")
     add_pipeline_args(p, selection=False)
+    add_engine_args(p)
     p.set_defaults(func=run)
+
+
+def slim_trace(trace, recording, extra):
+    """What a worker sends back for one recording: the trace without masks and patches (the sweep needs the
+    detections' d, score and prediction only)."""
+    import dataclasses
+
+    dets = trace.detections
+    n = len(dets)
+    return dataclasses.replace(trace, detections=dataclasses.replace(dets, masks=[None] * n, patches=[None] * n))
 
 
 def run(args) -> int:
     from pathlib import Path
 
-    from tqdm.auto import tqdm
-
     from massviz.io.atomic import atomic_path, check_output_file
     from massviz.commands._common import build
-    from massviz.io.recording import collect_recordings
+    from massviz.commands._runner import exit_status, open_dataset, run_tasks
     from massviz.errors import MassvizError
     from massviz.evaluation.metrics import default_class_of, parse_class_map, read_annotations
     from massviz.evaluation.sweep import best_pair, parse_range, sweep
@@ -57,19 +70,25 @@ def run(args) -> int:
             check_output_file(getattr(args, option), f"--{option}")
     ann = read_annotations(args.annotations) if args.annotations else None
     class_of = parse_class_map(args.classes) if args.classes else default_class_of
-    recordings = collect_recordings(args.recordings, args.view, allow_partial=args.allow_partial)
+    tasks, failed, opened, on_error = open_dataset(args)
+    recordings = [opened[t.index] for t in tasks]
     args.k = 1
     pipeline = build(args, threshold=min(thresholds))
     detector, cache = pipeline.detector, pipeline.cache
-    if args.cached_only:
-        info = {"name": detector.name, **detector.settings()}
-        missing = [r.id for r in recordings if cache is None or
-                   cache.lookup(r, info, args.stride, min(thresholds)) is None]
-        if missing:
-            raise MassvizError(f"{len(missing)} recording(s) not in the cache at threshold <= {min(thresholds)} "
-                               f"(first: {missing[0]}); run without --cached-only")
-    traces = [pipeline.process(r)
-              for r in tqdm(recordings, desc="traces", unit="rec", file=sys.stderr, disable=args.quiet)]
+    info = {"name": detector.name, **detector.settings()}
+    missing = [r.id for r in recordings if cache is None or
+               cache.lookup(r, info, args.stride, min(thresholds)) is None]
+    if args.cached_only and missing:
+        raise MassvizError(f"{len(missing)} recording(s) not in the cache at threshold <= {min(thresholds)} "
+                           f"(first: {missing[0]}); run without --cached-only")
+    if not missing and args.engine != "local":  # nothing to detect: reading the cache here beats starting workers
+        if not args.quiet:
+            print("massviz sweep: every recording is in the cache; reading it here (--engine local)", file=sys.stderr)
+        args.engine, args.workers, args.ray_address = "local", None, None
+    outcomes = run_tasks(args, "sweep", pipeline, tasks, failed, on_error, slim_trace, desc="traces")
+    traces = [o.value for o in outcomes if o.ok]
+    if not traces:
+        raise MassvizError("no recording could be processed (see the errors above)")
     table = sweep(traces, thresholds, ks, ann, class_of)
     grid = table.pivot(index="threshold", columns="k", values="score")
     print(f"CORSMAL score (%) over {int(table['recordings'].iloc[0])} recordings; rows: threshold, columns: K")
@@ -82,4 +101,7 @@ def run(args) -> int:
             table.to_csv(tmp, index=False, float_format="%.4f")
     if args.plot:
         plot_heatmap(table, args.plot)
-    return 0
+    if len(traces) < len(outcomes):
+        print(f"massviz sweep: {len(outcomes) - len(traces)} failed recording(s) left out of the table",
+              file=sys.stderr)
+    return exit_status(outcomes)

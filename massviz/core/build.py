@@ -35,6 +35,7 @@ class PipelineOptions:
     cache: str | None = None
     no_cache: bool = False
     quiet: bool = False
+    allow_partial: bool = False  # a video cut short: process what decodes (open_recording(allow_partial=))
     #: frames per detector call; None: the detector's default (Mask R-CNN: 1 on a CPU, 4 on CUDA). Results are equal.
     batch: int | None = None
     #: Mask R-CNN arithmetic: fp32 (default, the paper's), bf16 (CPU with bf16 support, CUDA) or fp16 (CUDA).

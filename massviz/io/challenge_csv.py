@@ -41,7 +41,8 @@ def write_challenge_csv(path: str | Path, rows: Iterable[Any], *, exact: bool = 
     Each row is a mapping or an object with ``config_id`` (the recording id: an int for CCM recordings; a massviz
     folder without a numeric ``config_id`` in its meta.json is written by name, which ``massviz score`` cannot
     match against CCM annotations), ``mass_g`` (grams; ``-1``, any
-    negative value or ``None`` means not estimated) and ``exec_time_s`` (seconds, written with 2 decimals).
+    negative value or ``None`` means not estimated) and ``exec_time_s`` (seconds, written with 2 decimals;
+    negative or None: not measured, written ``-1``).
 
     Faithful to the paper's code, which writes ``int(pred)``: an estimated mass is written *truncated* to an integer
     (``12.9`` → ``12``), a not-estimated one as ``-1``. ``exact=True`` writes the mass with 2 decimals instead.
@@ -62,7 +63,9 @@ def write_challenge_csv(path: str | Path, rows: Iterable[Any], *, exact: bool = 
         values = {name: str(NOT_ESTIMATED) for name in COLUMNS}
         values["Configuration ID"] = str(config_id)
         values["Container mass"] = _mass_text(_field(row, "mass_g"), exact)
-        values["Execution time"] = f"{float(_field(row, 'exec_time_s')):.2f}"
+        seconds = _field(row, "exec_time_s")
+        values["Execution time"] = (str(NOT_ESTIMATED) if seconds is None or float(seconds) < 0
+                                    else f"{float(seconds):.2f}")
         lines.append([values[name] for name in COLUMNS])
     path = Path(path)
     with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:

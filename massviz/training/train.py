@@ -37,6 +37,7 @@ Kept from the original: gradient-norm clipping at 5 (``max_grad_norm`` of its Co
 from __future__ import annotations
 
 import csv
+import io
 import math
 import random
 import sys
@@ -181,25 +182,45 @@ def extract_patches(recordings: Sequence, labels: Sequence[Annotation], pipeline
     ``labels`` come from :func:`check_extract`. Traces come from ``pipeline.process`` (a
     ``massviz.core.build.Pipeline``, with its cache), so recordings processed before are not detected again. The set
     is written into a temporary folder beside ``out`` and renamed into place when complete, replacing an existing
-    ``out`` (``massviz.io.atomic.atomic_dir``).
+    ``out`` (``massviz.io.atomic.atomic_dir``). (``massviz extract`` runs the same through a dataset runner:
+    :func:`patch_files` on the workers, :func:`write_patch_set` at the end.)
     """
     if len(labels) != len(recordings):
         raise ValueError(f"{len(recordings)} recordings but {len(labels)} labels")
+    found = []
+    for rec, label in tqdm(list(zip(recordings, labels)), desc="extract", unit="rec", file=sys.stderr,
+                           disable=not progress):
+        found.append((rec.id, patch_files(pipeline.process(rec, progress=False), label)))
+    return write_patch_set(out, found)
+
+
+def patch_files(trace, annotation: Annotation) -> list[tuple[str, bytes, dict]]:
+    """:func:`patch_rows` with each patch encoded as the PNG file the patch set stores (small, picklable: what a
+    dataset worker sends back)."""
+    out = []
+    for name, patch, row in patch_rows(trace, annotation):
+        buf = io.BytesIO()
+        Image.fromarray(patch).save(buf, format="PNG")
+        out.append((name, buf.getvalue(), row))
+    return out
+
+
+def write_patch_set(out: str | Path, found: Sequence[tuple[str, Sequence[tuple[str, bytes, dict]]]],
+                    n_recordings: int | None = None) -> ExtractResult:
+    """Write a patch set from ``(recording id, patch_files(...))`` pairs, in order, atomically (``atomic_dir``).
+    ``n_recordings``: recordings of the run (default ``len(found)``; more when some failed)."""
     out = Path(out)
     with atomic_dir(out) as tmp:
         (tmp / IMAGES_DIR).mkdir()
         rows, empty = [], []
-        bar = tqdm(list(zip(recordings, labels)), desc="extract", unit="rec", file=sys.stderr, disable=not progress)
-        for rec, label in bar:
-            trace = pipeline.process(rec, progress=False)
-            found = patch_rows(trace, label)
-            if not found:
-                empty.append(rec.id)
-            for name, patch, row in found:
-                Image.fromarray(patch).save(tmp / name)
+        for rec_id, files in found:
+            if not files:
+                empty.append(rec_id)
+            for name, png, row in files:
+                (tmp / name).write_bytes(png)
                 rows.append(row)
         pd.DataFrame(rows, columns=list(INDEX_COLUMNS)).to_csv(tmp / INDEX_NAME, index=False)
-    return ExtractResult(out, len(rows), len(recordings), tuple(empty))
+    return ExtractResult(out, len(rows), len(found) if n_recordings is None else n_recordings, tuple(empty))
 
 
 def read_index(patches: str | Path) -> pd.DataFrame:
