@@ -12,7 +12,7 @@ from pathlib import Path
 from sample_traces import WEIGHTS, sample_cache
 
 ROOT = Path(__file__).resolve().parents[1]
-CONTRACT = ["/camera", "/camera/rgb", "/camera/depth", "/camera/detections", "/camera/masks", "/world/points",
+CONTRACT = ["/camera", "/camera/rgb", "/camera/depth", "/camera/detections", "/camera/masks", "/world",
             "/log", "/predictions/estimate", "/predictions/ground_truth"]
 
 
