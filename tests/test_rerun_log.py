@@ -8,6 +8,7 @@ and a fake model. The .rrd files are read back with Rerun's own reader (``rrd_co
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -406,3 +407,12 @@ def test_real_ccm_frames(shared_dir, tmp_path):
     contents = rrd_contents(out)
     assert CONTRACT <= set(contents)
     assert "Pinhole:image_from_camera" in components(contents, "/camera")
+
+
+def test_inline_viewer_serves_its_code_locally_unless_the_user_chose(monkeypatch):
+    monkeypatch.delitem(sys.modules, "rerun_notebook", raising=False)
+    monkeypatch.delenv("RERUN_NOTEBOOK_ASSET", raising=False)
+    assert rerun_log.use_local_notebook_assets() == "serve-local"
+    assert os.environ["RERUN_NOTEBOOK_ASSET"] == "serve-local"
+    monkeypatch.setenv("RERUN_NOTEBOOK_ASSET", "inline")
+    assert rerun_log.use_local_notebook_assets() == "inline"

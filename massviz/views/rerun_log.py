@@ -519,6 +519,12 @@ def _look_at_m(recording: Recording, trace: Trace) -> float:
     return scene_depth_m(recording.read_depth(int(trace.frames[0])))
 
 
+def blueprint_for(trace: Trace, recording: Recording, *, points: bool = False) -> rrb.Blueprint:
+    """``default_blueprint`` for this trace: its K patches, a 3D view (with intrinsics) looking at its scene."""
+    return default_blueprint(len(trace.selection), has_3d=recording.intrinsics is not None,
+                             look_at_m=_look_at_m(recording, trace), points=points)
+
+
 def log_trace(trace: Trace, recording: Recording, *, rrd: str | Path | None = None, spawn: bool = False,
               stream: rr.RecordingStream | None = None, progress: bool = False, max_points: int = MAX_POINTS,
               step: int = POINT_STEP, video: str = "auto", clouds: bool = True, points: bool = False) -> dict:
@@ -544,8 +550,7 @@ def log_trace(trace: Trace, recording: Recording, *, rrd: str | Path | None = No
         raise ValueError("nothing to log to: give rrd, spawn=True or stream")
     _check_match(trace, recording)
     t0 = time.perf_counter()
-    blueprint = default_blueprint(len(trace.selection), has_3d=recording.intrinsics is not None,
-                                  look_at_m=_look_at_m(recording, trace), points=points)
+    blueprint = blueprint_for(trace, recording, points=points)
 
     def log_into(rec: rr.RecordingStream) -> dict:
         rec.send_blueprint(blueprint, make_active=True, make_default=True)
@@ -584,6 +589,35 @@ def log_trace(trace: Trace, recording: Recording, *, rrd: str | Path | None = No
         stats.update(recording_id=rec.get_recording_id(), rrd=None if rrd is None else str(rrd))
     stats["log_seconds"] = time.perf_counter() - t0
     return stats
+
+
+# ------------------------------------------------------------------------------------------------------ notebook
+#: how rerun-notebook loads the inline viewer's code (its ``widget.js`` + wasm); read once, when it is imported.
+NOTEBOOK_ASSET_ENV = "RERUN_NOTEBOOK_ASSET"
+
+
+def use_local_notebook_assets() -> str:
+    """Make the inline (notebook) Rerun viewer load its code from this machine, so it works offline.
+
+    rerun-notebook's default fetches the viewer from ``app.rerun.io``; massviz sets ``RERUN_NOTEBOOK_ASSET=serve-local``
+    instead (a small asset server inside the kernel, on localhost) unless the variable is already set — set it
+    yourself to Rerun's hosted ``widget.js`` URL or to ``inline`` when the browser is not on the kernel's machine.
+    Must run before ``rerun_notebook`` is first imported; returns the setting in effect."""
+    if "rerun_notebook" in sys.modules and NOTEBOOK_ASSET_ENV not in os.environ:
+        return "hosted (rerun_notebook was imported before massviz could choose local assets)"
+    return os.environ.setdefault(NOTEBOOK_ASSET_ENV, "serve-local")
+
+
+def show_in_notebook(trace: Trace, recording: Recording, *, width: int = 1000, height: int = 640,
+                     **options) -> dict:
+    """Show ``trace`` in an inline Rerun viewer (rerun-notebook) in the current notebook cell, with massviz's default
+    layout, and log it there (``log_trace(..., stream=...)``; ``options`` go to it). The viewer's code is served
+    locally (``use_local_notebook_assets``), so no network is needed. Returns ``log_trace``'s stats."""
+    use_local_notebook_assets()
+    stream = rr.RecordingStream(APPLICATION_ID, recording_id=f"notebook-{recording.id}-{uuid.uuid4().hex[:8]}")
+    stream.notebook_show(width=width, height=height,
+                         blueprint=blueprint_for(trace, recording, points=bool(options.get("points"))))
+    return log_trace(trace, recording, stream=stream, **options)
 
 
 def _connect(rec: rr.RecordingStream, path: Path | None, spawn: bool) -> None:
@@ -628,4 +662,5 @@ def rrd_entities(path: str | Path) -> set[str]:
 
 
 __all__ = ["log_trace", "default_blueprint", "log_clouds", "log_frame_clouds", "rrd_entities", "rrd_contents", "RgbLogger",
-           "CLASS_IDS", "CHOSEN_ID", "POINT_STEP", "MAX_POINTS"]
+           "CLASS_IDS", "CHOSEN_ID", "POINT_STEP", "MAX_POINTS", "blueprint_for", "show_in_notebook",
+           "use_local_notebook_assets"]
