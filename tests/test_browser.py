@@ -179,6 +179,9 @@ def offline_page(browser, viewport: dict):
     try:
         yield page, messages, blocked
     finally:
+        with contextlib.suppress(Exception):  # a notebook's kernel goes with its test
+            page.evaluate("""() => { const w = window.jupyterapp && window.jupyterapp.shell.currentWidget;
+                return w && w.sessionContext ? w.sessionContext.shutdown() : null; }""")
         ctx.close()
 
 
@@ -340,14 +343,17 @@ KERNEL_IDLE = """() => { const w = window.jupyterapp && window.jupyterapp.shell.
 ALL_RUN = """(n) => { const w = window.jupyterapp.shell.currentWidget;
   const cells = w.content.widgets.filter(c => c.model.type === 'code').slice(0, n);
   return cells.every(c => c.model.executionCount !== null) && w.sessionContext.session.kernel.status === 'idle'; }"""
-ERRORS = """() => [...document.querySelectorAll('.jp-OutputArea-output[data-mime-type="application/vnd.jupyter.stderr"],
-  .jp-RenderedText[data-mime-type="application/vnd.jupyter.error"]')].map(e => e.innerText).filter(t => /Error|Traceback/.test(t))"""
+ERRORS = """() => [...document.querySelectorAll('.jp-RenderedText[data-mime-type="application/vnd.jupyter.error"]')]
+  .map(e => e.innerText)"""
 
 
 def open_and_run(page, lab: str, name: str, upto: str | None = None) -> float:
     """Open a notebook in JupyterLab and run its code cells (all, or those before the first containing ``upto``)
     through the page; returns the seconds it took. Fails on an error output."""
-    page.goto(f"{lab}/lab/tree/notebooks/{name}")
+    page.goto(f"{lab}/lab/tree/notebooks/{name}?reset")  # ?reset: not the tabs of an earlier test
+    page.wait_for_function(f"() => window.jupyterapp && window.jupyterapp.shell.currentWidget && "
+                           f"window.jupyterapp.shell.currentWidget.title.label === {json.dumps(name)}",
+                           timeout=120_000)
     page.wait_for_function(KERNEL_IDLE, timeout=120_000)
     t0 = time.monotonic()
     n = page.evaluate("""(upto) => { const w = window.jupyterapp.shell.currentWidget;
