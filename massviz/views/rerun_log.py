@@ -79,7 +79,7 @@ POINT_STEP = 4
 #: at most this many points per frame in ``/world/points``.
 MAX_POINTS = 50_000
 #: voxel size (m) of the detection clouds under ``/world/detections`` (the scene itself is the back-projected depth).
-CLOUD_VOXEL_M = 0.008
+CLOUD_VOXEL_M = 0.01
 
 # ---------------------------------------------------------------------------------------------- annotation context
 BACKGROUND_ID, OTHER_ID, BELOW_THRESHOLD_ID, CHOSEN_ID = 0, 6, 7, 10
