@@ -3,13 +3,16 @@
 #   bash scripts/setup.sh demo   install everything, run `massviz log` on a bundled sample -> out/cup_handover.rrd
 #   bash scripts/setup.sh test   install everything, run the test suite (what CI runs)
 # Installs Debian's libraries Open3D needs (libusb-1.0-0; offscreen rendering: libvulkan1 mesa-vulkan-drivers
-# libegl1 libgl1), creates .venv with Python >= 3.11 and installs massviz with its pinned torch/torchvision.
+# libegl1 libgl1; the test job also Chromium for the browser tests), creates .venv with Python >= 3.11 and installs
+# massviz with its pinned torch/torchvision.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 job="${1:-}"
 case "$job" in demo|test) ;; *) echo "usage: bash scripts/setup.sh demo|test" >&2; exit 2 ;; esac
 
 apt_pkgs=(libusb-1.0-0 libvulkan1 mesa-vulkan-drivers libegl1 libgl1)
+# the browser tests (tests/test_browser.py) drive Debian's Chromium through playwright (no browser download)
+if [ "$job" = test ]; then apt_pkgs+=(chromium); fi
 missing=()
 for p in "${apt_pkgs[@]}"; do dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p"); done
 if ((${#missing[@]})); then

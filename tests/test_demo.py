@@ -12,9 +12,9 @@ from pathlib import Path
 from sample_traces import WEIGHTS, sample_cache
 
 ROOT = Path(__file__).resolve().parents[1]
-CONTRACT = ["/camera", "/camera/rgb", "/camera/depth", "/camera/detections", "/camera/masks", "/world/points",
+CONTRACT = ["/camera", "/camera/rgb", "/camera/depth", "/camera/detections", "/camera/masks", "/world",
             "/log", "/predictions/estimate", "/predictions/ground_truth", "/predictions/running_estimate",
-            "/latency/detect"]
+            "/latency/detect", "/predictions/estimate_without_flagged"]
 
 
 def demo_command() -> list[str]:
@@ -46,4 +46,7 @@ def test_readme_demo_rrd_holds_the_entity_tree(tmp_path, tmp_path_factory, share
     assert not missing, f"missing from the demo .rrd: {missing}"
     assert any(e.startswith("/world/detections/") for e in entities)  # Open3D clouds of the detections
     assert "/camera/rgb@EncodedImage:blob" in printed.stdout  # a frame folder: compressed images
-    assert "/camera/depth@DepthImage:buffer" in printed.stdout
+    assert "/camera/depth@EncodedDepthImage:blob" in printed.stdout  # the depth PNGs' own bytes
+    # small by default: Rerun back-projects the depth itself (no /world/points), the depth PNGs are not decoded
+    inputs = sum(p.stat().st_size for p in (ROOT / "data_samples" / "cup_handover").rglob("*") if p.is_file())
+    assert out.stat().st_size <= 1.5 * inputs, f"demo .rrd {out.stat().st_size} B > 1.5 x the sample's {inputs} B"

@@ -8,6 +8,7 @@ and a fake model. The .rrd files are read back with Rerun's own reader (``rrd_co
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -16,6 +17,7 @@ import cv2
 import numpy as np
 import pytest
 import rerun as rr
+import rerun.blueprint as rrb
 
 from massviz.views import rerun_log
 from massviz.core.patches import model_view
@@ -27,7 +29,7 @@ from massviz.views.rerun_log import log_trace, rrd_contents, rrd_entities
 from massviz.core.types import COCO_KEEP, Detections, Intrinsics
 
 W, H, N = 64, 48, 4
-CONTRACT = {"/camera", "/camera/rgb", "/camera/depth", "/camera/detections", "/camera/masks", "/world/points",
+CONTRACT = {"/camera", "/camera/rgb", "/camera/depth", "/camera/detections", "/camera/masks", "/world",
             "/patches/0", "/predictions/patch_0", "/predictions/estimate", "/log"}
 RERUN_CLI = Path(sys.executable).parent / "rerun"
 
@@ -131,7 +133,7 @@ def test_png_folder_logs_the_whole_entity_tree(tmp_path):
     out = tmp_path / "out.rrd"
     stats = log_trace(trace, recording, rrd=out)
     assert out.is_file() and stats["rrd"] == str(out)
-    assert stats["frames"] == N and stats["chosen"] == 2 and stats["rgb"] == "files" and stats["points"] > 0
+    assert stats["frames"] == N and stats["chosen"] == 2 and stats["rgb"] == "files" and stats["points"] == 0
     assert stats["log_seconds"] > 0
     assert not stats["notes"]
 
@@ -143,10 +145,12 @@ def test_png_folder_logs_the_whole_entity_tree(tmp_path):
     assert {"Pinhole:image_from_camera", "AnnotationContext:context"} <= components(contents, "/camera")
     assert "EncodedImage:blob" in components(contents, "/camera/rgb")
     assert "AssetVideo:blob" not in components(contents, "/camera/rgb")
-    assert "DepthImage:meter" in components(contents, "/camera/depth")
+    # the depth PNG goes in as its own bytes; Rerun back-projects it under the Pinhole (no /world/points)
+    assert {"EncodedDepthImage:blob", "EncodedDepthImage:meter"} <= components(contents, "/camera/depth")
+    assert "DepthImage:buffer" not in components(contents, "/camera/depth")
     assert {"Boxes2D:class_ids", "Boxes2D:labels"} <= components(contents, "/camera/detections")
     assert "SegmentationImage:buffer" in components(contents, "/camera/masks")
-    assert "Points3D:positions" in components(contents, "/world/points")
+    assert "/world/points" not in contents
     assert {"Image:buffer", "pred_g", "d_mm", "a", "b", "frame"} <= components(contents, "/patches/0")
     assert "Scalars:scalars" in components(contents, "/predictions/estimate")
     assert "TextLog:text" in components(contents, "/log")
@@ -213,7 +217,7 @@ def test_no_detections_still_logs_frames_and_says_not_estimated(tmp_path):
     stats = log_trace(trace, recording, rrd=out)
     assert stats["chosen"] == 0 and stats["frames"] == N
     entities = rrd_entities(out)
-    assert {"/camera", "/camera/rgb", "/camera/depth", "/camera/detections", "/camera/masks", "/world/points",
+    assert {"/camera", "/camera/rgb", "/camera/depth", "/camera/detections", "/camera/masks", "/world",
             "/log", "/summary"} <= entities
     assert not any(e.startswith(("/patches", "/predictions")) for e in entities)
     assert "not estimated" in text_logs(out)
@@ -300,8 +304,53 @@ def test_depth_to_points_back_projects_in_metres():
 
 def test_point_cloud_is_capped(tmp_path):
     trace, recording = traced(write_folder(tmp_path / "rec"))
-    stats = log_trace(trace, recording, rrd=tmp_path / "out.rrd", step=1, max_points=500)
+    stats = log_trace(trace, recording, rrd=tmp_path / "out.rrd", step=1, max_points=500, points=True)
     assert 0 < stats["points"] <= 500 * N
+
+
+def test_points_option_logs_rgb_points_and_keeps_them_out_of_the_default(tmp_path):
+    trace, recording = traced(write_folder(tmp_path / "rec"))
+    stats = log_trace(trace, recording, rrd=tmp_path / "points.rrd", points=True)
+    contents = rrd_contents(tmp_path / "points.rrd")
+    assert stats["points"] > 0 and {"Points3D:positions", "Points3D:colors"} <= components(contents, "/world/points")
+    assert "EncodedDepthImage:blob" in components(contents, "/camera/depth")
+    default = tmp_path / "default.rrd"
+    log_trace(trace, recording, rrd=default)
+    assert "/world/points" not in rrd_contents(default)
+    assert default.stat().st_size < (tmp_path / "points.rrd").stat().st_size
+
+
+def test_depth_without_png_file_is_a_depth_image():
+    rec = rr.RecordingStream("massviz-test")
+    rec.memory_recording()
+    depth = np.full((4, 5), 800, np.uint16)
+    rerun_log.log_depth(rec, depth, None)  # e.g. a recording type whose depth is not a PNG file
+
+
+def test_3d_view_starts_at_the_camera_looking_into_the_scene():
+    depth = np.zeros((10, 10), np.uint16)
+    depth[2:8, 2:8] = 1200
+    assert rerun_log.scene_depth_m(depth) == pytest.approx(1.2)
+    assert rerun_log.scene_depth_m(np.zeros((3, 3), np.uint16)) == 1.0
+    bp = rerun_log.default_blueprint(2, look_at_m=1.2)
+    views = [v for v in _walk(bp.root_container) if isinstance(v, rrb.Spatial3DView)]
+    assert len(views) == 1
+    eye = views[0].properties["EyeControls3D"]
+    np.testing.assert_allclose(eye.position.as_arrow_array().to_pylist(), [[0, 0, 0]])
+    np.testing.assert_allclose(eye.look_target.as_arrow_array().to_pylist(), [[0, 0, 1.2]], rtol=1e-6)
+    np.testing.assert_allclose(eye.eye_up.as_arrow_array().to_pylist(), [[0, -1, 0]])
+    assert "/camera/depth" in str(views[0].contents) and "/camera/rgb" not in str(views[0].contents)
+    with_points = [v for v in _walk(rerun_log.default_blueprint(2, points=True).root_container)
+                   if isinstance(v, rrb.Spatial3DView)][0]
+    assert "/camera/depth" not in str(with_points.contents)
+
+
+def _walk(container):
+    for item in getattr(container, "contents", None) or []:
+        if hasattr(item, "origin"):
+            yield item
+        else:
+            yield from _walk(item)
 
 
 def test_patch_is_logged_as_the_model_saw_it():
@@ -358,3 +407,12 @@ def test_real_ccm_frames(shared_dir, tmp_path):
     contents = rrd_contents(out)
     assert CONTRACT <= set(contents)
     assert "Pinhole:image_from_camera" in components(contents, "/camera")
+
+
+def test_inline_viewer_serves_its_code_locally_unless_the_user_chose(monkeypatch):
+    monkeypatch.delitem(sys.modules, "rerun_notebook", raising=False)
+    monkeypatch.delenv("RERUN_NOTEBOOK_ASSET", raising=False)
+    assert rerun_log.use_local_notebook_assets() == "serve-local"
+    assert os.environ["RERUN_NOTEBOOK_ASSET"] == "serve-local"
+    monkeypatch.setenv("RERUN_NOTEBOOK_ASSET", "inline")
+    assert rerun_log.use_local_notebook_assets() == "inline"

@@ -25,6 +25,9 @@ def register(sub) -> None:
                    help="how an mp4 input is logged: 'asset' = the file once as a Rerun video asset with per-frame "
                    "references (not re-encoded); 'images' = a JPEG per processed frame; 'auto' (default) = asset "
                    "when Rerun can decode the codec, else images (CCM's MPEG-4 Part 2 'mp4v' it cannot)")
+    p.add_argument("--points", action="store_true",
+                   help="also log /world/points: every 4th pixel's depth back-projected and coloured by RGB (a larger "
+                   "recording); by default the 3D view shows the depth image back-projected by Rerun itself")
     p.add_argument("--ply", metavar="DIR", help="also write the chosen frames' point clouds (.ply) into DIR "
                    "(as 'massviz cloud' does)")
     add_pipeline_args(p)
@@ -50,7 +53,7 @@ def run(args) -> int:
     rec = open_recording(args.recording, allow_partial=args.allow_partial)
     trace = build(args).process(rec)
     stats = log_trace(trace, rec, rrd=Path(args.rrd) if args.rrd else None, spawn=args.spawn,
-                      progress=not args.quiet, video=args.video)
+                      progress=not args.quiet, video=args.video, points=args.points)
     if args.ply:
         from massviz.views.open3d_view import write_ply_or_skip
 

@@ -71,7 +71,7 @@ class LiveLogger:
             stream.set_sinks(*sinks)
         self.rec = stream
         self.rec.send_recording_name(f"massviz live {name}")
-        self.rec.send_blueprint(default_blueprint(k, has_3d=intrinsics is not None, depth_in_3d=True),
+        self.rec.send_blueprint(default_blueprint(k, has_3d=intrinsics is not None),
                                 make_active=True, make_default=True)
         log_annotation_context(self.rec, k)
         self.rec.log("/predictions/running_estimate", rr.SeriesLines(

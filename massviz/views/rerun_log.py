@@ -16,15 +16,18 @@ entity                         what is logged
                                ``VideoFrameReference`` per processed frame; frame folders: ``EncodedImage`` of each
                                frame file's bytes; an mp4 Rerun cannot decode (e.g. CCM's MPEG-4 Part 2 'mp4v'):
                                JPEG ``EncodedImage`` per processed frame, with a warning in ``/log``
-``/camera/depth``              ``DepthImage`` (uint16 mm, ``meter=1000``, turbo colormap)
+``/camera/depth``              ``EncodedDepthImage``: the recording's 16-bit PNG (mm) as its own bytes (``meter=1000``,
+                               turbo colormap); the 3D view back-projects it through the ``Pinhole`` (``DepthImage``
+                               of the decoded array when there is no PNG file)
 ``/camera/detections``         ``Boxes2D`` (XYXY) labelled "class score · d mm · track t", with class ids and
                                ``AnyValues`` track, detection; boxes coloured by object track, chosen patches in the
                                palette's chosen colour (class id ``CHOSEN_ID + rank``, label suffix "★rank"),
                                flagged ones in its flagged colour (class id ``FLAGGED_ID + rank``, "★rank ⚑ flagged")
 ``/camera/masks``              ``SegmentationImage`` of the same class ids (chosen masks drawn on top)
 ``/world``                     ``ViewCoordinates.RDF`` (static): the 3D world is the camera frame
-``/world/points``              ``Points3D``: depth back-projected (Open3D) to metres in the camera frame, every ``step``-th pixel,
-                               at most ``max_points``, coloured by RGB (only with intrinsics)
+``/world/points``              only with ``points=True`` (``massviz log --points``): ``Points3D``, depth back-projected
+                               (Open3D) to metres in the camera frame, every ``step``-th pixel, at most ``max_points``,
+                               coloured by RGB (only with intrinsics)
 ``/patches/<rank>``            ``Image`` of chosen patch ``rank`` (0 = nearest) as the model saw it (zero-padded
                                square, 112×112) at its source frame, with ``AnyValues`` a, b, d_mm, frame, class,
                                score, pred_g, detection, track, flagged, flag
@@ -86,6 +89,8 @@ APPLICATION_ID = "massviz"
 POINT_STEP = 4
 #: at most this many points per frame in ``/world/points``.
 MAX_POINTS = 50_000
+#: voxel size (m) of the detection clouds under ``/world/detections`` (the scene itself is the back-projected depth).
+CLOUD_VOXEL_M = 0.01
 
 # ---------------------------------------------------------------------------------------------- annotation context
 BACKGROUND_ID, OTHER_ID, BELOW_THRESHOLD_ID, CHOSEN_ID, FLAGGED_ID = 0, 6, 7, 10, 200
@@ -185,8 +190,20 @@ class RgbLogger:
 
 
 # ----------------------------------------------------------------------------------------------- depth and points
-def log_depth(rec: rr.RecordingStream, depth: np.ndarray) -> None:
-    rec.log("/camera/depth", rr.DepthImage(depth, meter=1000.0, colormap="turbo"))
+def log_depth(rec: rr.RecordingStream, depth: np.ndarray, png: Path | None = None) -> None:
+    """``/camera/depth``: the frame's 16-bit PNG file as its own bytes (``EncodedDepthImage``, no decode/re-encode;
+    ``depth`` is that file decoded, so it has been checked already), else the array as a ``DepthImage``."""
+    if png is not None and png.suffix.lower() == ".png":
+        rec.log("/camera/depth", rr.EncodedDepthImage(png.read_bytes(), media_type=rr.components.MediaType.PNG,
+                                                      meter=1000.0, colormap="turbo"))
+    else:
+        rec.log("/camera/depth", rr.DepthImage(depth, meter=1000.0, colormap="turbo"))
+
+
+def scene_depth_m(depth: np.ndarray) -> float:
+    """Median valid depth (m) of a frame, 0.1..10 m (1 m without depth): where the 3D view looks at."""
+    valid = depth[depth > 0]
+    return 1.0 if valid.size == 0 else float(np.clip(np.median(valid) / 1000.0, 0.1, 10.0))
 
 
 def log_points(rec: rr.RecordingStream, depth: np.ndarray, rgb: np.ndarray, intr: Intrinsics, step: int,
@@ -423,19 +440,25 @@ def log_timings(rec: rr.RecordingStream, timings: dict, n_frames: int) -> None:
 
 
 # ------------------------------------------------------------------------------------------------------ blueprint
-def default_blueprint(n_patches: int, *, has_3d: bool = True, flagged=(), depth_in_3d: bool = False) -> rrb.Blueprint:
+def default_blueprint(n_patches: int, *, has_3d: bool = True, flagged=(), look_at_m: float = 1.0,
+                      points: bool = False) -> rrb.Blueprint:
     """RGB + detections + masks, depth and 3D on the left; the chosen patches, predictions and text on the right.
-    ``flagged``: ranks of flagged patches (their tiles are named "patch ★r ⚑ flagged"). ``depth_in_3d``: the 3D view
-    also shows ``/camera/depth`` (Rerun back-projects it through the Pinhole; live mode logs no ``/world/points``)."""
+
+    The 3D view starts at the camera (the origin of ``/world``, the camera frame) looking along its optical axis at
+    ``look_at_m`` metres (orbiting around that point), image up. It shows the camera frustum, the detection clouds
+    and the depth back-projected by Rerun through the ``Pinhole`` (or ``/world/points`` instead when ``points``).
+    The RGB image is not in it: seen from the camera it would cover the whole view. ``flagged``: ranks of flagged
+    patches (their tiles are named "patch ★r ⚑ flagged")."""
     flagged = {int(r) for r in flagged}
     camera = rrb.Spatial2DView(name="RGB · detections · masks", origin="/camera",
                                contents=["/camera/rgb", "/camera/detections", "/camera/masks"])
     depth = rrb.Spatial2DView(name="Depth", origin="/camera", contents=["/camera/depth"])
     lower = [depth]
     if has_3d:
-        lower.append(rrb.Spatial3DView(name="3D (camera frame, m)", origin="/",
-                                       contents=["/world/**", "/camera", "/camera/rgb",
-                                                 *(["/camera/depth"] if depth_in_3d else [])]))
+        eye = rrb.EyeControls3D(position=[0.0, 0.0, 0.0], look_target=[0.0, 0.0, float(look_at_m)],
+                                eye_up=[0.0, -1.0, 0.0])
+        lower.append(rrb.Spatial3DView(name="3D (camera frame, m)", origin="/", eye_controls=eye,
+                                       contents=["/world/**", "/camera"] + ([] if points else ["/camera/depth"])))
     if n_patches:
         patches = rrb.Grid(*[rrb.Spatial2DView(name=f"patch ★{r}" + (" ⚑ flagged" if r in flagged else ""),
                                                origin=f"/patches/{r}") for r in range(n_patches)],
@@ -485,7 +508,7 @@ def log_frame_clouds(trace, frame: Frame, intr: Intrinsics, stream, *, root: str
         if i in rank_of:
             flag = trace.flags.of(i)
             colour = FLAGGED_COLOUR if flag is not None and flag.flagged else CHOSEN_COLOUR
-            colours = np.tile(np.array(rgb255(colour), np.uint8), (len(pts), 1))
+            colours = np.array([rgb255(colour)], np.uint8)  # one colour for all: Rerun repeats it
         else:
             colours = (np.asarray(shown.colors) * 255).astype(np.uint8)
         stream.log(path, rr.Points3D(pts, colors=colours, radii=0.002))
@@ -533,7 +556,7 @@ def _check_match(trace: Trace, recording: Recording) -> None:
 
 
 def _log_all(rec: rr.RecordingStream, trace: Trace, recording: Recording, *, video: str, step: int,
-             max_points: int, progress: bool, clouds: bool) -> dict:
+             max_points: int, progress: bool, clouds: bool, points: bool) -> dict:
     dets, frames = trace.detections, [int(f) for f in trace.frames]
     first = frames[0] if frames else 0
     rank_of = {int(i): r for r, i in enumerate(trace.selection)}
@@ -551,7 +574,7 @@ def _log_all(rec: rr.RecordingStream, trace: Trace, recording: Recording, *, vid
     rgb.log_static(rec)
     notes = []
     if intr is None:
-        notes.append("no camera intrinsics for this recording: /camera Pinhole and /world/points are not logged")
+        notes.append("no camera intrinsics for this recording: no /camera Pinhole, no 3D view")
     if rgb.warning:
         notes.append(rgb.warning)
     if trace.estimate < 0 and not any(e.kind == "not_estimated" for e in trace.events):
@@ -572,12 +595,12 @@ def _log_all(rec: rr.RecordingStream, trace: Trace, recording: Recording, *, vid
         if intr is not None and frame.index == first:
             log_pinhole(rec, intr, frustum_depth(frame.depth))
         rgb.log_frame(rec, frame.index, frame.rgb)
-        log_depth(rec, frame.depth)
+        log_depth(rec, frame.depth, _depth_file(recording, frame.index))
         idx = by_frame.get(frame.index, [])
         class_ids = detection_class_ids(dets, idx, rank_of, trace.threshold, flagged)
         log_detections(rec, dets, idx, class_ids, rank_of)
         log_masks(rec, dets, idx, class_ids, frame.depth.shape[:2])
-        if intr is not None:
+        if points and intr is not None:
             n_points += log_points(rec, frame.depth, frame.rgb, intr, step, max_points)
         for i in idx:
             if i in rank_of:
@@ -586,7 +609,7 @@ def _log_all(rec: rr.RecordingStream, trace: Trace, recording: Recording, *, vid
         if cloud_frames:  # in this same pass, so the frames are decoded once
             for path in shown:
                 rec.log(path, rr.Clear(recursive=True))
-            shown = log_frame_clouds(trace, frame, intr, rec)
+            shown = log_frame_clouds(trace, frame, intr, rec, voxel_m=CLOUD_VOXEL_M)
             n_clouds += len(shown)
     bar.close()
     rec.reset_time()
@@ -599,9 +622,28 @@ def _log_all(rec: rr.RecordingStream, trace: Trace, recording: Recording, *, vid
             "clouds": n_clouds, "rgb": rgb.mode, "notes": notes}
 
 
+def _depth_file(recording: Recording, index: int) -> Path | None:
+    files = getattr(recording, "depth_files", None) or []
+    return Path(files[index]) if index < len(files) else None
+
+
+def _look_at_m(recording: Recording, trace: Trace) -> float:
+    """Where the 3D view looks: the median depth of the first processed frame."""
+    if recording.intrinsics is None or len(trace.frames) == 0:
+        return 1.0
+    return scene_depth_m(recording.read_depth(int(trace.frames[0])))
+
+
+def blueprint_for(trace: Trace, recording: Recording, *, points: bool = False) -> rrb.Blueprint:
+    """``default_blueprint`` for this trace: its K patches, a 3D view (with intrinsics) looking at its scene."""
+    return default_blueprint(len(trace.selection), has_3d=recording.intrinsics is not None,
+                             flagged=[p.rank for p in trace.flags.flagged], look_at_m=_look_at_m(recording, trace),
+                             points=points)
+
+
 def log_trace(trace: Trace, recording: Recording, *, rrd: str | Path | None = None, spawn: bool = False,
               stream: rr.RecordingStream | None = None, progress: bool = False, max_points: int = MAX_POINTS,
-              step: int = POINT_STEP, video: str = "auto", clouds: bool = True) -> dict:
+              step: int = POINT_STEP, video: str = "auto", clouds: bool = True, points: bool = False) -> dict:
     """Log ``trace`` (made on ``recording``) to Rerun; the entity tree is in this module's docstring.
 
     Outputs: ``rrd`` (a file, written atomically: nothing is left at ``rrd`` if logging fails), ``spawn`` (spawn
@@ -609,7 +651,9 @@ def log_trace(trace: Trace, recording: Recording, *, rrd: str | Path | None = No
     notebook's inline viewer; its sinks are left as they are and it is not disconnected). Each call logs a new
     recording of application ``massviz`` on its own ``RecordingStream`` (never the global one).
 
-    ``video``: how an mp4 is logged (see ``RgbLogger``). ``step``/``max_points``: point cloud subsampling.
+    ``video``: how an mp4 is logged (see ``RgbLogger``). ``points``: also log ``/world/points`` (RGB-coloured
+    points; by default Rerun back-projects ``/camera/depth`` itself, which keeps the recording small);
+    ``step``/``max_points``: their subsampling.
     ``clouds``: also log each detection's Open3D cloud under ``/world/detections`` (``massviz.core.geometry``).
 
     Returns stats: ``recording_id``, ``frames``, ``detections``, ``chosen``, ``points``, ``rgb`` ("asset",
@@ -622,13 +666,12 @@ def log_trace(trace: Trace, recording: Recording, *, rrd: str | Path | None = No
         raise ValueError("nothing to log to: give rrd, spawn=True or stream")
     _check_match(trace, recording)
     t0 = time.perf_counter()
-    blueprint = default_blueprint(len(trace.selection), has_3d=recording.intrinsics is not None,
-                                  flagged=[p.rank for p in trace.flags.flagged])
+    blueprint = blueprint_for(trace, recording, points=points)
 
     def log_into(rec: rr.RecordingStream) -> dict:
         rec.send_blueprint(blueprint, make_active=True, make_default=True)
         stats = _log_all(rec, trace, recording, video=video, step=step, max_points=max_points, progress=progress,
-                         clouds=clouds)
+                         clouds=clouds, points=points)
         log_timings(rec, {**trace.timings, "log": time.perf_counter() - t0}, stats["frames"])
         try:
             rec.flush()
@@ -662,6 +705,35 @@ def log_trace(trace: Trace, recording: Recording, *, rrd: str | Path | None = No
         stats.update(recording_id=rec.get_recording_id(), rrd=None if rrd is None else str(rrd))
     stats["log_seconds"] = time.perf_counter() - t0
     return stats
+
+
+# ------------------------------------------------------------------------------------------------------ notebook
+#: how rerun-notebook loads the inline viewer's code (its ``widget.js`` + wasm); read once, when it is imported.
+NOTEBOOK_ASSET_ENV = "RERUN_NOTEBOOK_ASSET"
+
+
+def use_local_notebook_assets() -> str:
+    """Make the inline (notebook) Rerun viewer load its code from this machine, so it works offline.
+
+    rerun-notebook's default fetches the viewer from ``app.rerun.io``; massviz sets ``RERUN_NOTEBOOK_ASSET=serve-local``
+    instead (a small asset server inside the kernel, on localhost) unless the variable is already set — set it
+    yourself to Rerun's hosted ``widget.js`` URL or to ``inline`` when the browser is not on the kernel's machine.
+    Must run before ``rerun_notebook`` is first imported; returns the setting in effect."""
+    if "rerun_notebook" in sys.modules and NOTEBOOK_ASSET_ENV not in os.environ:
+        return "hosted (rerun_notebook was imported before massviz could choose local assets)"
+    return os.environ.setdefault(NOTEBOOK_ASSET_ENV, "serve-local")
+
+
+def show_in_notebook(trace: Trace, recording: Recording, *, width: int = 1000, height: int = 640,
+                     **options) -> dict:
+    """Show ``trace`` in an inline Rerun viewer (rerun-notebook) in the current notebook cell, with massviz's default
+    layout, and log it there (``log_trace(..., stream=...)``; ``options`` go to it). The viewer's code is served
+    locally (``use_local_notebook_assets``), so no network is needed. Returns ``log_trace``'s stats."""
+    use_local_notebook_assets()
+    stream = rr.RecordingStream(APPLICATION_ID, recording_id=f"notebook-{recording.id}-{uuid.uuid4().hex[:8]}")
+    stream.notebook_show(width=width, height=height,
+                         blueprint=blueprint_for(trace, recording, points=bool(options.get("points"))))
+    return log_trace(trace, recording, stream=stream, **options)
 
 
 def _connect(rec: rr.RecordingStream, path: Path | None, spawn: bool) -> None:
@@ -705,5 +777,6 @@ def rrd_entities(path: str | Path) -> set[str]:
     return set(rrd_contents(path))
 
 
-__all__ = ["log_trace", "log_flags", "default_blueprint", "log_clouds", "log_frame_clouds", "rrd_entities", "rrd_contents", "RgbLogger",
-           "CLASS_IDS", "CHOSEN_ID", "FLAGGED_ID", "POINT_STEP", "MAX_POINTS"]
+__all__ = ["log_trace", "log_flags", "default_blueprint", "log_clouds", "log_frame_clouds", "rrd_entities",
+           "rrd_contents", "RgbLogger", "CLASS_IDS", "CHOSEN_ID", "FLAGGED_ID", "POINT_STEP", "MAX_POINTS",
+           "blueprint_for", "show_in_notebook", "use_local_notebook_assets"]
