@@ -172,7 +172,7 @@ class Recording:
         note = f"{self.rgb_video}: {partial_message(decoded, declared)}; processed the {decoded} that decode"
         if note not in self.notes:
             self.notes.append(note)
-            print(f"massviz: warning: {note}", file=sys.stderr)
+            _warn_once(note)
 
 
 def partial_message(decoded: int, declared: int) -> str:
@@ -260,8 +260,19 @@ def _video_frames(path: Path, allow_partial: bool) -> tuple[int, int, int, float
         raise RecordingError(f"{partial_message(decoded, declared)}; pass --allow-partial to process the "
                              f"{decoded} that decode", path)
     note = f"{path}: {partial_message(decoded, declared)}; processed the {decoded} that decode"
-    print(f"massviz: warning: {note}", file=sys.stderr)
+    _warn_once(note)
     return width, height, decoded, fps, declared, [note]
+
+
+_WARNED: set[str] = set()
+
+
+def _warn_once(note: str) -> None:
+    """One warning line on stderr per note and process (a recording is opened again by the runner that processes
+    it; the user is told once)."""
+    if note not in _WARNED:
+        _WARNED.add(note)
+        print(f"massviz: warning: {note}", file=sys.stderr)
 
 
 #: largest meta.json / intrinsics.json read (the samples' are a few KB).
