@@ -170,18 +170,6 @@ def match_exclusions(trace: Trace, exclusions: Iterable[Exclusion],
     return np.array(sorted(found), dtype=np.int64), unmatched
 
 
-def same_object(trace: Trace, index: int, min_iou: float = 0.7, max_dd_mm: float = 30.0) -> np.ndarray:
-    """Detections of ``trace`` that look like the same object standing still as detection ``index``: box IoU >=
-    ``min_iou`` and |d difference| <= ``max_dd_mm`` (e.g. a pitcher on the table, detected in every frame).
-    Includes ``index``."""
-    dets = trace.detections
-    iou = box_iou(dets.xyxy[index], dets.xyxy)
-    close = np.abs(dets.d - dets.d[index]) <= max_dd_mm
-    out = np.flatnonzero((iou >= min_iou) & close)
-    return np.union1d(out, [index]).astype(np.int64)
-
-
-# ------------------------------------------------------------------------------------------------------- flagging
 def track_of(trace: Trace, index: int) -> np.ndarray:
     """Every detection of ``trace`` on the same object track as detection ``index`` (``detections.track``; the
     lifted pitcher of ``cup_handover`` in frames 0-23 is one track), ascending. Includes ``index``."""
@@ -241,5 +229,5 @@ def rank_by_error(traces: Sequence[Trace]) -> pd.DataFrame:
 
 
 __all__ = ["EXCLUSIONS_FORMAT", "GT_MIN_IOU", "Exclusion", "exclusion_of", "save_exclusions",
-           "load_exclusions", "match_exclusions", "box_iou", "same_object", "track_of", "ground_truth_masks",
+           "load_exclusions", "match_exclusions", "box_iou", "track_of", "ground_truth_masks",
            "ground_truth_overlap", "chosen_table", "rank_by_error", "recording_id"]
