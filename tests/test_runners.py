@@ -258,12 +258,20 @@ def test_on_error_stop_writes_nothing(synthetic, weights, replay_json, tmp_path,
     assert [e["status"] for e in doc["recordings"]] == ["done"] * 3 + ["failed", "not run", "not run"]
 
 
-def test_sigint_leaves_no_csv_and_the_next_run_resumes(synthetic, weights, ray_address, tmp_path):
+def test_sigint_leaves_no_csv_and_the_next_run_resumes(synthetic, samples_dir, weights, ray_address, tmp_path):
     """Ctrl-C on a ray run (a driver process joined to the module's Ray): exit 130, no CSV (nor temporary file);
     the next run finds every trace finished before the interrupt in the cache."""
     from massviz.runners.ray_engine import KEEP_ENV, release_pools
 
     release_pools()  # the other driver needs the CPUs this process's kept actors hold
+    # the 2-frame recordings, then three whole samples (36 frames each, last in input order): the run is still busy
+    # with those when the interrupt comes, however fast the short ones go
+    dataset = tmp_path / "dataset"
+    shutil.copytree(synthetic, dataset)
+    for name in SAMPLES:
+        shutil.copytree(samples_dir / name, dataset / f"zz_{name}")
+    total = N_SYNTHETIC + len(SAMPLES)
+    synthetic = dataset
     cache, out = tmp_path / "cache", tmp_path / "out"
     out.mkdir()
     env = {k: v for k, v in os.environ.items() if k != KEEP_ENV}
@@ -282,13 +290,13 @@ def test_sigint_leaves_no_csv_and_the_next_run_resumes(synthetic, weights, ray_a
     assert "interrupted" in err and "Traceback" not in err
     assert list(out.iterdir()) == []
     finished = {p.parent.name.rsplit("-", 1)[0] for p in cache.glob("traces/*/*.npz")}
-    assert 4 <= len(finished) < N_SYNTHETIC
+    assert 4 <= len(finished) < total
     rc = run("estimate", synthetic, "--detector", "depth", "--weights", weights, "--cache", cache, "--quiet",
              "--report", tmp_path / "r.json", "--out", out / "pred.csv")
     assert rc == 0
     status = {e["id"]: e["status"] for e in report(tmp_path / "r.json")["recordings"]}
     assert {i for i, s in status.items() if s == "cached"} >= finished
-    assert len(status) == N_SYNTHETIC
+    assert len(status) == total
 
 
 def test_engine_options_are_checked(samples_dir, weights, tmp_path, capsys):

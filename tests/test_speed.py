@@ -311,3 +311,123 @@ def test_cuda_batched_fp16_runs_and_batched_fp32_equals_single(weights_file, rec
     fp16 = detector(weights_file, recording, precision="fp16")
     out = fp16.detect_batch([Frame(f.index, f.rgb, f.depth) for f in frames])
     assert len(out) == 3 and fp16.settings()["precision"] == "fp16"
+
+
+# ----------------------------------------------------------------------------------- RoIAlign, mass CNN, tracker
+def _rois(n: int, width: float, height: float, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    xy = torch.rand(n, 2, generator=g) * torch.tensor([width, height])
+    wh = torch.rand(n, 2, generator=g) * torch.tensor([width, height]) * 0.4 + 0.01
+    boxes = torch.cat([xy, xy + wh], 1)
+    edge = torch.tensor([[-10.0, -10.0, 3.0, 4.0], [width - 5, height - 5, width + 60, height + 40],
+                         [0.0, 0.0, width, height], [5.0, 5.0, 5.3, 5.2], [width - 1, height - 1, width, height]])
+    boxes = torch.cat([edge, boxes])
+    return torch.cat([torch.randint(0, 2, (len(boxes), 1), generator=g).float(), boxes], 1)
+
+
+@pytest.mark.parametrize("output_size,sampling_ratio,scale", [((7, 7), 2, 0.25), ((14, 14), 2, 0.125),
+                                                              ((7, 5), 1, 0.5), ((3, 4), 3, 1.0)])
+def test_channels_last_roi_align_equals_torchvision_up_to_float_rounding(output_size, sampling_ratio, scale):
+    from torchvision.ops import roi_align
+
+    from massviz.detect.roialign import roi_align_channels_last
+
+    torch.manual_seed(0)
+    x = torch.randn(2, 16, 37, 53)
+    rois = _rois(300, 53 / scale, 37 / scale)
+    expected = roi_align(x, rois, output_size, scale, sampling_ratio, aligned=False)
+    for feats in (x, x.contiguous(memory_format=torch.channels_last)):
+        got = roi_align_channels_last(feats, rois, output_size, scale, sampling_ratio)
+        assert got.shape == expected.shape
+        torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-5)
+    assert roi_align_channels_last(x, rois[:0], output_size, scale, sampling_ratio).shape == (0, 16, *output_size)
+    with pytest.raises(ValueError, match="sampling_ratio"):
+        roi_align_channels_last(x, rois, output_size, scale, 0)
+
+
+def test_channels_last_multiscale_pool_equals_torchvision_on_every_level():
+    from collections import OrderedDict
+
+    from torchvision.ops import MultiScaleRoIAlign
+
+    from massviz.detect.roialign import ChannelsLastMultiScaleRoIAlign
+
+    torch.manual_seed(0)
+    sizes = [(64, 96), (32, 48), (16, 24), (8, 12)]
+    x = OrderedDict((str(i), torch.randn(2, 8, h, w).contiguous(memory_format=torch.channels_last))
+                    for i, (h, w) in enumerate(sizes))
+    rois = _rois(400, 384, 256)
+    boxes = [rois[rois[:, 0] == i, 1:] for i in range(2)]
+    shapes = [(256, 384), (256, 384)]
+    stock = MultiScaleRoIAlign(["0", "1", "2", "3"], 7, 2)
+    expected = stock(x, boxes, shapes)
+    levels = stock.map_levels(boxes)
+    assert len(torch.unique(levels)) >= 3  # small and large boxes: several FPN levels are pooled
+    fast = ChannelsLastMultiScaleRoIAlign(MultiScaleRoIAlign(["0", "1", "2", "3"], 7, 2))
+    torch.testing.assert_close(fast(x, boxes, shapes), expected, rtol=1e-5, atol=1e-5)
+
+
+def test_fast_runtime_pools_with_the_gather_and_still_matches_torchvision(weights_file, recording):
+    from massviz.detect.roialign import ChannelsLastMultiScaleRoIAlign
+
+    det = detector(weights_file, recording)
+    assert isinstance(det.runtime.roi_heads.box_roi_pool, ChannelsLastMultiScaleRoIAlign)
+    assert isinstance(det.runtime.roi_heads.mask_roi_pool, ChannelsLastMultiScaleRoIAlign)
+    assert not isinstance(det.model.roi_heads.box_roi_pool, ChannelsLastMultiScaleRoIAlign)  # torchvision's own
+
+
+def test_mass_cnn_eval_forward_is_bit_identical_to_the_papers_forward(mass_model):
+    """ReLU/BatchNorm moved after the max-pool (monotone per channel, negated convolutions for the norms with a
+    negative weight) gives the very same numbers, in both memory formats."""
+    from massviz.core.model import MassNet
+
+    assert any((b.weight < 0).any() for _, b in mass_model._blocks())  # the published weights have both signs
+    torch.manual_seed(0)
+    random = MassNet().eval()
+    with torch.no_grad():
+        for _, bn in random._blocks():  # both signs and zeros, non-trivial statistics
+            bn.weight.uniform_(-1, 1)
+            bn.weight[0] = 0.0
+            bn.running_mean.uniform_(-0.5, 0.5)
+            bn.running_var.uniform_(0.5, 2.0)
+    images = torch.rand(9, 3, 112, 112)
+    features = torch.rand(9, 3)
+    for model in (mass_model, random):
+        with torch.inference_mode():
+            expected = model(images, features)
+            assert torch.equal(model.forward_eval(images, features), expected)
+            cl = images.contiguous(memory_format=torch.channels_last)
+            model.to(memory_format=torch.channels_last)
+            assert torch.equal(model.forward_eval(cl, features), model(cl, features))
+    random.train()
+    with pytest.raises(RuntimeError, match="eval mode"):
+        random.forward_eval(images, features)
+
+
+def test_vectorised_box_ious_equal_the_scalar_box_iou():
+    from massviz.core.tracks import box_iou, box_ious
+
+    rng = np.random.default_rng(0)
+    boxes = rng.integers(0, 50, (200, 4)).astype(np.float64)
+    boxes[:, 2:] = boxes[:, :2] + rng.integers(0, 20, (200, 2))  # some empty boxes too
+    for a in boxes[:20]:
+        got = box_ious(a, boxes)
+        assert got.tolist() == [box_iou(a, b) for b in boxes]
+
+
+@pytest.mark.skipif(not bf16_supported(), reason="this CPU has no bfloat16 support")
+def test_mass_cnn_precision_changes_its_id_and_stays_close(shared_dir):
+    from massviz.core.model import MassNet
+
+    path = shared_dir / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch"
+    fp32, bf16 = MassNet.from_checkpoint(path), MassNet.from_checkpoint(path).set_precision("bf16")
+    assert bf16.weights_id == fp32.weights_id + "+bf16" and bf16.precision == "bf16"
+    assert bf16.set_precision("bf16").weights_id == fp32.weights_id + "+bf16"  # not appended twice
+    rng = np.random.default_rng(0)
+    patches = [rng.integers(0, 256, (int(rng.integers(20, 120)), int(rng.integers(20, 120)), 3), dtype=np.uint8)
+               for _ in range(20)]
+    feats = np.c_[rng.uniform(0.05, 0.3, (20, 2)), rng.uniform(400, 900, 20)]
+    a, b = fp32.predict(patches, feats), bf16.predict(patches, feats)
+    assert not np.array_equal(a, b)  # it did run in bf16
+    np.testing.assert_allclose(b, a, rtol=0.1, atol=2.0)
+    assert MassNet.from_checkpoint(path).set_precision("fp16").weights_id == fp32.weights_id  # fp16: stays fp32

@@ -46,8 +46,9 @@ def add_pipeline_args(p: argparse.ArgumentParser, selection: bool = True) -> Non
                    help="frames per Mask R-CNN forward (default: 1 on a CPU, 4 on CUDA); results are identical")
     g.add_argument("--precision", choices=["fp32", "bf16", "fp16"], default="fp32",
                    help="Mask R-CNN arithmetic: fp32 (default, the paper's), bf16 (CPUs with bfloat16 support, "
-                   "CUDA) or fp16 (CUDA). Reduced precision is faster but changes results: measure how much with "
-                   "'massviz compare'. Recorded in the trace and its cache key")
+                   "CUDA; the mass CNN runs in bf16 too) or fp16 (CUDA; the mass CNN stays fp32). Reduced "
+                   "precision is faster but changes results: measure how much with 'massviz compare'. Recorded in "
+                   "the trace and its cache key")
     g.add_argument("--cache", metavar="DIR", help="trace cache directory (default: $MASSVIZ_CACHE_DIR or user cache)")
     g.add_argument("--no-cache", action="store_true", help="neither read nor write the trace cache")
     g.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -38,7 +38,8 @@ class PipelineOptions:
     allow_partial: bool = False  # a video cut short: process what decodes (open_recording(allow_partial=))
     #: frames per detector call; None: the detector's default (Mask R-CNN: 1 on a CPU, 4 on CUDA). Results are equal.
     batch: int | None = None
-    #: Mask R-CNN arithmetic: fp32 (default, the paper's), bf16 (CPU with bf16 support, CUDA) or fp16 (CUDA).
+    #: Mask R-CNN arithmetic: fp32 (default, the paper's), bf16 (CPU with bf16 support, CUDA; the mass CNN too) or
+    #: fp16 (CUDA; the mass CNN stays fp32).
     precision: str = "fp32"
 
     def check(self) -> "PipelineOptions":
@@ -105,7 +106,7 @@ def build_pipeline(options: PipelineOptions | None = None, **kwargs) -> Pipeline
 
     options = (options or PipelineOptions()).replace(**kwargs) if kwargs else (options or PipelineOptions())
     options.check()
-    model = MassNet.from_checkpoint(resolve_weights(options.weights))
+    model = MassNet.from_checkpoint(resolve_weights(options.weights)).set_precision(options.precision)
     detector = make_detector(options.detector, options.threshold, detector_weights=options.detector_weights,
                              replay=options.replay, quiet=options.quiet, precision=options.precision)
     cache = None if options.no_cache else TraceCache(options.cache).check_writable()

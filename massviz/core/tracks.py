@@ -54,6 +54,15 @@ def box_iou(a, b) -> float:
     return float(inter / union) if union > 0 else 0.0
 
 
+def box_ious(a, boxes: np.ndarray) -> np.ndarray:
+    """``box_iou(a, b)`` for each row b of ``boxes`` (N, 4), the same arithmetic vectorised."""
+    w = np.minimum(a[2], boxes[:, 2]) - np.maximum(a[0], boxes[:, 0])
+    h = np.minimum(a[3], boxes[:, 3]) - np.maximum(a[1], boxes[:, 1])
+    inter = np.maximum(w, 0.0) * np.maximum(h, 0.0)
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1]) - inter
+    return np.where(union > 0, inter / np.where(union > 0, union, 1.0), 0.0)
+
+
 def metric_size(xyxy, d: float) -> tuple[float, float]:
     """(box width x d, box height x d): the object's size in mm times the focal length (NaN without depth)."""
     return float((xyxy[2] - xyxy[0]) * d), float((xyxy[3] - xyxy[1]) * d)
@@ -93,22 +102,23 @@ class Tracker:
         self.tracks: dict[int, _Track] = {}
         self.next_id = 1
 
-    def _gate(self, tr: _Track, frame: int, box: np.ndarray, d: float) -> float | None:
-        """IoU of a (track, detection) candidate, or None when a gate rejects it."""
+    def _gate(self, tr: _Track, frame: int, boxes: np.ndarray, depths: np.ndarray) -> np.ndarray:
+        """IoU of each (track, detection) candidate, NaN where a gate rejects it (all detections at once)."""
         gap = frame - tr.frame
-        overlap = max(box_iou(tr.box, box), box_iou(tr.box + tr.velocity * gap, box))
-        if overlap < IOU_MIN:
-            return None
-        if math.isfinite(d) and math.isfinite(tr.d):
-            if abs(d - tr.d) > DEPTH_GATE * max(d, tr.d):
-                return None
+        overlap = np.maximum(box_ious(tr.box, boxes), box_ious(tr.box + tr.velocity * gap, boxes))
+        ok = overlap >= IOU_MIN
+        both = np.isfinite(depths) & math.isfinite(tr.d)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            ok &= ~(both & (np.abs(depths - tr.d) > DEPTH_GATE * np.maximum(depths, tr.d)))
             size = tr.size()
             if size is not None:
-                w, h = metric_size(box, d)
-                ratios = (w / size[0], h / size[1]) if min(size) > 0 and min(w, h) > 0 else (np.inf,)
-                if max(max(r, 1 / r) if r > 0 else np.inf for r in ratios) > SIZE_GATE:
-                    return None
-        return overlap
+                w = (boxes[:, 2] - boxes[:, 0]) * depths
+                h = (boxes[:, 3] - boxes[:, 1]) * depths
+                positive = (min(size) > 0) & (np.minimum(w, h) > 0)
+                rw, rh = w / size[0], h / size[1]
+                worst = np.maximum(np.maximum(rw, 1 / rw), np.maximum(rh, 1 / rh))
+                ok &= ~(both & (~positive | (worst > SIZE_GATE)))
+        return np.where(ok, overlap, np.nan)
 
     def update(self, frame: int, dets: Detections) -> np.ndarray:
         """Track ids (int64, >= 1) of ``dets``, all made on frame ``frame``."""
@@ -119,12 +129,11 @@ class Tracker:
         depths = np.asarray(dets.d, dtype=np.float64).reshape(-1)
         candidates = []
         for tid, tr in self.tracks.items():
-            if tr.frame >= frame:
+            if tr.frame >= frame or not len(boxes):
                 continue
-            for j in range(len(boxes)):
-                overlap = self._gate(tr, frame, boxes[j], float(depths[j]))
-                if overlap is not None:
-                    candidates.append((-overlap, frame - tr.frame, tid, j))
+            overlap = self._gate(tr, frame, boxes, depths)
+            for j in np.flatnonzero(~np.isnan(overlap)):
+                candidates.append((-float(overlap[j]), frame - tr.frame, tid, int(j)))
         ids = np.zeros(len(boxes), dtype=np.int64)
         used = set()
         for _, _, tid, j in sorted(candidates):
@@ -156,5 +165,5 @@ def track_members(dets: Detections, track: int) -> np.ndarray:
     return np.array(sorted(idx.tolist(), key=lambda i: (int(dets.frame[i]), i)), dtype=np.int64)
 
 
-__all__ = ["Tracker", "assign_tracks", "track_members", "box_iou", "metric_size", "IOU_MIN", "DEPTH_GATE",
+__all__ = ["Tracker", "assign_tracks", "track_members", "box_iou", "box_ious", "metric_size", "IOU_MIN", "DEPTH_GATE",
            "SIZE_GATE", "MAX_GAP_S"]
