@@ -431,3 +431,23 @@ def test_mass_cnn_precision_changes_its_id_and_stays_close(shared_dir):
     assert not np.array_equal(a, b)  # it did run in bf16
     np.testing.assert_allclose(b, a, rtol=0.1, atol=2.0)
     assert MassNet.from_checkpoint(path).set_precision("fp16").weights_id == fp32.weights_id  # fp16: stays fp32
+
+
+def test_a_model_built_for_loaded_weights_skips_random_init_and_is_the_same_model(weights_file):
+    from massviz.detect.maskrcnn import _construct, build_model
+
+    loaded = build_model(0.4, weights_file)
+    stock = _construct(0.4, skip_init=False)
+    stock.load_state_dict(torch.load(weights_file, weights_only=True))
+    assert not any(t.is_meta for t in [*loaded.parameters(), *loaded.buffers()])
+    a, b = loaded.state_dict(), stock.state_dict()
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    cells_a, cells_b = loaded.rpn.anchor_generator.cell_anchors, stock.rpn.anchor_generator.cell_anchors
+    assert len(cells_a) == len(cells_b) == 5
+    assert all(x.device.type == "cpu" and torch.equal(x, y) for x, y in zip(cells_a, cells_b))
+    image = torch.rand(3, 90, 160)
+    loaded.transform.min_size, loaded.transform.max_size = (90,), 160
+    stock.transform.min_size, stock.transform.max_size = (90,), 160
+    with torch.inference_mode():
+        out_a, out_b = loaded([image])[0], stock.eval()([image])[0]
+    assert torch.equal(out_a["boxes"], out_b["boxes"]) and torch.equal(out_a["scores"], out_b["scores"])

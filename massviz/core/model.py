@@ -214,7 +214,7 @@ class MassNet(nn.Module):
             if conv.weight.is_contiguous(memory_format=torch.channels_last):
                 w = w.contiguous(memory_format=torch.channels_last)
             v = self.pool(F.conv2d(x, w, conv.bias * s, conv.stride, conv.padding))
-            x = bn(F.relu_(v.mul_(s.view(1, -1, 1, 1))))
+            x = bn(F.relu_(v.mul_(s.view(1, -1, 1, 1).to(v.dtype))))  # ±1: exact in any dtype
         return self._head(x, features)
 
     def set_precision(self, precision: str) -> "MassNet":
