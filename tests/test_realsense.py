@@ -119,17 +119,10 @@ def test_depth_units_other_than_millimetres(rs, sample, tmp_path):
 
     rig = _SoftwareRig(rs, sample.intrinsics, 30, depth_units=0.0001)
     path = tmp_path / "units.db3"
-    recorder = rs.recorder(str(path), rig.device)
     frames = list(sample.frames(indices=[0, 20]))
-    for s, p in ((rig.depth_sensor, rig.depth_profile), (rig.colour_sensor, rig.colour_profile)):
-        s.open(p)
-        s.start(lambda f: None)
-    for i, frame in enumerate(frames):
-        rig.push(frame, i, i * 33.3)
-    for s in (rig.depth_sensor, rig.colour_sensor):
-        s.stop()
-        s.close()
-    del recorder
+    with rig.record(path):
+        for i, frame in enumerate(frames):
+            rig.push(frame, i, i * 33.3)
     rec = open_realsense(path)
     assert rec.meta["realsense"]["depth_scale"] == pytest.approx(0.0001)
     for got, want in zip(rec.frames(), frames, strict=True):
@@ -145,18 +138,11 @@ def test_unregistered_depth_goes_through_librealsense_align(rs, sample, tmp_path
     di = Intrinsics(2 * i.fx, 2 * i.fy, 2 * i.cx + 0.5, 2 * i.cy + 0.5, 2 * i.width, 2 * i.height)
     rig = _SoftwareRig(rs, i, 30, depth_intrinsics=di)
     path = tmp_path / "big_depth.db3"
-    recorder = rs.recorder(str(path), rig.device)
     frames = list(sample.frames(indices=[0, 25]))
-    for s, p in ((rig.depth_sensor, rig.depth_profile), (rig.colour_sensor, rig.colour_profile)):
-        s.open(p)
-        s.start(lambda f: None)
-    for n, frame in enumerate(frames):
-        rig.push(frame, n, n * 33.3, depth=cv2.resize(frame.depth, (di.width, di.height),
-                                                     interpolation=cv2.INTER_NEAREST))
-    for s in (rig.depth_sensor, rig.colour_sensor):
-        s.stop()
-        s.close()
-    del recorder
+    with rig.record(path):
+        for n, frame in enumerate(frames):
+            rig.push(frame, n, n * 33.3, depth=cv2.resize(frame.depth, (di.width, di.height),
+                                                         interpolation=cv2.INTER_NEAREST))
     rec = open_realsense(path)
     assert rec.meta["realsense"]["depth_to_colour"] == "librealsense align"
     assert rec.intrinsics == i

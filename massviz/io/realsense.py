@@ -20,6 +20,7 @@
 """
 from __future__ import annotations
 
+import contextlib
 import queue
 import sqlite3
 import threading
@@ -571,6 +572,23 @@ class _SoftwareRig:
         self.depth_profile.register_extrinsics_to(self.colour_profile, ex)
         sd.create_matcher(rs.matchers.dlr_c)
 
+    @contextlib.contextmanager
+    def record(self, path: str | Path):
+        """Record what is pushed inside the block to the ``.db3`` ``path`` (librealsense's ``recorder``; both
+        sensors open and started, stopped and closed after it, then the file is finished)."""
+        recorder = self.rs.recorder(str(path), self.device)
+        sensors = ((self.depth_sensor, self.depth_profile), (self.colour_sensor, self.colour_profile))
+        for sensor, profile in sensors:
+            sensor.open(profile)
+            sensor.start(lambda f: None)
+        try:
+            yield self
+        finally:
+            for sensor, _ in sensors:
+                sensor.stop()
+                sensor.close()
+            del recorder
+
     def push(self, frame: Frame, number: int, timestamp_ms: float, depth: np.ndarray | None = None) -> None:
         """Push ``frame`` (its depth in mm, or ``depth`` in mm at the depth stream's size) as frame ``number``."""
         rs = self.rs
@@ -614,21 +632,12 @@ def write_realsense(recording: Recording, path: str | Path, *, pace: bool = Fals
     fps = float(recording.fps or 30.0)
     with atomic_path(path) as tmp:
         rig = _SoftwareRig(rs, recording.intrinsics, fps, depth_units)
-        rec = rs.recorder(str(tmp), rig.device)
-        for s, p in ((rig.depth_sensor, rig.depth_profile), (rig.colour_sensor, rig.colour_profile)):
-            s.open(p)
-            s.start(lambda f: None)
-        t0 = time.perf_counter()
-        try:
+        with rig.record(tmp):
+            t0 = time.perf_counter()
             for i, frame in enumerate(recording.frames()):
                 if pace:
                     time.sleep(max(0.0, t0 + i / fps - time.perf_counter()))
                 rig.push(frame, i, i * 1000.0 / fps)
-        finally:
-            for s in (rig.depth_sensor, rig.colour_sensor):
-                s.stop()
-                s.close()
-            del rec
     return path
 
 
