@@ -45,17 +45,8 @@ MAX_GAP_S = 1.0
 DEFAULT_FPS = 30.0
 
 
-def box_iou(a, b) -> float:
-    """IoU of two x1, y1, x2, y2 boxes."""
-    w = min(a[2], b[2]) - max(a[0], b[0])
-    h = min(a[3], b[3]) - max(a[1], b[1])
-    inter = max(w, 0.0) * max(h, 0.0)
-    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
-    return float(inter / union) if union > 0 else 0.0
-
-
 def box_ious(a, boxes: np.ndarray) -> np.ndarray:
-    """``box_iou(a, b)`` for each row b of ``boxes`` (N, 4), the same arithmetic vectorised."""
+    """IoU of the x1, y1, x2, y2 box ``a`` with each row of ``boxes`` (N, 4), in float64; 0 where the union is empty."""
     w = np.minimum(a[2], boxes[:, 2]) - np.maximum(a[0], boxes[:, 0])
     h = np.minimum(a[3], boxes[:, 3]) - np.maximum(a[1], boxes[:, 1])
     inter = np.maximum(w, 0.0) * np.maximum(h, 0.0)
@@ -165,5 +156,5 @@ def track_members(dets: Detections, track: int) -> np.ndarray:
     return np.array(sorted(idx.tolist(), key=lambda i: (int(dets.frame[i]), i)), dtype=np.int64)
 
 
-__all__ = ["Tracker", "assign_tracks", "track_members", "box_iou", "box_ious", "metric_size", "IOU_MIN", "DEPTH_GATE",
+__all__ = ["Tracker", "assign_tracks", "track_members", "box_ious", "metric_size", "IOU_MIN", "DEPTH_GATE",
            "SIZE_GATE", "MAX_GAP_S"]
