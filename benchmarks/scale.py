@@ -105,7 +105,7 @@ def main() -> int:
     p.add_argument("--maskrcnn-frames", type=int, default=2, help="(c): frames timed per thread count (default: 2)")
     args = p.parse_args()
 
-    from massviz.core.build import PipelineOptions, build_pipeline
+    from massviz.app import PipelineOptions, build_pipeline
     from massviz.runners.dataset import portable_options
     from massviz.runners.ray_engine import LOCAL_ONLY_ENV, release_pools
 

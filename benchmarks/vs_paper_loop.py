@@ -171,11 +171,12 @@ def massviz_run(recording: Path, detector_weights: Path, mass_weights: Path, pre
     from massviz.core.pipeline import run
     from massviz.detect.maskrcnn import MaskRCNNDetector
     from massviz.io.recording import open_recording
+    from massviz.io.trace_file import save_trace
 
     det = MaskRCNNDetector(threshold=0.4, weights=detector_weights, precision=precision)
     mass = MassNet.from_checkpoint(mass_weights).set_precision(precision)  # as build_pipeline does
     trace = run(open_recording(recording), det, mass, k=5, batch=det.default_batch)
-    trace.save(trace_out)
+    save_trace(trace, trace_out)
     chosen = [(int(trace.detections.frame[i]), trace.detections.xyxy[i].tolist()) for i in trace.selection]
     return trace.estimate, chosen, len(trace.detections), None
 
@@ -243,7 +244,6 @@ def main() -> int:
     if not args.weights.is_file():
         sys.exit(f"mass-CNN weights not found: {args.weights} (pass --weights PATH)")
     sys.path.insert(0, str(ROOT))
-    from massviz.core.trace import Trace
     from massviz.detect.maskrcnn import bf16_supported
     from massviz.evaluation.compare import compare_traces
 
@@ -288,7 +288,7 @@ def main() -> int:
                   f"estimates and chosen patches {verdict}")
             if "bf16" in sides:
                 bf = results["bf16"][0]
-                c = compare_traces(Trace.load(fp32["trace"]), Trace.load(bf["trace"])).summary()
+                c = compare_traces(load_trace(fp32["trace"]), load_trace(bf["trace"])).summary()
                 n32 = c["detections"][0]
                 delta = c["estimate_delta_g"]
                 print(f"  massviz bf16 {med['bf16']:7.1f} s  peak {mem['bf16']:6.0f} MB  estimate {bf['estimate']:.3f}  "

@@ -11,7 +11,7 @@ def sample_cache(tmp_path_factory, shared_dir: Path, samples_dir: Path) -> Path:
     """The session's trace cache folder, filled with the samples' traces on first use."""
     import pytest
 
-    from massviz.core.build import process_recordings
+    from massviz.app import process_recordings
     from massviz.io.recording import collect_recordings
 
     if not (samples_dir / "cup_handover" / "meta.json").is_file():

@@ -69,7 +69,7 @@ def test_no_stage_imports_a_sink():
 
 
 def test_views_import_no_stage_module_for_logic():
-    stages = ["core.pipeline", "core.build", "detect", "runners", "commands", "cli", "training"]
+    stages = ["core.pipeline", "app", "detect", "runners", "commands", "cli", "training"]
     assert arrows(["views"], stages) == []
 
 

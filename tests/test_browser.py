@@ -193,7 +193,7 @@ def cache(tmp_path_factory, shared_dir, samples_dir) -> Path:
 @pytest.fixture(scope="module")
 def cup(cache, shared_dir, samples_dir):
     """(recording, trace) of the demo sample, from the session's trace cache."""
-    from massviz.core.build import process_recordings
+    from massviz.app import process_recordings
     from massviz.io.recording import open_recording
 
     rec = open_recording(samples_dir / "cup_handover")
@@ -202,7 +202,7 @@ def cup(cache, shared_dir, samples_dir):
 
 def sample_traces(recordings, cache: Path, shared_dir: Path) -> list:
     """The samples' traces as the notebooks compute them (depth detector, threshold 0.4), from the session's cache."""
-    from massviz.core.build import process_recordings
+    from massviz.app import process_recordings
 
     return process_recordings(recordings, detector="depth", weights=str(shared_dir / WEIGHTS), cache=str(cache),
                               threshold=0.4, quiet=True)

@@ -11,6 +11,7 @@ from massviz.core.trace import Trace
 from massviz.core.types import COCO_KEEP, Detections
 from massviz.evaluation.compare import box_iou, compare_traces, match_boxes
 from massviz.io.recording import open_recording
+from massviz.io.trace_file import save_trace
 
 CUP, BOTTLE = COCO_KEEP["cup"], COCO_KEEP["bottle"]
 
@@ -111,8 +112,8 @@ def test_cli_on_two_saved_traces_table_json_and_two_recording_rrd(traces, tmp_pa
     from rerun.chunk import RrdReader
 
     a, b = traces
-    a.save(tmp_path / "a.npz")
-    b.save(tmp_path / "b.npz")
+    save_trace(a, tmp_path / "a.npz")
+    save_trace(b, tmp_path / "b.npz")
     out, js = tmp_path / "both.rrd", tmp_path / "diff.json"
     code = main(["compare", str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), "--rrd", str(out), "--json", str(js),
                  "--quiet"])
@@ -132,7 +133,7 @@ def test_cli_on_two_saved_traces_table_json_and_two_recording_rrd(traces, tmp_pa
 
 def test_cli_errors_are_one_line(traces, tmp_path, capsys):
     a, _ = traces
-    a.save(tmp_path / "a.npz")
+    save_trace(a, tmp_path / "a.npz")
     assert main(["compare", str(tmp_path / "a.npz")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "nothing to compare" in err[0]

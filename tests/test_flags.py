@@ -16,14 +16,14 @@ import numpy as np
 import pytest
 from sample_traces import WEIGHTS, sample_cache
 
-from massviz.core.build import process_recordings
+from massviz.app import process_recordings
 from massviz.core.flags import analyse, ground_truth_overlap
-from massviz.core.trace import Trace
 from massviz.core.tracks import Tracker, assign_tracks
 from massviz.core.types import Detections
 from massviz.evaluation.failures import track_of
 from massviz.evaluation.tuning import retune
 from massviz.io.recording import collect_recordings
+from massviz.io.trace_file import load_trace, save_trace
 from massviz.views.widgets import FailurePanel, Tuner
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -131,8 +131,8 @@ def test_one_exclude_track_removes_the_lifted_pitcher(traces):
 
 def test_flags_and_tracks_are_saved_recomputed_and_upgraded(traces, tmp_path):
     t = traces["cup_handover"]
-    path = t.save(tmp_path / "cup.npz")
-    back = Trace.load(path)
+    path = save_trace(t, tmp_path / "cup.npz")
+    back = load_trace(path)
     np.testing.assert_array_equal(back.detections.track, t.detections.track)
     assert back.flags == t.flags
     three = t.reselect(k=3)
@@ -147,7 +147,7 @@ def test_flags_and_tracks_are_saved_recomputed_and_upgraded(traces, tmp_path):
     del header["flags"]
     data["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
     np.savez_compressed(tmp_path / "old.npz", **data)
-    old = Trace.load(tmp_path / "old.npz")
+    old = load_trace(tmp_path / "old.npz")
     np.testing.assert_array_equal(old.detections.track, t.detections.track)
     assert [p.to_dict() for p in old.flags.patches] == [p.to_dict() for p in t.flags.patches]
 

@@ -175,11 +175,12 @@ def base(tmp_path_factory) -> Base:
     from massviz.core.pipeline import run
     from massviz.detect.replay import ReplayDetector
     from massviz.io.recording import open_recording
+    from massviz.io.trace_file import save_trace
 
     trace = run(open_recording(copy_sample(root / "rec")), ReplayDetector(replay),
                 MassNet.from_checkpoint(weights), k=5)
     assert len(trace.detections) == 1 and trace.estimate >= 0
-    return Base(root, weights, replay, box, trace.save(root / "trace.npz"))
+    return Base(root, weights, replay, box, save_trace(trace, root / "trace.npz"))
 
 
 # ============================================================================================================= cases
@@ -1065,9 +1066,9 @@ def test_undecodable_cache_entry_is_dropped_and_recomputed(base, tmp_path, damag
     assert code == 0 and visible_lines(stderr)[-1].startswith("wrote"), stderr
     assert _estimate_value(argv) == first
     assert entry.is_file()
-    from massviz.core.trace import Trace
+    from massviz.io.trace_file import load_trace
 
-    assert len(Trace.load(entry).detections) == 1
+    assert len(load_trace(entry).detections) == 1
 
 
 def test_real_ccm_calibration_loads_through_the_restricted_unpickler(shared_dir):

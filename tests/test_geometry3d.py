@@ -16,6 +16,7 @@ from massviz.cli import main
 from massviz.errors import MassvizError
 from massviz.io.recording import open_recording
 from massviz.core.trace import Trace
+from massviz.io.trace_file import load_trace, save_trace
 from massviz.core.types import Detections
 
 CCM_BOX = (672, 262, 776, 408)  # x1, y1, x2, y2 of the held pasta box in frame index 1 of ccm_real
@@ -150,7 +151,7 @@ def test_measurements_stored_in_trace_and_ply_files(samples_dir, tmp_path):
     trace = G.with_measurements(make_trace(rec, gt_detections(rec_dir, frames), k=2), rec)
     assert len(trace.measurements) == 2 and "measure3d" in trace.timings
     assert any("measured chosen patch 0" in e.message and e.kind == "measured" for e in trace.events)
-    back = Trace.load(trace.save(tmp_path / "t.npz"))
+    back = load_trace(save_trace(trace, tmp_path / "t.npz"))
     assert G.measurements_of(back) == G.measurements_of(trace)
 
     written = O3.write_ply(tmp_path / "ply", trace, rec)

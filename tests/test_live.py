@@ -23,6 +23,7 @@ from massviz.core.trace import Trace
 from massviz.core.types import Frame, Intrinsics, RecordingInfo
 from massviz.errors import MassvizError
 from massviz.io.recording import open_recording
+from massviz.io.trace_file import load_trace, save_trace
 from massviz.runners.live import LatestSlot
 from test_pipeline import DETECTIONS, scene
 from test_recording import write_recording
@@ -102,7 +103,7 @@ def test_frame_timings_are_kept_per_frame_and_saved(scene_trace, tmp_path):
     trace, _ = scene_trace
     assert set(trace.frame_timings) == {"read", "detect", "features", "predict", "select"}
     assert all(len(v) == len(trace.frames) for v in trace.frame_timings.values())
-    back = Trace.load(trace.save(tmp_path / "t.npz"))
+    back = load_trace(save_trace(trace, tmp_path / "t.npz"))
     assert {k: v.tolist() for k, v in back.frame_timings.items()} == \
         {k: np.asarray(v).tolist() for k, v in trace.frame_timings.items()}
     assert back.running_estimate().tolist() == trace.running_estimate().tolist()
@@ -152,7 +153,7 @@ def depth_detector():
 
 
 def pipeline(detector, tmp_path: Path, model=None):
-    from massviz.core.build import Pipeline, PipelineOptions
+    from massviz.app import Pipeline, PipelineOptions
     from massviz.io.cache import TraceCache
 
     return Pipeline(PipelineOptions(detector="depth"), detector, model or FastModel(), TraceCache(tmp_path / "cache"))

@@ -237,7 +237,7 @@ def test_bf16_run_is_recorded_in_its_trace(weights_file, recording, mass_model, 
 
 
 def test_precision_of_a_detector_without_one_is_a_clear_error():
-    from massviz.core.build import PipelineOptions
+    from massviz.app import PipelineOptions
     from massviz.detect import make_detector
 
     with pytest.raises(MassvizError, match="depth detector runs in fp32 only"):

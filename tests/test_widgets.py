@@ -25,7 +25,7 @@ from massviz.evaluation.failures import (Exclusion, chosen_table, exclusion_of, 
 from massviz.errors import DataError
 from massviz.evaluation.sweep import annotations_from_meta
 from massviz.evaluation.tuning import kept_indices, retune, subsample
-from massviz.core.build import process_recordings
+from massviz.app import process_recordings
 from massviz.io.recording import collect_recordings
 from massviz.views.widgets import FailurePanel, Tuner, TuningPanel
 

@@ -58,9 +58,9 @@ def add_pipeline_args(p: argparse.ArgumentParser, selection: bool = True) -> Non
 
 
 def build(args, threshold: float | None = None):
-    """The pipeline (``massviz.core.build.Pipeline``: detector, model, cache) from parsed args (``threshold``
+    """The pipeline (``massviz.app.Pipeline``: detector, model, cache) from parsed args (``threshold``
     overrides ``args.threshold``)."""
-    from massviz.core.build import PipelineOptions, build_pipeline
+    from massviz.app import PipelineOptions, build_pipeline
 
     overrides = {} if threshold is None else {"threshold": threshold}
     return build_pipeline(PipelineOptions.from_args(args, **overrides))

@@ -55,8 +55,8 @@ def _is_trace(path: str) -> bool:
 
 def _side(spec: str, args, overrides: dict, label: str):
     """(trace, recording or None, description) of one side."""
-    from massviz.core.build import PipelineOptions, build_pipeline
-    from massviz.core.trace import Trace
+    from massviz.app import PipelineOptions, build_pipeline
+    from massviz.io.trace_file import load_trace
     from massviz.errors import MassvizError
     from massviz.io.recording import open_recording
 
@@ -65,7 +65,7 @@ def _side(spec: str, args, overrides: dict, label: str):
             raise MassvizError(f"{label} is a saved trace: --b-* options apply to recordings only", spec)
         if not Path(spec).is_file():
             raise MassvizError("no such trace file", spec)
-        return Trace.load(spec), None, spec
+        return load_trace(spec), None, spec
     rec = open_recording(spec)
     options = PipelineOptions.from_args(args, **overrides)
     trace = build_pipeline(options).process(rec)

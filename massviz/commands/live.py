@@ -187,5 +187,7 @@ def _cache(pipeline, trace, result, args, stream):
         numbers = rec.meta.get("realsense", {}).get("frame_numbers")
         if result.stats.dropped == 0 and numbers == result.stats.frame_numbers:
             return pipeline.cache.save(dataclasses.replace(trace, recording=rec.info()), rec, info)
+    from massviz.io.trace_file import save_trace
+
     safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", trace.recording.id)
-    return trace.save(pipeline.cache.root / "live" / f"{safe}-{time.strftime('%Y%m%d-%H%M%S')}.npz")
+    return save_trace(trace, pipeline.cache.root / "live" / f"{safe}-{time.strftime('%Y%m%d-%H%M%S')}.npz")

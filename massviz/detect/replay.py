@@ -29,9 +29,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from massviz.core.trace import Trace
 from massviz.core.types import COCO_KEEP, OBJECT_CLASS_ID, Detections, Frame, PackedMask
 from massviz.errors import DataError
+from massviz.io.trace_file import load_trace
 from massviz.io.untrusted import MAX_INDEX, check_image_size, confined, number
 
 #: largest replay JSON read.
@@ -105,7 +105,7 @@ def _load(path: Path) -> tuple[Detections, list[Path]]:
     if not path.is_file():
         raise DataError("replay file not found", path)
     if path.suffix == ".npz":
-        return Trace.load(path).detections, []
+        return load_trace(path).detections, []
     return _load_json(path)
 
 

@@ -27,6 +27,7 @@ from massviz.io.filehash import FileHasher
 from massviz.io.untrusted import safe_filename
 from massviz.io.recording import Recording
 from massviz.core.trace import Trace
+from massviz.io.trace_file import load_trace, save_trace
 
 
 def default_cache_dir() -> Path:
@@ -77,7 +78,7 @@ class TraceCache:
         if path is None:
             return None
         try:
-            trace = Trace.load(path)
+            trace = load_trace(path)
         except Exception:  # noqa: BLE001 - whatever is wrong with an entry, it is dropped and recomputed
             _drop(path)
             return None
@@ -91,7 +92,7 @@ class TraceCache:
         try:
             if path.is_dir():
                 _drop(path)
-            return trace.save(path)
+            return save_trace(trace, path)
         except (OSError, MassvizError) as err:
             what = getattr(err, "strerror", None) or str(err)
             print(f"massviz: warning: {path}: cannot write the trace cache entry ({what}); the result is not cached",

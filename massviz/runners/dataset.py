@@ -111,7 +111,7 @@ class RecordingWorker:
     small: it travels back). ``threads``: torch intra-op threads in this worker (None: leave torch's setting)."""
 
     def __init__(self, options, collect: Callable | None = None, threads: int | None = None, pipeline=None):
-        from massviz.core.build import build_pipeline
+        from massviz.app import build_pipeline
 
         if threads:
             import torch

@@ -2,7 +2,7 @@
 arrive (``massviz live``).
 
     stream = open_file_stream("x.db3")               # or open_camera(serial), open_device_stream(device)
-    fp = pipeline.frame_pipeline()                   # massviz.core.build.Pipeline: FramePipeline.step per frame
+    fp = pipeline.frame_pipeline()                   # massviz.app.Pipeline: FramePipeline.step per frame
     result = run_live(stream, fp, logger=LiveLogger(...), duration=10, save="rec/")
     result.trace, result.stats.dropped
 

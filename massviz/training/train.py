@@ -180,7 +180,7 @@ def extract_patches(recordings: Sequence, labels: Sequence[Annotation], pipeline
     """Write the K selected patches of every recording, labelled with its annotation, as a patch set.
 
     ``labels`` come from :func:`check_extract`. Traces come from ``pipeline.process`` (a
-    ``massviz.core.build.Pipeline``, with its cache), so recordings processed before are not detected again. The set
+    ``massviz.app.Pipeline``, with its cache), so recordings processed before are not detected again. The set
     is written into a temporary folder beside ``out`` and renamed into place when complete, replacing an existing
     ``out`` (``massviz.io.atomic.atomic_dir``). (``massviz extract`` runs the same through a dataset runner:
     :func:`patch_files` on the workers, :func:`write_patch_set` at the end.)

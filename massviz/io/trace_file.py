@@ -1,0 +1,201 @@
+"""Trace files: a ``massviz.core.trace.Trace`` saved to a single ``.npz`` (no pickle) and read back, checked.
+
+The file holds a JSON header + parallel arrays + packed masks + PNG-encoded patches. Traces carry their tracks (array
+``det_track``) and flags (header ``flags``); a file of format 2 written before them lacks them and they are made when
+the trace is (``Trace.__post_init__``, pure computation). A trace file is untrusted (a replay source, a cache entry):
+:func:`load_trace` bounds array sizes before they are allocated and checks every field (:func:`check_trace_arrays`).
+"""
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from massviz.core.flags import Flags
+from massviz.core.trace import Event, Trace
+from massviz.core.types import Detections, PackedMask, RecordingInfo
+from massviz.errors import MassvizError
+from massviz.io.atomic import atomic_path
+from massviz.io.untrusted import MAX_INDEX, load_npz_checked
+
+TRACE_FORMAT = 2  # 2: typed events, recording info as a dataclass
+
+
+# -- persistence -----------------------------------------------------------------------------------------------
+def save_trace(trace: Trace, path: str | Path) -> Path:
+    """Write ``trace`` atomically to ``path`` (.npz)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    dets = trace.detections
+    header = {
+        "format": TRACE_FORMAT, "recording": trace.recording.to_dict(), "detector": trace.detector,
+        "detect_threshold": trace.detect_threshold, "threshold": trace.threshold, "k": trace.k,
+        "stride": trace.stride, "estimate": trace.estimate, "weights_id": trace.weights_id,
+        "timings": trace.timings, "events": [e.to_list() for e in trace.events],
+        "measurements": list(trace.measurements), "flags": trace.flags.to_dict(),
+        "frame_timing_stages": list(trace.frame_timings),
+    }
+    masks = [m if m is not None else PackedMask(np.zeros((0, 0), bool)) for m in dets.masks]
+    patch_idx = [i for i, p in enumerate(dets.patches) if p is not None]
+    encoded = [_encode_png(dets.patches[i]) for i in patch_idx]
+    arrays = {
+        "header": np.frombuffer(json.dumps(header, default=_json_default).encode(), dtype=np.uint8),
+        "frames": trace.frames, "selection": trace.selection, "excluded": trace.excluded,
+        **{f"det_{name}": getattr(dets, name) for name in Detections._ARRAYS},
+        "mask_shapes": np.array([m.shape for m in masks], dtype=np.int32).reshape(-1, 2),
+        "mask_sizes": np.array([len(m.bits) for m in masks], dtype=np.int64),
+        "mask_bits": np.concatenate([m.bits for m in masks]) if masks else np.zeros(0, np.uint8),
+        "patch_index": np.array(patch_idx, dtype=np.int64),
+        "patch_sizes": np.array([len(e) for e in encoded], dtype=np.int64),
+        "patch_bytes": np.concatenate(encoded) if encoded else np.zeros(0, np.uint8),
+        **{f"frame_time_{i}": np.asarray(v, np.float64) for i, v in enumerate(trace.frame_timings.values())},
+    }
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez_compressed(fh, **arrays)
+    return path
+
+def load_trace(path: str | Path) -> Trace:
+    """Read a trace saved by :func:`save_trace`. The file is untrusted (a replay source, a cache entry): array sizes are
+    bounded before they are allocated (``massviz.io.untrusted.load_npz_checked``) and every field is checked
+    (:func:`check_trace_arrays`); anything wrong is one ``MassvizError`` naming the file."""
+    path = Path(path)
+    try:
+        data = load_npz_checked(path)
+        header = json.loads(data["header"].tobytes().decode())
+    except Exception as err:  # noqa: BLE001 - any read problem is a corrupt trace file
+        raise MassvizError(f"not a massviz trace ({type(err).__name__}: {_first_line(err)})", path) from None
+    if not isinstance(header, dict) or header.get("format") != TRACE_FORMAT:
+        found = header.get("format") if isinstance(header, dict) else None
+        raise MassvizError(f"trace format {found!r} is not supported (expected {TRACE_FORMAT})"[:300], path)
+    try:
+        check_trace_arrays(header, data)
+        return _from_arrays(header, data)
+    except Exception as err:  # noqa: BLE001 - a field missing, of the wrong type, shape or value
+        raise MassvizError(f"not a complete massviz trace ({type(err).__name__}: {_first_line(err)})",
+                           path) from None
+
+def _from_arrays(header: dict, data: dict) -> Trace:
+    offsets = np.concatenate([[0], np.cumsum(data["mask_sizes"])])
+    masks = [PackedMask(shape=tuple(s), bits=data["mask_bits"][offsets[i]:offsets[i + 1]])
+             for i, s in enumerate(data["mask_shapes"])]
+    patches = [None] * len(masks)
+    poff = np.concatenate([[0], np.cumsum(data["patch_sizes"])])
+    for j, i in enumerate(data["patch_index"]):
+        patches[int(i)] = _decode_png(data["patch_bytes"][poff[j]:poff[j + 1]])
+    # det_track and the flags are absent from files written before tracks existed: made by __post_init__
+    dets = Detections(**{name: data[f"det_{name}"] for name in Detections._ARRAYS
+                         if name != "track" or "det_track" in data}, masks=masks, patches=patches)
+    return Trace(recording=RecordingInfo.from_dict(header["recording"]), detector=header["detector"],
+               detect_threshold=header["detect_threshold"], threshold=header["threshold"], k=header["k"],
+               stride=header["stride"], frames=data["frames"], detections=dets, selection=data["selection"],
+               estimate=header["estimate"], weights_id=header["weights_id"], timings=header["timings"],
+               events=[Event(*e) for e in header["events"]], excluded=data["excluded"],
+               measurements=header.get("measurements", []),
+               flags=Flags.from_dict(header["flags"]) if isinstance(header.get("flags"), dict) else None,
+               frame_timings={name: data[f"frame_time_{i}"]
+                              for i, name in enumerate(header.get("frame_timing_stages", []))})
+
+
+def check_trace_arrays(header: dict, data: dict) -> None:
+    """``ValueError`` naming the field when a saved trace's header or arrays are inconsistent or out of range: every
+    detection array has one entry per detection, boxes are non-empty integers >= 0, masks and patches have their
+    box's size (checked from the stored sizes and PNG headers, before anything is unpacked or decoded), scores are in
+    [0, 1], d/a/b/pred finite or NaN, selection and exclusions index detections, thresholds in [0, 1), k and stride
+    integers >= 1, the estimate finite."""
+    import math
+    import struct
+
+    def ints(name, lo=0, hi=MAX_INDEX, ndim=1):
+        a = np.asarray(data[name])
+        if a.dtype.kind not in "iu" or a.ndim != ndim:
+            raise ValueError(f"{name} must be a {ndim}-d integer array, got {a.dtype} {a.shape}")
+        if a.size and (int(a.min()) < lo or int(a.max()) > hi):
+            raise ValueError(f"{name} values must lie in [{lo}, {hi}]")
+        return a.astype(np.int64)
+
+    n = len(ints("det_frame"))
+    boxes = ints("det_xyxy", ndim=2)
+    if boxes.shape != (n, 4) or not ((boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1])).all():
+        raise ValueError(f"det_xyxy: every box must be 4 integers x1 < x2, y1 < y2 (one per detection, {n})")
+    ints("det_class_id", lo=-1, hi=10_000)
+    if "det_track" in data and len(ints("det_track", hi=MAX_INDEX)) != n:  # absent in files from before tracks
+        raise ValueError(f"det_track: one track id >= 0 per detection ({n})")
+    for name in ("det_score", "det_d", "det_a", "det_b", "det_pred"):
+        a = np.asarray(data[name])
+        if a.dtype.kind != "f" or a.shape != (n,):
+            raise ValueError(f"{name} must be {n} floats, got {a.dtype} {a.shape}")
+        if np.isinf(a).any() or (name == "det_score" and (np.isnan(a).any() or (a < 0).any() or (a > 1).any())):
+            raise ValueError(f"{name}: values must be finite{' and in [0, 1]' if name == 'det_score' else ' or NaN'}")
+    shapes = ints("mask_shapes", ndim=2)
+    sizes = ints("mask_sizes", hi=2**62)
+    bits = np.asarray(data["mask_bits"])
+    if shapes.shape != (n, 2) or sizes.shape != (n,) or bits.dtype != np.uint8 or int(sizes.sum()) != len(bits):
+        raise ValueError("mask_shapes / mask_sizes / mask_bits do not describe one mask per detection")
+    box_shape = np.stack([boxes[:, 3] - boxes[:, 1], boxes[:, 2] - boxes[:, 0]], axis=1) if n else shapes
+    empty = (shapes == 0).all(axis=1)
+    if not ((shapes == box_shape).all(axis=1) | empty).all():
+        raise ValueError("mask_shapes: a mask is not the size of its box")
+    if not (sizes == (shapes[:, 0] * shapes[:, 1] + 7) // 8).all():
+        raise ValueError("mask_sizes: a mask's packed size does not match its shape")
+    index, psizes = ints("patch_index", hi=max(n - 1, 0)), ints("patch_sizes", hi=2**40)
+    pbytes = np.asarray(data["patch_bytes"])
+    if len(index) != len(psizes) or len(set(index.tolist())) != len(index) or int(psizes.sum()) != len(pbytes) \
+            or pbytes.dtype != np.uint8 or (len(index) and n == 0):
+        raise ValueError("patch_index / patch_sizes / patch_bytes do not describe one PNG per kept patch")
+    offsets = np.concatenate([[0], np.cumsum(psizes)]).astype(np.int64)
+    for j, i in enumerate(index):
+        head = pbytes[offsets[j]:offsets[j] + 24].tobytes()
+        if head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+            raise ValueError(f"patch of detection {i} is not a PNG")
+        w, h = struct.unpack(">II", head[16:24])
+        if (h, w) != tuple(box_shape[i]):
+            raise ValueError(f"patch of detection {i} is {w}x{h}, not the size of its box")
+    for name in ("selection", "excluded"):
+        a = ints(name)
+        if len(a) and (n == 0 or int(a.max()) >= n):
+            raise ValueError(f"{name} indexes a detection that does not exist ({n} detections)")
+    ints("frames")
+    for name in ("detect_threshold", "threshold"):
+        v = header[name]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < 1:
+            raise ValueError(f"header {name} must be a number in [0, 1), got {v!r}"[:200])
+    for name in ("k", "stride"):
+        v = header[name]
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise ValueError(f"header {name} must be an integer >= 1, got {v!r}"[:200])
+    est = header["estimate"]
+    if isinstance(est, bool) or not isinstance(est, (int, float)) or not math.isfinite(est):
+        raise ValueError(f"header estimate must be a finite number, got {est!r}"[:200])
+    if not isinstance(header["events"], list) or not isinstance(header["recording"], dict):
+        raise ValueError("header events must be a list and recording an object")
+
+
+def _first_line(err: BaseException) -> str:
+    lines = str(err).splitlines()
+    return lines[0][:300] if lines else type(err).__name__
+
+
+def _encode_png(rgb: np.ndarray) -> np.ndarray:
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR))
+    assert ok
+    return buf.reshape(-1)
+
+
+def _decode_png(buf: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(cv2.imdecode(np.asarray(buf, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+
+
+def _json_default(obj):
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, (Path, io.IOBase)):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+__all__ = ["TRACE_FORMAT", "save_trace", "load_trace", "check_trace_arrays"]
