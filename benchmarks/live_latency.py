@@ -93,9 +93,9 @@ def main(argv=None) -> int:
 
     model = StandInModel()
     if args.weights:
-        from massviz.core.model import MassNet
+        from massviz.io.checkpoint import load_checkpoint
 
-        model = MassNet.from_checkpoint(args.weights)
+        model = load_checkpoint(args.weights)
     sample = open_recording(ROOT / "data_samples" / "cup_handover")
     i = sample.intrinsics
     over_budget = False

@@ -83,7 +83,7 @@ def build_recording(folder: Path, n: int, layout: str, size: tuple[int, int]) ->
 def child(args) -> None:
     """Run the pipeline once and print one JSON line with this process's peak RSS."""
     from massviz.detect import make_detector
-    from massviz.core.model import MassNet
+    from massviz.io.checkpoint import load_checkpoint
     from massviz.core.pipeline import process
     from massviz.io.recording import open_recording
 
@@ -94,7 +94,7 @@ def child(args) -> None:
         rec.frames = lambda *a, **k: (held.append(f) or f for f in frames(*a, **k))
     detector = make_detector(args.detector, 0.4, replay=rec.path / "replay.json" if args.detector == "replay"
                              else None)
-    model = MassNet.from_checkpoint(args.weights)
+    model = load_checkpoint(args.weights)
     trace = process(rec, detector, model, k=5, cache=None)
     peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # kilobytes on Linux
     print(json.dumps({"frames": int(len(trace.frames)), "detections": int(len(trace.detections)),

@@ -25,14 +25,14 @@ def main() -> int:
 
     from massviz.io.cache import TraceCache
     from massviz.detect import make_detector
-    from massviz.core.model import MassNet
+    from massviz.io.checkpoint import load_checkpoint
     from massviz.core.pipeline import process
     from massviz.io.recording import find_recordings, open_recording
     from massviz.evaluation.sweep import best_pair, parse_range, sweep
     from massviz.views.score_plot import plot_heatmap
     from massviz.io.weights import resolve_weights
 
-    model = MassNet.from_checkpoint(resolve_weights(args.weights))
+    model = load_checkpoint(resolve_weights(args.weights))
     detector = make_detector("depth", 0.4)
     cache = TraceCache(args.cache)
     recs = [open_recording(r) for r in find_recordings(ROOT / "data_samples")]

@@ -110,12 +110,12 @@ def paper_loop(recording: Path, detector_weights: Path, mass_weights: Path, k: i
     import torchvision.transforms.functional as TF
     from torchvision.models.detection import maskrcnn_resnet50_fpn
 
-    from massviz.core.model import MassNet
+    from massviz.io.checkpoint import load_checkpoint
 
     model = maskrcnn_resnet50_fpn(weights=None, weights_backbone=None, num_classes=91)  # box_score_thresh 0.05
     model.load_state_dict(torch.load(detector_weights, map_location="cpu", weights_only=True))
     model.eval()
-    mass = MassNet.from_checkpoint(mass_weights)
+    mass = load_checkpoint(mass_weights)
     depth_files = sorted((recording / "depth").glob("*.png"))
     cap = cv2.VideoCapture(str(recording / "rgb.mp4"))
     count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
@@ -167,14 +167,14 @@ def paper_loop(recording: Path, detector_weights: Path, mass_weights: Path, k: i
 
 
 def massviz_run(recording: Path, detector_weights: Path, mass_weights: Path, precision: str, trace_out: Path):
-    from massviz.core.model import MassNet
+    from massviz.io.checkpoint import load_checkpoint
     from massviz.core.pipeline import run
     from massviz.detect.maskrcnn import MaskRCNNDetector
     from massviz.io.recording import open_recording
     from massviz.io.trace_file import save_trace
 
     det = MaskRCNNDetector(threshold=0.4, weights=detector_weights, precision=precision)
-    mass = MassNet.from_checkpoint(mass_weights).set_precision(precision)  # as build_pipeline does
+    mass = load_checkpoint(mass_weights).set_precision(precision)  # as build_pipeline does
     trace = run(open_recording(recording), det, mass, k=5, batch=det.default_batch)
     save_trace(trace, trace_out)
     chosen = [(int(trace.detections.frame[i]), trace.detections.xyxy[i].tolist()) for i in trace.selection]

@@ -4,7 +4,7 @@
 ``import massviz`` (and the CLI) start fast::
 
     rec = mv.open_recording("data_samples/cup_handover")
-    trace = mv.process(rec, mv.make_detector("depth"), mv.MassNet.from_checkpoint(weights))
+    trace = mv.process(rec, mv.make_detector("depth"), mv.load_checkpoint(weights))
     mv.log_trace(trace, rec, rrd="cup.rrd")
 
 The packages: ``massviz.core`` (types, trace, selection, model, the per-frame step, the builder), ``massviz.detect``,
@@ -25,6 +25,7 @@ _API = {
     "Recording": "massviz.io.recording",
     "make_detector": "massviz.detect",
     "MassNet": "massviz.core.model",
+    "load_checkpoint": "massviz.io.checkpoint",
     "process": "massviz.core.pipeline",
     "run": "massviz.core.pipeline",
     "FramePipeline": "massviz.core.pipeline",

@@ -99,14 +99,14 @@ class Pipeline:
 
 def build_pipeline(options: PipelineOptions | None = None, **kwargs) -> Pipeline:
     """Build the detector, load the mass CNN and open the trace cache from ``options`` (or keyword options)."""
-    from massviz.core.model import MassNet
+    from massviz.io.checkpoint import load_checkpoint
     from massviz.detect import make_detector
     from massviz.io.cache import TraceCache
     from massviz.io.weights import resolve_weights
 
     options = (options or PipelineOptions()).replace(**kwargs) if kwargs else (options or PipelineOptions())
     options.check()
-    model = MassNet.from_checkpoint(resolve_weights(options.weights)).set_precision(options.precision)
+    model = load_checkpoint(resolve_weights(options.weights)).set_precision(options.precision)
     detector = make_detector(options.detector, options.threshold, detector_weights=options.detector_weights,
                              replay=options.replay, quiet=options.quiet, precision=options.precision)
     cache = None if options.no_cache else TraceCache(options.cache).check_writable()

@@ -114,7 +114,7 @@ def readme_columns(shared_dir: Path) -> list[str]:
 
 def held_box_prediction(shared_dir: Path, weights: Path) -> float:
     """The mass CNN's prediction for the held box, with d, a, b computed here from the frame and its depth."""
-    from massviz.core.model import MassNet
+    from massviz.io.checkpoint import load_checkpoint
 
     cap = cv2.VideoCapture(str(shared_dir / CCM_VIDEO))
     for _ in range(2):
@@ -127,7 +127,7 @@ def held_box_prediction(shared_dir: Path, weights: Path) -> float:
     values = depth[y1:y2, x1:x2].astype(np.float64)
     d = round(float(values[values > 0].mean()), 2)
     feats = [[round((x2 - x1) / 1280, 2), round((y2 - y1) / 720, 2), d]]
-    return float(MassNet.from_checkpoint(weights).predict([rgb[y1:y2, x1:x2]], np.array(feats))[0])
+    return float(load_checkpoint(weights).predict([rgb[y1:y2, x1:x2]], np.array(feats))[0])
 
 
 @pytest.fixture(scope="module")

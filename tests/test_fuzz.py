@@ -164,11 +164,12 @@ class Base:
 def base(tmp_path_factory) -> Base:
     import torch
 
-    from massviz.core.model import MassNet, Ranges, save_checkpoint
+    from massviz.core.model import MassNet
+    from massviz.io.checkpoint import load_checkpoint, published_ranges, save_checkpoint
 
     root = tmp_path_factory.mktemp("fuzz_base")
     torch.manual_seed(0)
-    weights = save_checkpoint(root / "w.torch", MassNet(), Ranges.published("Encoder_pool_aug_158.torch"))
+    weights = save_checkpoint(root / "w.torch", MassNet(), published_ranges("Encoder_pool_aug_158.torch"))
     box = cup_box(1)
     replay = root / "replay.json"
     replay.write_text(json.dumps({"detections": [{"frame": 1, "box": box, "score": 0.9, "class": "cup"}]}))
@@ -178,7 +179,7 @@ def base(tmp_path_factory) -> Base:
     from massviz.io.trace_file import save_trace
 
     trace = run(open_recording(copy_sample(root / "rec")), ReplayDetector(replay),
-                MassNet.from_checkpoint(weights), k=5)
+                load_checkpoint(weights), k=5)
     assert len(trace.detections) == 1 and trace.estimate >= 0
     return Base(root, weights, replay, box, save_trace(trace, root / "trace.npz"))
 
@@ -937,7 +938,7 @@ def test_partial_video_is_reported_and_allowed_on_request(base, tmp_path):
     decoded frames are processed and the counts are on stderr and among the trace's events (Rerun's /log)."""
     from massviz.core.pipeline import process
     from massviz.detect.replay import ReplayDetector
-    from massviz.core.model import MassNet
+    from massviz.io.checkpoint import load_checkpoint
     from massviz.io.recording import open_recording
 
     rec = truncated_video(tmp_path)
@@ -957,7 +958,7 @@ def test_partial_video_is_reported_and_allowed_on_request(base, tmp_path):
     assert out.is_file()
     opened = open_recording(rec, allow_partial=True)
     assert opened.num_frames == decoded and opened.declared_frames == 12
-    trace = process(opened, ReplayDetector(base.replay), MassNet.from_checkpoint(base.weights))
+    trace = process(opened, ReplayDetector(base.replay), load_checkpoint(base.weights))
     assert [int(f) for f in trace.frames] == list(range(decoded))
     assert any(e.kind == "warning" and f"only {decoded} of the 12" in e.message for e in trace.events)
     rrd = tmp_path / "partial.rrd"

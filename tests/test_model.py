@@ -14,7 +14,8 @@ from torchvision.transforms import InterpolationMode
 
 from massviz.io import weights as W
 from massviz.errors import WeightsError
-from massviz.core.model import (MassNet, Ranges, preprocess_patch, preprocess_patches, save_checkpoint, square_pad)
+from massviz.core.model import MassNet, Ranges, preprocess_patch, preprocess_patches, square_pad
+from massviz.io.checkpoint import load_checkpoint, save_checkpoint
 
 # The README's table (shared/weights/corsmal_visual/README.md), written out independently of massviz.io.weights.
 README_RANGES = {
@@ -48,7 +49,7 @@ def golden_inputs(shared_dir, golden):
 
 @pytest.fixture(scope="module")
 def model158(weights_dir) -> MassNet:
-    return MassNet.from_checkpoint(weights_dir / "Encoder_pool_aug_158.torch")
+    return load_checkpoint(weights_dir / "Encoder_pool_aug_158.torch")
 
 
 @pytest.fixture
@@ -87,7 +88,7 @@ def test_predict_is_batch_independent_and_handles_empty(model158, golden_inputs)
 
 
 def test_predict_uses_eval_mode_and_restores_training_flag(weights_dir, golden_inputs):
-    model = MassNet.from_checkpoint(weights_dir / "Encoder_pool_aug_158.torch")
+    model = load_checkpoint(weights_dir / "Encoder_pool_aug_158.torch")
     patches, feats = golden_inputs
     expected = model.predict(patches, feats)
     model.train()
@@ -157,7 +158,7 @@ def test_published_checkpoints_load_strictly_with_their_ranges(weights_dir, name
     net.load_state_dict(state, strict=True)
     assert sum(p.numel() for p in net.parameters()) == 532_752
 
-    model = MassNet.from_checkpoint(path)
+    model = load_checkpoint(path)
     assert not model.training
     assert next(model.parameters()).device.type == "cpu"
     assert model.ranges == Ranges(*README_RANGES[name])
@@ -187,7 +188,7 @@ def test_ranges_normalise_and_denormalise():
 
 
 def test_clamp_at_zero(weights_dir, golden_inputs):
-    model = MassNet.from_checkpoint(weights_dir / "Encoder_pool_aug_158.torch")
+    model = load_checkpoint(weights_dir / "Encoder_pool_aug_158.torch")
     patches, feats = golden_inputs
     with torch.no_grad():
         model.linear3.bias.fill_(-50.0)
@@ -209,21 +210,21 @@ def test_sidecar_ranges(weights_dir, tmp_path, golden_inputs):
     ckpt = _unpublished_copy(weights_dir, tmp_path / "mine.torch")
     ranges = Ranges(*README_RANGES["Encoder_pool_aug_fold1_35.torch"])
     (tmp_path / "mine.torch.ranges.json").write_text(json.dumps(ranges.to_dict()))
-    model = MassNet.from_checkpoint(ckpt)
+    model = load_checkpoint(ckpt)
     assert model.ranges == ranges
     assert model.weights_id == W.sha256_file(ckpt)[:12]
-    reference = MassNet.from_checkpoint(weights_dir / "Encoder_pool_aug_158.torch", ranges=ranges)
+    reference = load_checkpoint(weights_dir / "Encoder_pool_aug_158.torch", ranges=ranges)
     patches, feats = golden_inputs
     np.testing.assert_array_equal(model.predict(patches, feats), reference.predict(patches, feats))
     # and the ranges do matter: the same weights with the 158 ranges predict something else
     assert not np.allclose(model.predict(patches, feats),
-                           MassNet.from_checkpoint(weights_dir / "Encoder_pool_aug_158.torch").predict(patches, feats))
+                           load_checkpoint(weights_dir / "Encoder_pool_aug_158.torch").predict(patches, feats))
 
 
 def test_missing_or_bad_sidecar(weights_dir, tmp_path):
     ckpt = _unpublished_copy(weights_dir, tmp_path / "mine.torch")
     with pytest.raises(WeightsError) as e:
-        MassNet.from_checkpoint(ckpt)
+        load_checkpoint(ckpt)
     assert "mine.torch.ranges.json" in str(e.value) and "\n" not in str(e.value)
     assert e.value.path == str(ckpt)
 
@@ -233,24 +234,24 @@ def test_missing_or_bad_sidecar(weights_dir, tmp_path):
                 json.dumps({**good, "maxMass": "heavy"}), json.dumps([1, 2, 3])):
         sidecar.write_text(bad)
         with pytest.raises(WeightsError) as e:
-            MassNet.from_checkpoint(ckpt)
+            load_checkpoint(ckpt)
         assert "mine.torch.ranges.json" in str(e.value)
 
 
 def test_unreadable_or_mismatched_checkpoint(weights_dir, tmp_path):
     with pytest.raises(WeightsError, match="not found"):
-        MassNet.from_checkpoint(tmp_path / "nope.torch")
+        load_checkpoint(tmp_path / "nope.torch")
     garbage = tmp_path / "garbage.torch"
     garbage.write_bytes(b"definitely not a checkpoint")
     with pytest.raises(WeightsError, match="garbage.torch"):
-        MassNet.from_checkpoint(garbage)
+        load_checkpoint(garbage)
     state = torch.load(weights_dir / "Encoder_pool_aug_158.torch", map_location="cpu", weights_only=True)
     state["linear3.weight"] = torch.zeros(1, 8)
     del state["bn5.running_var"]
     wrong = tmp_path / "wrong.torch"
     torch.save(state, wrong)
     with pytest.raises(WeightsError) as e:
-        MassNet.from_checkpoint(wrong, ranges=Ranges(*README_RANGES["Encoder_pool_aug_158.torch"]))
+        load_checkpoint(wrong, ranges=Ranges(*README_RANGES["Encoder_pool_aug_158.torch"]))
     msg = str(e.value)
     assert "wrong.torch" in msg and "bn5.running_var" in msg and "linear3.weight" in msg and "\n" not in msg
 
@@ -264,7 +265,7 @@ def test_save_checkpoint_round_trip(model158, tmp_path, golden_inputs):
     assert path.stat().st_mode & 0o777 == 0o666 & ~umask  # the usual permissions, not mkstemp's private 0600
     raw = torch.load(path, map_location="cpu", weights_only=True)
     assert raw["ranges"] == ranges.to_dict() and raw["extra"] == {"epoch": 3, "split": "F3"}
-    loaded = MassNet.from_checkpoint(path)
+    loaded = load_checkpoint(path)
     assert loaded.ranges == ranges and not loaded.training
     assert loaded.weights_id == W.sha256_file(path)[:12] != model158.weights_id
     patches, feats = golden_inputs
@@ -298,7 +299,7 @@ def test_download_via_file_url_into_cache(weights_dir, monkeypatch, no_weights_e
     assert got == no_weights_env / "Encoder_pool_aug_fold1_35.torch"
     assert W.sha256_file(got) == W.PUBLISHED["Encoder_pool_aug_fold1_35.torch"].sha256
     assert sorted(p.name for p in no_weights_env.iterdir()) == ["Encoder_pool_aug_fold1_35.torch"]
-    assert MassNet.from_checkpoint(got).ranges == Ranges(*README_RANGES["Encoder_pool_aug_fold1_35.torch"])
+    assert load_checkpoint(got).ranges == Ranges(*README_RANGES["Encoder_pool_aug_fold1_35.torch"])
     # second call is served from the cache: no source needed any more
     monkeypatch.setenv(W.ENV_URL, (no_weights_env.parent / "no-such-folder").as_uri())
     assert W.resolve_weights(name="Encoder_pool_aug_fold1_35.torch") == got

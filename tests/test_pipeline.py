@@ -9,7 +9,7 @@ import pytest
 
 from massviz.io.cache import TraceCache
 from massviz.errors import MassvizError
-from massviz.core.model import MassNet
+from massviz.io.checkpoint import load_checkpoint
 from massviz.core.pipeline import process, run
 from massviz.io.recording import open_recording
 from massviz.core.trace import Trace
@@ -45,12 +45,12 @@ def weights(shared_dir):
 
 @pytest.fixture(scope="module")
 def model(weights):
-    return MassNet.from_checkpoint(weights / "Encoder_pool_aug_158.torch")
+    return load_checkpoint(weights / "Encoder_pool_aug_158.torch")
 
 
 @pytest.fixture(scope="module")
 def other_model(weights):
-    return MassNet.from_checkpoint(weights / "Encoder_pool_aug_fold0_94.torch")
+    return load_checkpoint(weights / "Encoder_pool_aug_fold0_94.torch")
 
 
 @pytest.fixture
@@ -340,7 +340,7 @@ def test_builder_makes_the_pipeline_the_cli_uses(tmp_path, shared_dir):
 
     weights = shared_dir / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch"
     p = mv.build_pipeline(mv.PipelineOptions(detector="depth", k=3, weights=str(weights), cache=str(tmp_path)))
-    assert (p.detector.name, p.options.k, p.model.weights_id) == ("depth", 3, MassNet.from_checkpoint(weights).weights_id)
+    assert (p.detector.name, p.options.k, p.model.weights_id) == ("depth", 3, load_checkpoint(weights).weights_id)
     assert isinstance(p.cache, TraceCache) and p.cache.root == tmp_path
     with pytest.raises(MassvizError, match="--k must be >= 1"):
         mv.build_pipeline(detector="depth", k=0, weights=str(weights))

@@ -17,7 +17,7 @@ from massviz.core.pipeline import run
 from massviz.core.types import COCO_KEEP, Frame
 from massviz.detect.maskrcnn import MaskRCNNDetector, bf16_supported, fold_batchnorm, paste_mask_crops
 from massviz.errors import MassvizError
-from massviz.io.prefetch import Prefetcher
+from massviz.core.prefetch import Prefetcher
 from massviz.io.recording import open_recording
 
 CUP = COCO_KEEP["cup"]
@@ -71,9 +71,9 @@ def rig_sizes(det, width: int, height: int):
 
 @pytest.fixture(scope="module")
 def mass_model(shared_dir):
-    from massviz.core.model import MassNet
+    from massviz.io.checkpoint import load_checkpoint
 
-    return MassNet.from_checkpoint(shared_dir / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch")
+    return load_checkpoint(shared_dir / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch")
 
 
 @pytest.fixture(scope="module")
@@ -420,10 +420,10 @@ def test_tracker_box_ious_equal_torchvisions_box_iou():
 
 @pytest.mark.skipif(not bf16_supported(), reason="this CPU has no bfloat16 support")
 def test_mass_cnn_precision_changes_its_id_and_stays_close(shared_dir):
-    from massviz.core.model import MassNet
+    from massviz.io.checkpoint import load_checkpoint
 
     path = shared_dir / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch"
-    fp32, bf16 = MassNet.from_checkpoint(path), MassNet.from_checkpoint(path).set_precision("bf16")
+    fp32, bf16 = load_checkpoint(path), load_checkpoint(path).set_precision("bf16")
     assert bf16.weights_id == fp32.weights_id + "+bf16" and bf16.precision == "bf16"
     assert bf16.set_precision("bf16").weights_id == fp32.weights_id + "+bf16"  # not appended twice
     rng = np.random.default_rng(0)
@@ -433,7 +433,7 @@ def test_mass_cnn_precision_changes_its_id_and_stays_close(shared_dir):
     a, b = fp32.predict(patches, feats), bf16.predict(patches, feats)
     assert not np.array_equal(a, b)  # it did run in bf16
     np.testing.assert_allclose(b, a, rtol=0.1, atol=2.0)
-    assert MassNet.from_checkpoint(path).set_precision("fp16").weights_id == fp32.weights_id  # fp16: stays fp32
+    assert load_checkpoint(path).set_precision("fp16").weights_id == fp32.weights_id  # fp16: stays fp32
 
 
 def test_a_model_built_for_loaded_weights_skips_random_init_and_is_the_same_model(weights_file):

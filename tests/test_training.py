@@ -12,6 +12,7 @@ from PIL import Image
 from massviz.cli import main
 from massviz.errors import DataError, MassvizError
 from massviz.core.model import MassNet, Ranges
+from massviz.io.checkpoint import load_checkpoint
 from massviz.training.train import (
     AUGMENT_FACTOR, FOLDS, INDEX_COLUMNS, INDEX_NAME, PatchDataset, TrainConfig, annotation_for, compute_ranges,
     fit, make_augmentation, read_index, split_recordings, train_run)
@@ -147,7 +148,7 @@ def test_run_writes_metrics_rrd_split_and_a_loadable_checkpoint(patch_set, tmp_p
     assert sorted(split["part"].value_counts().items()) == [("test", 3), ("train", 6), ("val", 1)]
     index = read_index(patch_set)
     train_rows = index[index["recording"].isin(split["recording"][split["part"] == "train"])]
-    model = MassNet.from_checkpoint(result.best)
+    model = load_checkpoint(result.best)
     assert model.ranges == result.ranges == compute_ranges(train_rows)
     extra = torch.load(result.best, weights_only=True)["extra"]
     assert extra["split"] == "fold2" and extra["epoch"] == result.best_epoch

@@ -1,4 +1,5 @@
-"""The paper's mass CNN (Apicella et al., ICASSP 2022): network, input preprocessing, checkpoint loading.
+"""The paper's mass CNN (Apicella et al., ICASSP 2022): network and input preprocessing (checkpoint files:
+``massviz.io.checkpoint``).
 
 Provenance: a reimplementation of ``Encoder/Models/CNN_encoder_pooling.py`` (network),
 ``Encoder/Models/DataExtractor.py`` (``SquarePad``) and ``demo/generate_video_inference.py`` (patch transform,
@@ -17,12 +18,11 @@ Faithful to the original:
 
 Deliberate differences: the model holds no preprocessing (``forward`` takes ready tensors; :meth:`MassNet.predict`
 does the rest); the normalisation ranges travel with the checkpoint (:class:`Ranges`, see
-:meth:`MassNet.from_checkpoint`) instead of being constants edited in a script; :meth:`MassNet.predict` returns one
+``massviz.io.checkpoint.load_checkpoint``) instead of being constants edited in a script; :meth:`MassNet.predict` returns one
 prediction per patch (the original averages them per recording, which is the pipeline's job here).
 """
 from __future__ import annotations
 
-import json
 import math
 import numbers
 from dataclasses import dataclass, fields
@@ -38,18 +38,15 @@ from torchvision import transforms
 from torchvision.transforms import InterpolationMode
 from torchvision.transforms import functional as TF
 
-from massviz.io.atomic import atomic_path
 from massviz.errors import WeightsError
-from massviz.io.weights import RANGE_KEYS, PUBLISHED, published_by_sha256, sha256_file
 
 #: side of the square patch the network sees.
 PATCH_SIZE = 112
 #: number of trainable parameters of :class:`MassNet`.
 N_PARAMETERS = 532_752
-#: value of ``"format"`` in checkpoints written by :func:`save_checkpoint`.
-CHECKPOINT_FORMAT = "massviz.massnet/1"
-#: suffix of the ranges file expected beside a checkpoint that carries no ranges: ``<checkpoint>.ranges.json``.
-SIDECAR_SUFFIX = ".ranges.json"
+#: the names (and order) of the eight normalisation values, as the original code and golden_public.json spell them.
+RANGE_KEYS = ("minAverageDistance", "maxAverageDistance", "minRatioWidth", "maxRatioWidth",
+              "minRatioHeight", "maxRatioHeight", "minMass", "maxMass")
 
 
 # ----------------------------------------------------------------------------------------------------------- ranges
@@ -80,7 +77,7 @@ class Ranges:
                 raise ValueError(f"Ranges: each max - min must be a finite number, got {values}")
 
     def as_tuple(self) -> tuple[float, ...]:
-        """The eight values in :data:`massviz.io.weights.RANGE_KEYS` order."""
+        """The eight values in :data:`RANGE_KEYS` order."""
         return (self.min_distance, self.max_distance, self.min_ratio_width, self.max_ratio_width,
                 self.min_ratio_height, self.max_ratio_height, self.min_mass, self.max_mass)
 
@@ -98,11 +95,6 @@ class Ranges:
             return cls(*(d[k] for k in RANGE_KEYS))
         except ValueError as e:
             raise WeightsError(str(e), path) from None
-
-    @classmethod
-    def published(cls, name: str) -> "Ranges":
-        """Ranges of a published checkpoint, by file name (e.g. ``"Encoder_pool_aug_158.torch"``)."""
-        return cls(*PUBLISHED[name].ranges)
 
     def normalise_features(self, features) -> np.ndarray:
         """Raw ``[a, b, d_mm]`` rows (N, 3) → float32 (N, 3), each ``(v - min) / (max - min)`` (not clipped)."""
@@ -156,7 +148,7 @@ def preprocess_patches(patches: Sequence[np.ndarray]) -> torch.Tensor:
 class MassNet(nn.Module):
     """The paper's mass CNN. ``forward(images N×3×112×112, features N×3 normalised) → N×1 normalised mass``.
 
-    Attributes set by :meth:`from_checkpoint`: ``ranges`` (:class:`Ranges`, needed by :meth:`predict`) and
+    Attributes set by ``massviz.io.checkpoint.load_checkpoint``: ``ranges`` (:class:`Ranges`, needed by :meth:`predict`) and
     ``weights_id`` (first 12 hex characters of the checkpoint file's sha256; a cache key). :meth:`set_precision`
     makes :meth:`predict` run under bf16 autocast (``--precision bf16``; it appends ``+bf16`` to ``weights_id``, so
     such predictions never pass for fp32 ones in the trace cache).
@@ -233,7 +225,7 @@ class MassNet(nn.Module):
     def predict(self, patches: Sequence[np.ndarray], features, batch_size: int = 16) -> np.ndarray:
         """Grams (float32, shape (N,)) for N RGB crops (H×W×3 uint8) and their raw ``[a, b, d_mm]`` features."""
         if self.ranges is None:
-            raise WeightsError("MassNet.predict needs normalisation ranges (load with MassNet.from_checkpoint)")
+            raise WeightsError("MassNet.predict needs normalisation ranges (load with massviz.io.checkpoint.load_checkpoint)")
         feats = self.ranges.normalise_features(features)
         if len(patches) != len(feats):
             raise ValueError(f"{len(patches)} patches but {len(feats)} feature rows")
@@ -258,96 +250,6 @@ class MassNet(nn.Module):
             self.train(was_training)
         return self.ranges.denormalise_mass(np.concatenate(out))
 
-    @classmethod
-    def from_checkpoint(cls, path: str | Path, ranges: Ranges | None = None) -> "MassNet":
-        """Load a checkpoint on the CPU in eval mode, with its normalisation ranges.
 
-        Ranges, first found wins: the ``ranges`` argument; the ``"ranges"`` of a massviz checkpoint (see
-        :func:`save_checkpoint`); the table of published checkpoints, by the file's sha256; the sidecar
-        ``<checkpoint>.ranges.json`` (the eight keys of :data:`massviz.io.weights.RANGE_KEYS`). None of these, an
-        unreadable file or a state_dict that does not fit raises :class:`WeightsError` naming the file.
-        """
-        path = Path(path)
-        if not path.is_file():
-            raise WeightsError("checkpoint file not found", path)
-        try:
-            sha = sha256_file(path)
-            obj = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as e:  # torch raises many types for a corrupt / foreign file
-            first = str(e).splitlines()[0][:200] if str(e).strip() else "empty or truncated file"
-            raise WeightsError(f"cannot read checkpoint ({type(e).__name__}: {first})", path) from None
-        embedded = None
-        if isinstance(obj, dict) and "state_dict" in obj:
-            state, embedded = obj["state_dict"], obj.get("ranges")
-        else:
-            state = obj
-        if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
-            raise WeightsError("not a MassNet state_dict (nor a massviz checkpoint holding one)", path)
-
-        if ranges is None:
-            if embedded is not None:
-                ranges = Ranges.from_dict(embedded, path)
-            elif (pub := published_by_sha256(sha)) is not None:
-                ranges = Ranges(*pub.ranges)
-            else:
-                ranges = _read_sidecar(path)
-
-        model = cls(ranges=ranges, weights_id=sha[:12])
-        _check_state_dict(model, state, path)
-        for name, value in state.items():  # NaN weights would turn every prediction into NaN, silently
-            if value.is_floating_point() and not bool(torch.isfinite(value).all()):
-                raise WeightsError(f"parameter {name} holds NaN or infinite values (a diverged training?)", path)
-        model.load_state_dict(state, strict=True)
-        return model.eval()
-
-
-def _read_sidecar(path: Path) -> Ranges:
-    sidecar = path.with_name(path.name + SIDECAR_SUFFIX)
-    if not sidecar.is_file():
-        hint = (" (it is named like a published checkpoint but its sha256 differs)" if path.name in PUBLISHED else "")
-        raise WeightsError(f"checkpoint carries no normalisation ranges and its ranges file {sidecar} is missing"
-                           f"{hint}", path)
-    try:
-        data = json.loads(sidecar.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise WeightsError(f"cannot read ranges file ({e})", sidecar) from e
-    return Ranges.from_dict(data, sidecar)
-
-
-def _check_state_dict(model: MassNet, state: dict, path: Path) -> None:
-    """One-line :class:`WeightsError` for missing / unexpected / mis-shaped keys (load_state_dict's is multi-line)."""
-    expected = {k: tuple(v.shape) for k, v in model.state_dict().items()}
-    got = {k: tuple(v.shape) for k, v in state.items()}
-    problems = []
-    if missing := sorted(set(expected) - set(got)):
-        problems.append(f"missing {', '.join(missing)}")
-    if unexpected := sorted(set(got) - set(expected)):
-        problems.append(f"unexpected {', '.join(unexpected)}")
-    if shapes := [f"{k} {got[k]} (want {expected[k]})" for k in sorted(set(got) & set(expected))
-                  if got[k] != expected[k]]:
-        problems.append(f"wrong shape {', '.join(shapes)}")
-    if problems:
-        raise WeightsError(f"state_dict does not fit MassNet: {'; '.join(problems)}", path)
-
-
-def save_checkpoint(path: str | Path, model: MassNet, ranges: Ranges, extra: dict | None = None) -> Path:
-    """Write a massviz checkpoint ``{"format", "state_dict", "ranges", "extra"}`` atomically (temp file + rename).
-
-    ``extra`` (e.g. epoch, split, metrics) must hold plain Python values (str, int, float, bool, lists, dicts) so the
-    file loads with ``torch.load(weights_only=True)``. :meth:`MassNet.from_checkpoint` reads the file back.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    payload = {
-        "format": CHECKPOINT_FORMAT,
-        "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
-        "ranges": ranges.to_dict(),
-        "extra": dict(extra or {}),
-    }
-    with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
-    return path
-
-
-__all__ = ["PATCH_SIZE", "N_PARAMETERS", "CHECKPOINT_FORMAT", "Ranges", "square_pad", "preprocess_patch",
-           "preprocess_patches", "MassNet", "save_checkpoint"]
+__all__ = ["PATCH_SIZE", "N_PARAMETERS", "RANGE_KEYS", "Ranges", "square_pad", "preprocess_patch",
+           "preprocess_patches", "MassNet"]

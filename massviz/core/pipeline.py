@@ -224,10 +224,10 @@ def run(recording, detector: Detector, model, *, k: int = 5, stride: int = 1, ke
     """Run the pipeline over ``recording`` (a loop over ``FramePipeline.step``) and select the ``k`` nearest.
 
     ``batch``: frames per detector call (``detect_in_batches``); ``prefetch``: frames read ahead in a background
-    thread (``massviz.io.prefetch.Prefetcher``, at least ``batch``; 0 reads in this thread). Neither changes the
+    thread (``massviz.core.prefetch.Prefetcher``, at least ``batch``; 0 reads in this thread). Neither changes the
     result; the ``read`` timing is then the time spent waiting for frames.
     """
-    from massviz.io.prefetch import Prefetcher
+    from massviz.core.prefetch import Prefetcher
 
     fp = FramePipeline(detector, model, k=k, stride=stride, recording=recording.info(), keep_patches=keep_patches)
     total = math.ceil(recording.num_frames / stride)

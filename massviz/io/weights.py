@@ -39,16 +39,12 @@ ENV_WEIGHTS = "MASSVIZ_WEIGHTS"
 ENV_CACHE_DIR = "MASSVIZ_CACHE_DIR"
 ENV_URL = "MASSVIZ_WEIGHTS_URL"
 
-#: the names (and order) of the eight normalisation values, as the original code and golden_public.json spell them.
-RANGE_KEYS = ("minAverageDistance", "maxAverageDistance", "minRatioWidth", "maxRatioWidth",
-              "minRatioHeight", "maxRatioHeight", "minMass", "maxMass")
-
 OFFLINE_HINT = f"to run offline pass --weights PATH or set {ENV_WEIGHTS}=PATH"
 
 
 @dataclass(frozen=True)
 class PublishedCheckpoint:
-    """One of the authors' checkpoints: file name, sha256, training split, ranges (in :data:`RANGE_KEYS` order)."""
+    """One of the authors' checkpoints: file name, sha256, training split, ranges (in ``massviz.core.model.RANGE_KEYS`` order)."""
 
     name: str
     sha256: str
@@ -168,5 +164,5 @@ def resolve_weights(path: str | Path | None = None, *, name: str = DEFAULT_NAME)
 
 
 __all__ = [
-    "PINNED_COMMIT", "DEFAULT_URL_BASE", "DEFAULT_NAME", "RANGE_KEYS", "PublishedCheckpoint", "PUBLISHED",
+    "PINNED_COMMIT", "DEFAULT_URL_BASE", "DEFAULT_NAME", "PublishedCheckpoint", "PUBLISHED",
     "published_by_sha256", "sha256_file", "cache_dir", "url_base", "download", "resolve_weights"]

@@ -60,7 +60,8 @@ from massviz.io.atomic import atomic_dir
 from massviz.io.untrusted import check_image_size, confined, number, safe_filename, text_id
 from massviz.evaluation.metrics import ANN_CONTAINER, ANN_ID, ANN_MASS
 from massviz.core.types import GroundTruth
-from massviz.core.model import MassNet, Ranges, preprocess_patch, save_checkpoint
+from massviz.core.model import MassNet, Ranges, preprocess_patch
+from massviz.io.checkpoint import load_checkpoint, save_checkpoint
 
 #: file name of a patch set's index, inside the PATCHES folder.
 INDEX_NAME = "index.csv"
@@ -554,7 +555,7 @@ def train_run(patches: str | Path, out: str | Path, config: TrainConfig, *, init
         if init is None:
             model = MassNet(ranges=ranges)
         else:
-            model = MassNet.from_checkpoint(init, ranges=ranges)
+            model = load_checkpoint(init, ranges=ranges)
             ranges = model.ranges
         augment = make_augmentation() if cfg.augment_factor > 1 else None
         train_set = PatchDataset(patches, train_rows, ranges, cfg.augment_factor, augment)
