@@ -23,6 +23,7 @@ from massviz.views import rerun_log
 from massviz.core.patches import model_view
 from massviz.errors import MassvizError
 from massviz.core.pipeline import run
+from massviz.io.meta import write_intrinsics
 from massviz.io.recording import open_recording
 from massviz.core.geometry import depth_to_points
 from massviz.views.rerun_log import log_trace, rrd_contents, rrd_entities
@@ -104,7 +105,7 @@ def write_folder(root: Path, *, video: str | None = None, intrinsics: bool = Tru
     for i, (_, depth) in enumerate(frames):
         cv2.imwrite(str(root / "depth" / f"{i:04d}.png"), depth)
     if intrinsics:
-        Intrinsics(fx=60.0, fy=60.0, cx=W / 2, cy=H / 2, width=W, height=H).save(root / "intrinsics.json")
+        write_intrinsics(Intrinsics(fx=60.0, fy=60.0, cx=W / 2, cy=H / 2, width=W, height=H), root / "intrinsics.json")
     if mass is not None:
         (root / "meta.json").write_text(json.dumps({"container": {"mass_g": mass}}))
     return root

@@ -6,10 +6,8 @@ mask the paper's code uses for the average distance, which keeps a whole recordi
 """
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field, fields
-from pathlib import Path
 from typing import Sequence
 
 import numpy as np
@@ -52,9 +50,6 @@ class Intrinsics:
     @classmethod
     def from_dict(cls, d: dict) -> "Intrinsics":
         return cls(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]), int(d["width"]), int(d["height"]))
-
-    def save(self, path: str | Path) -> None:
-        Path(path).write_text(json.dumps(self.to_dict(), indent=1) + "\n")
 
 
 @dataclass
@@ -203,6 +198,8 @@ class GroundTruth:
     ``mass_g`` (empty mass), ``cls`` (cup, glass, box, ...), ``container_id`` (-1 unknown), the annotated size in mm
     (None when unknown), and, for the synthetic samples, ``instance_masks`` (a path pattern relative to the recording,
     e.g. ``gt/{frame:06d}.png``) with ``instances`` ({instance id: name}; the container is named "container").
+    A meta.json read from a file is checked first (``massviz.io.meta.check_meta``); ``from_meta`` itself never
+    fails: a value it cannot read is unknown (None).
     """
 
     mass_g: float | None = None
@@ -240,40 +237,6 @@ class GroundTruth:
                    height_mm=_number(c.get("height_mm")), depth_mm=_number(c.get("depth_mm")),
                    capacity_ml=_number(c.get("capacity_ml")),
                    instance_masks=str(pattern) if isinstance(pattern, str) and pattern else None, instances=names)
-
-    @staticmethod
-    def check_meta(meta: dict, path, folder, err) -> None:
-        """Check, where a meta.json is read, every ground-truth field :meth:`from_meta` uses (``err`` naming
-        ``path``): ``container`` an object whose ``mass_g`` is finite and > 0 and whose sizes are finite,
-        ``container.id`` an integer, ``instances`` maps integer ids to names, ``instance_masks`` a ``{frame}``
-        pattern of a path inside ``folder``."""
-        from massviz.io.untrusted import MAX_INDEX, frame_path, number, text_id
-
-        _SIZE_KEYS = ("width_top_mm", "width_bottom_mm", "height_mm", "depth_mm", "capacity_ml")
-        container = meta.get("container")
-        if container is not None:
-            if not isinstance(container, dict):
-                raise err(f"'container' must be a JSON object, got {type(container).__name__}", path)
-            if container.get("mass_g") is not None:
-                number(container["mass_g"], "'container.mass_g'", path, lo=0, lo_open=True, error=err)
-            for key in _SIZE_KEYS:
-                if container.get(key) is not None:
-                    number(container[key], f"'container.{key}'", path, error=err)
-            if container.get("id") is not None:
-                number(container["id"], "'container.id'", path, lo=-1, hi=MAX_INDEX, integral=True, error=err)
-            if container.get("class") is not None:
-                text_id(container["class"], "'container.class'", path, err)
-        instances = meta.get("instances")
-        if instances is not None:
-            if not isinstance(instances, dict):
-                raise err("'instances' must be a JSON object {\"id\": {\"name\": ...}}", path)
-            for key, value in instances.items():
-                if not (key.isdigit() and int(key) <= 65535):
-                    raise err(f"'instances': key {key[:40]!r} is not an instance id (an integer 0..65535)", path)
-                name = value.get("name") if isinstance(value, dict) else value
-                text_id(name, f"'instances.{key}' name", path, err)
-        if meta.get("instance_masks") is not None:
-            frame_path(meta["instance_masks"], folder, 0, path, "'instance_masks'", err)
 
     def size(self) -> dict | None:
         """The annotated size (mm): height, top/bottom widths, ``width_mm`` (the larger of the two) and depth (-1

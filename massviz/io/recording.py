@@ -47,7 +47,8 @@ import numpy as np
 
 from massviz.errors import RecordingError
 from massviz.io.untrusted import MAX_IMAGE_SIDE, MAX_INDEX, check_image_size, load_calibration_pickle, number, text_id
-from massviz.core.types import Frame, GroundTruth, Intrinsics, RecordingInfo
+from massviz.core.types import Frame, Intrinsics, RecordingInfo
+from massviz.io.meta import check_meta
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
@@ -323,28 +324,6 @@ def _intrinsics_ccm(path: Path, width: int, height: int) -> Intrinsics:
         raise RecordingError(f"the 'rgb' camera matrix must be a 3x3 array of numbers, got shape {shape}", path)
     k = k.astype(np.float64)
     return check_intrinsics({"fx": k[0, 0], "fy": k[1, 1], "cx": k[0, 2], "cy": k[1, 2]}, path, width, height)
-
-
-def check_meta(meta: dict, path: Path, folder: Path) -> dict:
-    """Check the fields of a meta.json massviz reads (``RecordingError`` naming ``path``): ``id`` and ``config_id``
-    are text without control characters (``config_id`` may be an integer), ``fps`` a finite number in (0, 1000],
-    ``container`` an object whose ``mass_g`` is finite and > 0 and whose sizes are finite, ``instances`` maps
-    integer ids to names, and ``instance_masks`` is a ``{frame}`` pattern of a path inside the recording."""
-    err = RecordingError
-    if "id" in meta:
-        text_id(meta["id"], "'id'", path, err)
-    if "config_id" in meta:
-        cid = meta["config_id"]
-        if isinstance(cid, int) and not isinstance(cid, bool):
-            number(cid, "'config_id'", path, lo=0, hi=MAX_INDEX, integral=True, error=err)
-        elif isinstance(cid, str):
-            text_id(cid, "'config_id'", path, err)
-        else:
-            raise err(f"'config_id' must be a string or an integer, got {cid!r}"[:200], path)
-    if "fps" in meta:
-        number(meta["fps"], "'fps'", path, lo=0, lo_open=True, hi=1000, error=err)
-    GroundTruth.check_meta(meta, path, folder, err)
-    return meta
 
 
 def _check_counts(depth_dir: Path, n_depth: int, n_rgb: int) -> None:

@@ -30,6 +30,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from massviz.errors import MassvizError
+from massviz.io.meta import write_intrinsics
 
 #: seconds without any frame from a camera before the session gives up on it.
 SILENCE_S = 5.0
@@ -167,7 +168,7 @@ class FolderWriter:
             self.abort(err)
             raise err
         if intrinsics is not None:
-            intrinsics.save(self.tmp / "intrinsics.json")
+            write_intrinsics(intrinsics, self.tmp / "intrinsics.json")
         (self.tmp / "meta.json").write_text(json.dumps(meta, indent=1) + "\n")
         self._ctx.__exit__(None, None, None)
         return self.path

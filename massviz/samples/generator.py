@@ -32,6 +32,7 @@ from massviz._open3d import o3d
 from massviz import __version__
 from massviz.errors import MassvizError
 from massviz.io.atomic import atomic_dir
+from massviz.io.meta import write_intrinsics
 from massviz.core.types import Intrinsics
 
 from massviz.samples.specs import (CONTAINER, FPS, HAND, INSTANCES, INTRINSICS, N_FRAMES, PERSON, PITCHER,  # noqa: F401
@@ -472,7 +473,7 @@ def write_sample(spec: SampleSpec, out_dir: Path, progress: Callable[[int], None
                 "container_occluded": r.container_occluded,
             })
             progress(1)
-        INTRINSICS.save(tmp / "intrinsics.json")
+        write_intrinsics(INTRINSICS, tmp / "intrinsics.json")
         (tmp / "meta.json").write_text(json.dumps(_meta(spec, frames), indent=1) + "\n")
     return target
 
