@@ -26,7 +26,7 @@ _API = {
     "make_detector": "massviz.detect",
     "MassNet": "massviz.core.model",
     "load_checkpoint": "massviz.io.checkpoint",
-    "process": "massviz.core.pipeline",
+    "process": "massviz.app",
     "run": "massviz.core.pipeline",
     "FramePipeline": "massviz.core.pipeline",
     "FrameResult": "massviz.core.pipeline",

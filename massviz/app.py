@@ -14,7 +14,8 @@ import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
-from massviz.core.pipeline import FramePipeline, process
+from massviz.core import pipeline as _pipeline
+from massviz.core.pipeline import FramePipeline
 from massviz.errors import MassvizError
 
 #: ``--precision`` choices (``massviz.detect.maskrcnn`` runs them).
@@ -81,7 +82,7 @@ class Pipeline:
     cache: object | None
 
     def process(self, recording, *, exclude=None, progress: bool | None = None):
-        """The recording's trace, from the cache when there (``massviz.core.pipeline.process``)."""
+        """The recording's trace, from the cache when there (:func:`process`)."""
         progress = not self.options.quiet if progress is None else progress
         return process(recording, self.detector, self.model, k=self.options.k, stride=self.options.stride,
                        cache=self.cache, progress=progress, exclude=exclude, batch=self.batch)
@@ -95,6 +96,14 @@ class Pipeline:
         """A fresh per-frame step for one recording (live camera, dataset workers, batched runners)."""
         return FramePipeline(self.detector, self.model, k=self.options.k, stride=self.options.stride,
                              recording=recording_info)
+
+
+def process(recording, detector, model, **kwargs):
+    """``massviz.core.pipeline.process`` with the ground truth's overlaps read into the trace
+    (``massviz.io.ground_truth.with_ground_truth``: the flags of a recording with instance masks use them)."""
+    from massviz.io.ground_truth import with_ground_truth
+
+    return _pipeline.process(recording, detector, model, annotate=with_ground_truth, **kwargs)
 
 
 def build_pipeline(options: PipelineOptions | None = None, **kwargs) -> Pipeline:
@@ -122,4 +131,4 @@ def process_recordings(recordings, options: PipelineOptions | None = None, *, pr
             for r in recordings]
 
 
-__all__ = ["PipelineOptions", "Pipeline", "build_pipeline", "process_recordings", "PRECISIONS"]
+__all__ = ["PipelineOptions", "Pipeline", "process", "build_pipeline", "process_recordings", "PRECISIONS"]

@@ -95,13 +95,13 @@ def test_the_checks_catch_a_bad_arrow(tmp_path):
 
 def test_one_selection_one_score_formula_one_ground_truth_reader():
     # the K-nearest sort lives in core/selection.py, exp(-eps) in evaluation/metrics.py, meta.json's container in
-    # core/types.py (GroundTruth.from_meta); every other module calls them
+    # core/types.py (GroundTruth.from_meta) and its one check in io/meta.py (check_meta); every other module calls them
     def files_with(needle):
         return sorted(str(p.relative_to(PKG)) for p in FILES if needle in p.read_text())
 
     assert files_with("argsort(") == ["core/selection.py"]
     assert files_with("np.exp(") == ["evaluation/metrics.py"]
-    assert files_with('get("container")') == ["core/types.py"]
+    assert files_with('get("container")') == ["core/types.py", "io/meta.py"]
 
 
 def test_help_start_up_loads_no_heavy_library():

@@ -18,6 +18,7 @@ from sample_traces import WEIGHTS, sample_cache
 
 from massviz.app import process_recordings
 from massviz.core.flags import analyse, ground_truth_overlap
+from massviz.core.trace import Trace
 from massviz.core.tracks import Tracker, assign_tracks
 from massviz.core.types import Detections
 from massviz.evaluation.failures import track_of
@@ -138,18 +139,81 @@ def test_flags_and_tracks_are_saved_recomputed_and_upgraded(traces, tmp_path):
     three = t.reselect(k=3)
     assert len(three.flags.patches) == 3 and len(three.flags.flagged) == 3 and three.flags.estimate_without == -1
     assert "no patch left" in three.flags.warning()
-    # a trace file written before tracks and flags existed: both are made on load
+    # a trace file written before tracks, flags and ground-truth overlaps existed: all are made on load
     with np.load(path, allow_pickle=False) as z:
-        data = {n: z[n] for n in z.files if n != "det_track"}
+        data = {n: z[n] for n in z.files if n != "det_track" and not n.startswith("det_gt_")}
     import json
 
     header = json.loads(data["header"].tobytes().decode())
-    del header["flags"]
+    del header["flags"], header["ground_truth_source"]
     data["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
     np.savez_compressed(tmp_path / "old.npz", **data)
     old = load_trace(tmp_path / "old.npz")
     np.testing.assert_array_equal(old.detections.track, t.detections.track)
     assert [p.to_dict() for p in old.flags.patches] == [p.to_dict() for p in t.flags.patches]
+
+
+class _FileOpens:
+    """Counts the files opened while active: the ``open`` audit event (builtins.open, io.open, os.open, np.load,
+    pathlib's read_*), plus cv2.imread and cv2.VideoCapture, which open files in C++ without an audit event."""
+
+    installed = None
+
+    def __init__(self, monkeypatch):
+        import cv2
+
+        self.opened, self.active = [], False
+        if _FileOpens.installed is None:  # an audit hook cannot be removed: one per session, forwarding to the active
+            _FileOpens.installed = [None]
+            sys.addaudithook(lambda event, args: _FileOpens.installed[0] and event == "open"
+                             and _FileOpens.installed[0](str(args[0])))
+        for name in ("imread", "VideoCapture"):
+            real = getattr(cv2, name)
+            monkeypatch.setattr(cv2, name, lambda path, *a, _real=real, **kw: (self.record(str(path)),
+                                                                                _real(path, *a, **kw))[1])
+
+    def record(self, path: str) -> None:
+        if self.active:
+            self.opened.append(path)
+
+    def __enter__(self):
+        self.opened, self.active = [], True
+        _FileOpens.installed[0] = self.record
+        return self
+
+    def __exit__(self, *exc):
+        self.active = False
+        _FileOpens.installed[0] = None
+
+
+def test_making_replacing_and_reselecting_a_trace_opens_no_file(traces, monkeypatch):
+    # the flags (with the ground truth of the samples' instance masks) are made when a trace is made: pure computation
+    # on what the trace holds, so none of these opens a file
+    from massviz.io import ground_truth
+    from massviz.io.ground_truth import with_ground_truth
+
+    t = traces["cup_handover"]
+    fields = {f.name: getattr(t, f.name) for f in dataclasses.fields(t)}
+    opens = _FileOpens(monkeypatch)
+    with opens:
+        made = Trace(**{**fields, "flags": None})
+        replaced = dataclasses.replace(t, threshold=0.5)
+        three = t.reselect(k=3)
+        retuned = retune(t, k=4, stride=2)
+        bare = dataclasses.replace(t, recording=dataclasses.replace(
+            t.recording, meta={k: v for k, v in t.recording.meta.items() if k != "instance_masks"}))
+    assert opens.opened == []
+    assert made.flags == t.flags and [p.frame for p in made.flags.flagged] == [9, 10, 8]
+    for cur in (replaced, three, retuned, made):  # their flags were made again, with the ground truth
+        assert cur.flags.describes(cur) and all(p.ground_truth is not None for p in cur.flags.patches)
+    assert len(three.flags.patches) == 3 and all(p.ground_truth is None for p in bare.flags.patches)
+    # the counter sees what io opens: reading the ground truth's masks again opens them (the check can fail)
+    ground_truth.read_instance_image.cache_clear()
+    with opens:
+        again = with_ground_truth(dataclasses.replace(t, ground_truth_source=""))
+    assert again.flags == t.flags
+    assert {Path(p).parent.name for p in opens.opened} == {"gt"}
+    assert len({p for p in opens.opened if p.endswith(".png")}) == len(np.unique(t.detections.frame))
 
 
 def _run(*args, cwd=ROOT):

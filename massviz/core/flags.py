@@ -29,7 +29,9 @@ severity ``high`` with two or more agreeing cues, ``medium`` with one; ``low`` (
 **Ground truth** (recordings whose ``meta.json`` has ``instance_masks`` and ``instances``, e.g. the samples): a patch
 is flagged exactly when its mask overlaps the container's instance mask with IoU < :data:`GT_MIN_IOU` (severity
 ``high``), naming what it lies on (``pitcher``, ``hand``, ``container`` for only a part of it). The cues are still
-computed and listed, so they can be checked against the ground truth.
+computed and listed, so they can be checked against the ground truth. The masks are read by io
+(``massviz.io.ground_truth.with_ground_truth``) into per-detection overlaps (``Detections.gt_iou``, ``gt_instance``,
+``gt_fraction``; :func:`mask_overlap`): this module reads no file.
 
 ``Flags.estimate_without`` is the mean prediction of the chosen patches that are not flagged (-1: none left);
 ``Flags.warning()`` the one-line summary the commands print.
@@ -40,16 +42,11 @@ import hashlib
 import math
 from collections import Counter
 from dataclasses import dataclass, field
-from functools import lru_cache
-from pathlib import Path
 
-import cv2
 import numpy as np
 
 from massviz.core.tracks import metric_size, track_members
 from massviz.core.types import OBJECT_CLASS_ID, class_name
-from massviz.errors import DataError, MassvizError
-from massviz.io.untrusted import check_image_size, frame_path
 
 CUE_KINDS = ("track", "size", "depth_jump", "time", "class")
 SEVERITIES = ("none", "low", "medium", "high")
@@ -221,56 +218,48 @@ def _frames_text(frames) -> str:
 
 
 # ------------------------------------------------------------------------------------------------- ground truth
-@lru_cache(maxsize=256)
-def _read_instances(path: str) -> np.ndarray | None:
-    try:  # the header is checked before decoding: a small file may declare gigabytes of pixels
-        check_image_size(path, MassvizError, "ground-truth image")
-    except MassvizError:
-        return None
-    if not Path(path).is_file():
-        return None
-    img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
-    return None if img is None else (img if img.ndim == 2 else img[..., 0])
+def ground_truth_source(recording) -> str:
+    """What the ground-truth overlaps of a recording's detections are computed from (its folder, the mask pattern
+    and the instance names of its ``meta.json``); "" when it has no instance masks. A trace's overlaps
+    (``Detections.gt_iou`` ...) count only while its ``ground_truth_source`` equals this."""
+    gt = recording.ground_truth
+    if gt is None or not gt.instance_masks or not gt.instances or not recording.path:
+        return ""
+    return f"{recording.path}|{gt.instance_masks}|{sorted(gt.instances.items())}"
 
 
-def ground_truth_masks(trace, frame: int) -> tuple[np.ndarray, dict[int, str]] | None:
-    """(instance-id image of ``frame``, {id: name}) from the recording's ``meta.json`` ground truth, or None when
-    unknown (no ``instance_masks`` / ``instances``, a pattern other than ``...{frame}...`` or one leading outside the
-    recording folder (``massviz.io.untrusted.frame_path``), a missing, oversized or unreadable PNG, or one of another
-    size than the frames)."""
-    gt = trace.ground_truth
-    root = trace.recording.path
-    if gt is None or not gt.instance_masks or not gt.instances or not root:
-        return None
-    try:  # the pattern comes from a data file: only {frame}, and inside the recording folder
-        path = frame_path(gt.instance_masks, root, int(frame), root, "instance_masks")
-    except DataError:
-        return None
-    img = _read_instances(str(path))
-    if img is None or (trace.recording.height and img.shape[:2] != (trace.recording.height, trace.recording.width)):
-        return None
-    return img, dict(gt.instances)
+def has_ground_truth(trace) -> bool:
+    """Whether ``trace``'s detections carry ground-truth overlaps of its recording's current ground truth."""
+    source = ground_truth_source(trace.recording)
+    return bool(source) and trace.ground_truth_source == source
+
+
+def mask_overlap(mask: np.ndarray, instances: np.ndarray, names: dict[int, str]) -> tuple[float, int, float]:
+    """How the full-image boolean ``mask`` lies on the instance-id image ``instances`` ({id: name}; the container is
+    named "container"): (IoU with the container's mask, the instance id covering most of the mask (0: background or
+    an empty mask), the fraction of the mask it covers)."""
+    cmask = np.isin(instances, [i for i, n in names.items() if n == "container"])
+    union = int((mask | cmask).sum())
+    iou = float((mask & cmask).sum() / union) if union else 0.0
+    ids, counts = np.unique(instances[mask], return_counts=True)
+    if len(ids) == 0:
+        return iou, 0, 0.0
+    best = int(np.argmax(counts))
+    return iou, int(ids[best]), float(counts[best] / counts.sum())
 
 
 def ground_truth_overlap(trace, index: int) -> dict | None:
     """For detection ``index``: ``iou_container`` (IoU of its mask with the container's), ``overlaps`` (name of the
     instance covering most of its mask, "background" for none) and ``fraction`` (of the mask it covers); None
-    without ground truth for its frame."""
+    without ground truth for its frame (or overlaps not read: ``massviz.io.ground_truth.with_ground_truth``)."""
     dets = trace.detections
-    gt = ground_truth_masks(trace, int(dets.frame[index]))
-    if gt is None:
+    if not has_ground_truth(trace) or not np.isfinite(dets.gt_iou[index]):
         return None
-    img, names = gt
-    mask = dets.full_mask(index, *img.shape[:2])
-    cmask = np.isin(img, [i for i, n in names.items() if n == "container"])
-    union = int((mask | cmask).sum())
-    iou = float((mask & cmask).sum() / union) if union else 0.0
-    ids, counts = np.unique(img[mask], return_counts=True)
-    if len(ids) == 0:
-        return {"iou_container": iou, "overlaps": "background", "fraction": 0.0}
-    best = int(np.argmax(counts))
-    name = names.get(int(ids[best]), "background" if ids[best] == 0 else f"instance {ids[best]}")
-    return {"iou_container": iou, "overlaps": name, "fraction": float(counts[best] / counts.sum())}
+    instance, fraction = int(dets.gt_instance[index]), float(dets.gt_fraction[index])
+    names = trace.ground_truth.instances
+    name = "background" if fraction == 0 else names.get(instance, "background" if instance == 0 else
+                                                        f"instance {instance}")
+    return {"iou_container": float(dets.gt_iou[index]), "overlaps": name, "fraction": fraction}
 
 
 # ------------------------------------------------------------------------------------------------------- cues
@@ -362,7 +351,7 @@ def selection_key(trace, ground_truth: bool = True) -> str:
         h.update(part.tobytes())
         h.update(b"|")
     gt = trace.ground_truth
-    masks = (gt.instance_masks, sorted(gt.instances.items())) if ground_truth and gt is not None else None
+    masks = (gt.instance_masks, sorted(gt.instances.items())) if ground_truth and has_ground_truth(trace) else None
     h.update(f"{float(trace.threshold):.6f}|{float(trace.estimate):.6f}|{masks}|{trace.recording.path}".encode())
     return h.hexdigest()[:16]
 
@@ -404,5 +393,5 @@ def analyse(trace, *, ground_truth: bool = True) -> Flags:
                  estimate=float(trace.estimate), key=key)
 
 
-__all__ = ["Cue", "PatchFlag", "Flags", "analyse", "selection_key", "container_track", "ground_truth_masks", "ground_truth_overlap",
-           "CUE_KINDS", "SEVERITIES", "GT_MIN_IOU"]
+__all__ = ["Cue", "PatchFlag", "Flags", "analyse", "selection_key", "container_track", "ground_truth_source",
+           "has_ground_truth", "mask_overlap", "ground_truth_overlap", "CUE_KINDS", "SEVERITIES", "GT_MIN_IOU"]

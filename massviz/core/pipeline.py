@@ -266,10 +266,13 @@ def repredict(trace: Trace, recording, model, progress: bool = False) -> Trace:
 
 
 def process(recording, detector: Detector, model, *, k: int = 5, stride: int = 1, cache=None,
-            progress: bool = False, exclude=None, batch: int = 1, prefetch: int = 2) -> Trace:
+            progress: bool = False, exclude=None, batch: int = 1, prefetch: int = 2, annotate=None) -> Trace:
     """``run`` with the trace cache: reuse cached detections when the recording, detector settings and stride match
     and the cached threshold is <= this one; re-predict only when the model differs. ``cache`` is a
-    ``massviz.io.cache.TraceCache`` or None (no caching). ``batch``/``prefetch``: see ``run``."""
+    ``massviz.io.cache.TraceCache`` or None (no caching). ``batch``/``prefetch``: see ``run``. ``annotate``: a
+    function trace -> trace applied to every trace this returns, before a new one is cached (``massviz.app`` passes
+    ``massviz.io.ground_truth.with_ground_truth``); None: none."""
+    annotate = annotate or (lambda t: t)
     info = {"name": detector.name, **detector.settings()}
     trace = cache.load(recording, info, stride, detector.threshold) if cache is not None else None
     if trace is not None:
@@ -285,9 +288,10 @@ def process(recording, detector: Detector, model, *, k: int = 5, stride: int = 1
         events.extend(e for e in trace.events if e.is_selection)
         timings = {"cache": time.perf_counter() - t0}
         # the key is the frames' content: the recording's path, meta and intrinsics are today's, not the cached run's
-        return dataclasses.replace(trace, recording=recording.info(), events=events,
-                                   timings={**trace.timings, **timings})
-    trace = run(recording, detector, model, k=k, stride=stride, progress=progress, batch=batch, prefetch=prefetch)
+        return annotate(dataclasses.replace(trace, recording=recording.info(), events=events,
+                                            timings={**trace.timings, **timings}))
+    trace = annotate(run(recording, detector, model, k=k, stride=stride, progress=progress, batch=batch,
+                         prefetch=prefetch))
     if cache is not None:
         cache.save(trace, recording, info)
     if exclude is not None:

@@ -11,7 +11,9 @@ Every trace carries its **tracks** (``detections.track``, ``massviz.core.tracks`
 (``flags``, ``massviz.core.flags.analyse``: which chosen patches are probably not the container, and the estimate
 without them). Both are made when a trace is made (untracked detections are tracked, flags of another selection are
 recomputed: ``reselect`` and ``dataclasses.replace`` get fresh flags), saved with it (array ``det_track``, header
-``flags``) and, when a file of format 2 written before them lacks them, computed on load.
+``flags``) and, when a file of format 2 written before them lacks them, computed on load. Making them is pure
+computation: constructing, replacing or re-selecting a trace opens no file (the ground truth's masks are read by io,
+``massviz.io.ground_truth.with_ground_truth``, into per-detection overlaps the flags read).
 """
 from __future__ import annotations
 
@@ -78,6 +80,9 @@ class Trace:
     - ``frame_timings``: seconds per stage for each processed frame (stage -> array aligned with ``frames``; empty
       for traces made before massviz recorded them).
     - ``flags``: ``massviz.core.flags.Flags`` of the selection (made when the trace is; see the module docstring).
+    - ``ground_truth_source``: what the detections' ground-truth overlaps (``Detections.gt_iou`` ...) were computed
+      from (``massviz.core.flags.ground_truth_source``; "" none): the flags use them only while it matches the
+      recording's ground truth (``massviz.io.ground_truth.with_ground_truth`` fills them).
     """
 
     recording: RecordingInfo
@@ -97,6 +102,7 @@ class Trace:
     measurements: list = field(default_factory=list)
     frame_timings: dict = field(default_factory=dict)
     flags: Flags | None = None
+    ground_truth_source: str = ""
 
     def __post_init__(self) -> None:
         if isinstance(self.recording, dict):

@@ -107,6 +107,9 @@ class Detections:
     - ``pred``: the mass CNN's prediction for this detection's patch (grams; NaN when not predicted).
     - ``patches``: the RGB crop of each box (H×W×3 uint8), or ``None`` entries when not kept.
     - ``track``: the object track of each detection (``massviz.core.tracks``; ids >= 1, 0 = not tracked yet).
+    - ``gt_iou``, ``gt_instance``, ``gt_fraction``: how the mask lies on the recording's ground-truth instance masks
+      (IoU with the container's, the instance id covering most of it (0 background) and the fraction it covers);
+      NaN / -1 when unknown. Filled by ``massviz.io.ground_truth.with_ground_truth``, read by ``massviz.core.flags``.
     """
 
     frame: np.ndarray = field(default_factory=lambda: _empty(np.int32))
@@ -120,8 +123,14 @@ class Detections:
     pred: np.ndarray = field(default_factory=lambda: _empty(np.float32))
     patches: list = field(default_factory=list)
     track: np.ndarray = field(default_factory=lambda: _empty(np.int64))
+    gt_iou: np.ndarray = field(default_factory=lambda: _empty(np.float64))
+    gt_instance: np.ndarray = field(default_factory=lambda: _empty(np.int32))
+    gt_fraction: np.ndarray = field(default_factory=lambda: _empty(np.float64))
 
-    _ARRAYS = ("frame", "xyxy", "score", "class_id", "d", "a", "b", "pred", "track")
+    _ARRAYS = ("frame", "xyxy", "score", "class_id", "d", "a", "b", "pred", "track", "gt_iou", "gt_instance",
+               "gt_fraction")
+    #: arrays a trace file written before them may lack (made, or unknown, when the trace is read)
+    _OPTIONAL = ("track", "gt_iou", "gt_instance", "gt_fraction")
     _LISTS = ("masks", "patches")
 
     def __post_init__(self) -> None:
@@ -135,6 +144,10 @@ class Detections:
             setattr(self, name, np.full(n, np.nan) if len(arr) == 0 and n else np.asarray(arr, np.float64).reshape(n))
         self.pred = np.full(n, np.nan, np.float32) if len(self.pred) == 0 and n else np.asarray(self.pred, np.float32).reshape(n)
         self.track = np.zeros(n, np.int64) if len(self.track) == 0 and n else np.asarray(self.track, np.int64).reshape(n)
+        for name, dtype, unknown in (("gt_iou", np.float64, np.nan), ("gt_instance", np.int32, -1),
+                                     ("gt_fraction", np.float64, np.nan)):
+            arr = getattr(self, name)
+            setattr(self, name, np.full(n, unknown, dtype) if len(arr) == 0 and n else np.asarray(arr, dtype).reshape(n))
         if not self.masks and n:
             self.masks = [None] * n
         self.masks = [m if m is None or isinstance(m, PackedMask) else PackedMask(m) for m in self.masks]

@@ -2,7 +2,8 @@
 
 The file holds a JSON header + parallel arrays + packed masks + PNG-encoded patches. Traces carry their tracks (array
 ``det_track``) and flags (header ``flags``); a file of format 2 written before them lacks them and they are made when
-the trace is (``Trace.__post_init__``, pure computation). A trace file is untrusted (a replay source, a cache entry):
+the trace is (``Trace.__post_init__``, pure computation); the detections' ground-truth overlaps, when the file lacks
+them, are read by :func:`load_trace` (``massviz.io.ground_truth.with_ground_truth``). A trace file is untrusted (a replay source, a cache entry):
 :func:`load_trace` bounds array sizes before they are allocated and checks every field (:func:`check_trace_arrays`).
 """
 from __future__ import annotations
@@ -19,6 +20,7 @@ from massviz.core.trace import Event, Trace
 from massviz.core.types import Detections, PackedMask, RecordingInfo
 from massviz.errors import MassvizError
 from massviz.io.atomic import atomic_path
+from massviz.io.ground_truth import with_ground_truth
 from massviz.io.untrusted import MAX_INDEX, load_npz_checked
 
 TRACE_FORMAT = 2  # 2: typed events, recording info as a dataclass
@@ -37,6 +39,7 @@ def save_trace(trace: Trace, path: str | Path) -> Path:
         "timings": trace.timings, "events": [e.to_list() for e in trace.events],
         "measurements": list(trace.measurements), "flags": trace.flags.to_dict(),
         "frame_timing_stages": list(trace.frame_timings),
+        "ground_truth_source": trace.ground_truth_source,
     }
     masks = [m if m is not None else PackedMask(np.zeros((0, 0), bool)) for m in dets.masks]
     patch_idx = [i for i, p in enumerate(dets.patches) if p is not None]
@@ -72,10 +75,11 @@ def load_trace(path: str | Path) -> Trace:
         raise MassvizError(f"trace format {found!r} is not supported (expected {TRACE_FORMAT})"[:300], path)
     try:
         check_trace_arrays(header, data)
-        return _from_arrays(header, data)
+        trace = _from_arrays(header, data)
     except Exception as err:  # noqa: BLE001 - a field missing, of the wrong type, shape or value
         raise MassvizError(f"not a complete massviz trace ({type(err).__name__}: {_first_line(err)})",
                            path) from None
+    return with_ground_truth(trace)  # a file from before the overlaps, or made without them: read them now
 
 def _from_arrays(header: dict, data: dict) -> Trace:
     offsets = np.concatenate([[0], np.cumsum(data["mask_sizes"])])
@@ -87,7 +91,7 @@ def _from_arrays(header: dict, data: dict) -> Trace:
         patches[int(i)] = _decode_png(data["patch_bytes"][poff[j]:poff[j + 1]])
     # det_track and the flags are absent from files written before tracks existed: made by __post_init__
     dets = Detections(**{name: data[f"det_{name}"] for name in Detections._ARRAYS
-                         if name != "track" or "det_track" in data}, masks=masks, patches=patches)
+                         if name not in Detections._OPTIONAL or f"det_{name}" in data}, masks=masks, patches=patches)
     return Trace(recording=RecordingInfo.from_dict(header["recording"]), detector=header["detector"],
                detect_threshold=header["detect_threshold"], threshold=header["threshold"], k=header["k"],
                stride=header["stride"], frames=data["frames"], detections=dets, selection=data["selection"],
@@ -96,7 +100,8 @@ def _from_arrays(header: dict, data: dict) -> Trace:
                measurements=header.get("measurements", []),
                flags=Flags.from_dict(header["flags"]) if isinstance(header.get("flags"), dict) else None,
                frame_timings={name: data[f"frame_time_{i}"]
-                              for i, name in enumerate(header.get("frame_timing_stages", []))})
+                              for i, name in enumerate(header.get("frame_timing_stages", []))},
+                 ground_truth_source=str(header.get("ground_truth_source", ""))[:10_000])
 
 
 def check_trace_arrays(header: dict, data: dict) -> None:
@@ -129,6 +134,15 @@ def check_trace_arrays(header: dict, data: dict) -> None:
             raise ValueError(f"{name} must be {n} floats, got {a.dtype} {a.shape}")
         if np.isinf(a).any() or (name == "det_score" and (np.isnan(a).any() or (a < 0).any() or (a > 1).any())):
             raise ValueError(f"{name}: values must be finite{' and in [0, 1]' if name == 'det_score' else ' or NaN'}")
+    # the ground-truth overlaps (absent in files from before them): NaN / -1 unknown
+    for name in ("det_gt_iou", "det_gt_fraction"):
+        if name in data:
+            a = np.asarray(data[name])
+            if a.dtype.kind != "f" or a.shape != (n,) or (a[np.isfinite(a)] < 0).any() or \
+                    (a[np.isfinite(a)] > 1).any() or np.isinf(a).any():
+                raise ValueError(f"{name} must be {n} floats in [0, 1] or NaN, got {a.dtype} {a.shape}")
+    if "det_gt_instance" in data and len(ints("det_gt_instance", lo=-1, hi=65535)) != n:
+        raise ValueError(f"det_gt_instance: one instance id in [-1, 65535] per detection ({n})")
     shapes = ints("mask_shapes", ndim=2)
     sizes = ints("mask_sizes", hi=2**62)
     bits = np.asarray(data["mask_bits"])
