@@ -84,7 +84,7 @@ def child(args) -> None:
     """Run the pipeline once and print one JSON line with this process's peak RSS."""
     from massviz.detect import make_detector
     from massviz.io.checkpoint import load_checkpoint
-    from massviz.core.pipeline import process
+    from massviz.app import process
     from massviz.io.recording import open_recording
 
     t0 = time.perf_counter()

@@ -26,7 +26,7 @@ def main() -> int:
     from massviz.io.cache import TraceCache
     from massviz.detect import make_detector
     from massviz.io.checkpoint import load_checkpoint
-    from massviz.core.pipeline import process
+    from massviz.app import process
     from massviz.io.recording import find_recordings, open_recording
     from massviz.evaluation.sweep import best_pair, parse_range, sweep
     from massviz.views.score_plot import plot_heatmap

@@ -1,4 +1,5 @@
-"""One builder for the pipeline, shared by the CLI, the notebooks and every runner.
+"""One builder for the pipeline, shared by the CLI, the notebooks and every runner, and ``process``: the per-frame
+pipeline (``massviz.core.pipeline``) with the trace cache and the ground truth (both io), above detect and io.
 
     options = PipelineOptions(detector="depth", threshold=0.4, k=5)        # or PipelineOptions.from_args(args)
     pipeline = build_pipeline(options)                                       # detector + mass CNN + trace cache
@@ -11,11 +12,13 @@ there.
 from __future__ import annotations
 
 import dataclasses
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from massviz.core import pipeline as _pipeline
-from massviz.core.pipeline import FramePipeline
+from massviz.core.pipeline import FramePipeline, repredict, resolve_selection, run
+from massviz.core.selection import Selection
+from massviz.core.trace import Event
 from massviz.errors import MassvizError
 
 #: ``--precision`` choices (``massviz.detect.maskrcnn`` runs them).
@@ -71,6 +74,11 @@ class PipelineOptions:
     def replace(self, **changes) -> "PipelineOptions":
         return dataclasses.replace(self, **changes)
 
+    @property
+    def selection(self) -> Selection:
+        """The selection these options ask for (K, threshold, stride; no exclusions): what the pipeline is given."""
+        return Selection(k=self.k, threshold=self.threshold, stride=self.stride)
+
 
 @dataclass
 class Pipeline:
@@ -81,11 +89,13 @@ class Pipeline:
     model: object
     cache: object | None
 
-    def process(self, recording, *, exclude=None, progress: bool | None = None):
-        """The recording's trace, from the cache when there (:func:`process`)."""
+    def process(self, recording, *, exclude=None, progress: bool | None = None, selection: Selection | None = None):
+        """The recording's trace, from the cache when there (:func:`process`), selected with ``selection`` (default:
+        the options' ``selection``) plus the exclusions ``exclude``."""
         progress = not self.options.quiet if progress is None else progress
-        return process(recording, self.detector, self.model, k=self.options.k, stride=self.options.stride,
-                       cache=self.cache, progress=progress, exclude=exclude, batch=self.batch)
+        selection = self.options.selection if selection is None else selection
+        return process(recording, self.detector, self.model, selection=selection, cache=self.cache,
+                       progress=progress, exclude=exclude, batch=self.batch)
 
     @property
     def batch(self) -> int:
@@ -94,16 +104,53 @@ class Pipeline:
 
     def frame_pipeline(self, recording_info=None) -> FramePipeline:
         """A fresh per-frame step for one recording (live camera, dataset workers, batched runners)."""
-        return FramePipeline(self.detector, self.model, k=self.options.k, stride=self.options.stride,
-                             recording=recording_info)
+        return FramePipeline(self.detector, self.model, selection=self.options.selection, recording=recording_info)
 
 
-def process(recording, detector, model, **kwargs):
-    """``massviz.core.pipeline.process`` with the ground truth's overlaps read into the trace
-    (``massviz.io.ground_truth.with_ground_truth``: the flags of a recording with instance masks use them)."""
+def process(recording, detector, model, *, selection: Selection | None = None, k: int | None = None,
+            stride: int | None = None, cache=None, progress: bool = False, exclude=None, batch: int = 1,
+            prefetch: int = 2, annotate=None):
+    """``massviz.core.pipeline.run`` with the trace cache: reuse cached detections when the recording, detector settings and stride match
+    and the cached threshold is <= the selection's; re-predict only when the model differs. ``cache`` is a
+    ``massviz.io.cache.TraceCache`` or None (no caching). ``selection`` (or ``k=``/``stride=``), ``batch``,
+    ``prefetch``: see ``run``; ``exclude`` adds to the selection's exclusions. ``annotate``: a function
+    trace -> trace applied to every trace this returns, before a new one is cached; default
+    ``massviz.io.ground_truth.with_ground_truth`` (the ground truth's overlaps, for the flags)."""
     from massviz.io.ground_truth import with_ground_truth
 
-    return _pipeline.process(recording, detector, model, annotate=with_ground_truth, **kwargs)
+    annotate = annotate or with_ground_truth
+    selection = resolve_selection(selection, k, stride)
+    if selection.threshold is None:
+        selection = selection.replace(threshold=float(detector.threshold))
+    if exclude is not None:
+        selection = selection.replace(exclude=tuple(selection.exclude) + tuple(Selection(exclude=exclude).exclude))
+    k, stride, threshold = selection.k, selection.stride, selection.threshold
+    exclude = list(selection.exclude) or None
+    info = {"name": detector.name, **detector.settings()}
+    trace = cache.load(recording, info, stride, threshold) if cache is not None else None
+    if trace is not None:
+        t0 = time.perf_counter()
+        note = (f"reused cached detections (made at threshold {trace.detect_threshold}); the detector did not run")
+        if trace.weights_id != getattr(model, "weights_id", ""):
+            trace = repredict(trace, recording, model, progress=progress)
+            cache.save(trace, recording, info)
+            note += "; predictions recomputed for this model"
+        trace = trace.reselect(k=k, threshold=threshold, exclude=exclude)
+        events = [e for e in trace.events if not e.is_selection]
+        events.append(Event(-1, note, "cache", "debug"))
+        events.extend(e for e in trace.events if e.is_selection)
+        timings = {"cache": time.perf_counter() - t0}
+        # the key is the frames' content: the recording's path, meta and intrinsics are today's, not the cached run's
+        return annotate(dataclasses.replace(trace, recording=recording.info(), events=events,
+                                            timings={**trace.timings, **timings}))
+    # the cached trace holds every detection (no exclusions): they are applied to the trace returned
+    trace = annotate(run(recording, detector, model, selection=selection.replace(exclude=()), progress=progress,
+                         batch=batch, prefetch=prefetch))
+    if cache is not None:
+        cache.save(trace, recording, info)
+    if exclude is not None:
+        trace = trace.reselect(exclude=exclude)
+    return trace
 
 
 def build_pipeline(options: PipelineOptions | None = None, **kwargs) -> Pipeline:

@@ -936,7 +936,7 @@ def test_enough_cases():
 def test_partial_video_is_reported_and_allowed_on_request(base, tmp_path):
     """A video cut in half (index at the front): an error naming both counts by default; with --allow-partial the
     decoded frames are processed and the counts are on stderr and among the trace's events (Rerun's /log)."""
-    from massviz.core.pipeline import process
+    from massviz.app import process
     from massviz.detect.replay import ReplayDetector
     from massviz.io.checkpoint import load_checkpoint
     from massviz.io.recording import open_recording

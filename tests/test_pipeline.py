@@ -10,7 +10,8 @@ import pytest
 from massviz.io.cache import TraceCache
 from massviz.errors import MassvizError
 from massviz.io.checkpoint import load_checkpoint
-from massviz.core.pipeline import process, run
+from massviz.app import process
+from massviz.core.pipeline import run
 from massviz.io.recording import open_recording
 from massviz.core.trace import Trace
 from massviz.io.trace_file import load_trace, save_trace

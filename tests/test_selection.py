@@ -91,10 +91,11 @@ def test_compute_features_fills_every_detection():
     depth[100:110, 100:120] = 0
     dets = Detections(frame=[0, 0], xyxy=[[10, 20, 50, 80], [100, 100, 120, 110]], score=[0.9, 0.8],
                       class_id=[47, 47], masks=[np.ones((60, 40), bool), np.ones((10, 20), bool)])
-    compute_features(dets, depth)
-    assert dets.d[0] == 800.0 and np.isnan(dets.d[1])
-    np.testing.assert_array_equal(dets.a, [0.12, 0.06])  # 40/320, 20/320 = 0.0625
-    np.testing.assert_array_equal(dets.b, [0.25, 0.04])  # 60/240, 10/240 = 0.041666..
+    out = compute_features(dets, depth)
+    assert out.d[0] == 800.0 and np.isnan(out.d[1])
+    np.testing.assert_array_equal(out.a, [0.12, 0.06])  # 40/320, 20/320 = 0.0625
+    np.testing.assert_array_equal(out.b, [0.25, 0.04])  # 60/240, 10/240 = 0.041666..
+    assert np.isnan(dets.d).all() and np.isnan(dets.a).all()  # a new Detections: the detector's output is unchanged
 
 
 # --------------------------------------------------------------------------------------------------------- selection

@@ -142,7 +142,7 @@ def run_session(args, pipeline, stream, name: str) -> int:
         if args.rrd or args.spawn or connect:
             from massviz.views.rerun_live import LiveLogger
 
-            logger = LiveLogger(name=name, k=pipeline.options.k, threshold=pipeline.options.threshold,
+            logger = LiveLogger(name=name, k=fp.selection.k, threshold=fp.selection.threshold,
                                 intrinsics=info.intrinsics, rrd=args.rrd, spawn=args.spawn, connect=connect)
     except BaseException:
         stream.stop()

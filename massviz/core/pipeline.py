@@ -7,13 +7,17 @@ the object tracks of the earlier frames (``massviz.core.tracks.Tracker``; ``dete
 the selection's **flags** are analysed (``massviz.core.flags``: chosen patches that are probably not the container).
 ``FramePipeline`` holds that running state:
 
-    fp = FramePipeline(detector, model, k=5)
+    fp = FramePipeline(detector, model, selection=Selection(k=5, threshold=0.4))
     for frame in recording.frames():
         result = fp.step(frame)          # this frame's detections, the K nearest so far, the running estimate
     trace = fp.finish()                  # the whole recording's Trace
 
 Every runner calls the same step: ``run`` (a loop over a recording, below), the dataset runners, the live camera,
 batched detection (``step(frame, detections=...)`` when a batched detector already ran on the frame).
+
+The selection's settings travel as one explicit ``massviz.core.selection.Selection`` (K, threshold, stride,
+exclusions) into ``FramePipeline`` and the ``Trace``; the detector keeps only its own score cut (``detect_threshold``
+in the trace). ``step`` never changes the detector's ``Detections``: features, tracks and predictions are new arrays.
 
 Predicting every detection (not only the K chosen) costs little next to detection and makes re-selection for any
 K, threshold or exclusion instant (notebook sliders, sweeps). Frames are streamed; only the ``keep_patches`` nearest
@@ -33,11 +37,12 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from massviz.core.patches import crop
-from massviz.core.selection import compute_features, estimate_mass, select_k_nearest
+from massviz.core.detector import Detector
+from massviz.core.prefetch import Prefetcher
+from massviz.core.selection import Selection, compute_features, estimate_mass, select_k_nearest
 from massviz.core.trace import Event, Trace, describe_detection, describe_selection
 from massviz.core.tracks import Tracker
 from massviz.core.types import Detections, Frame, RecordingInfo
-from massviz.detect.base import Detector
 
 #: how many of the nearest detections keep their RGB patch in the trace (>= any K you will reselect with).
 KEEP_PATCHES = 32
@@ -91,20 +96,43 @@ class FrameResult:
     events: list = field(default_factory=list)
 
 
-class FramePipeline:
-    """The per-frame step of the pipeline, holding the running nearest-K state of one recording."""
+def resolve_selection(selection: Selection | None, k: int | None, stride: int | None) -> Selection:
+    """``selection``, or one made of the shorthand ``k``/``stride`` (not both)."""
+    if selection is None:
+        return Selection(k=5 if k is None else k, stride=1 if stride is None else stride)
+    if k is not None or stride is not None:
+        raise ValueError("pass either selection= or k=/stride=, not both")
+    return selection
 
-    def __init__(self, detector: Detector, model, *, k: int = 5, stride: int = 1, recording: RecordingInfo | None = None,
+
+class FramePipeline:
+    """The per-frame step of the pipeline, holding the running nearest-K state of one recording.
+
+    ``selection``: the K, threshold, stride and exclusions to select with (``Selection``; ``k=``/``stride=`` are a
+    shorthand for ``Selection(k, stride=stride)``). A selection without a threshold selects at the detector's own
+    score cut; one below it is refused (those detections were never kept).
+    """
+
+    def __init__(self, detector: Detector, model, *, selection: Selection | None = None, k: int | None = None,
+                 stride: int | None = None, recording: RecordingInfo | None = None,
                  keep_patches: int = KEEP_PATCHES):
-        if k < 1:
-            raise ValueError("k must be >= 1")
-        self.detector, self.model, self.k, self.stride = detector, model, int(k), int(stride)
+        selection = resolve_selection(selection, k, stride)
+        self.detect_threshold = float(detector.threshold)  # the detector's own cut, recorded in the trace
+        if selection.threshold is None:
+            selection = selection.replace(threshold=self.detect_threshold)
+        elif selection.threshold < self.detect_threshold - 1e-9:
+            raise ValueError(f"selection threshold {selection.threshold} is below the detector's score cut "
+                             f"{self.detect_threshold} (lower-scored detections are never kept)")
+        self.selection = selection
+        self.detector, self.model = detector, model
+        self.k, self.stride = selection.k, selection.stride
+        self._exclude = np.asarray(selection.exclude, dtype=np.int64)
         self.recording = recording
         self.timings: dict[str, float] = defaultdict(float)
         self.events: list[Event] = []
         self._parts: list[Detections] = []
         self._frames: list[int] = []
-        self._nearest = _NearestPatches(max(keep_patches, k))
+        self._nearest = _NearestPatches(max(keep_patches, self.k))
         self._offset = 0
         self._frame_timings: dict[str, list[float]] = defaultdict(list)
         # the running selection: the K nearest so far (global indices, their d and predictions). The K nearest of
@@ -125,11 +153,11 @@ class FramePipeline:
         """Run detect (unless ``detections`` are given: then ``detect_seconds`` is this frame's share of the time
         they took), features, predict and the running selection on one frame."""
         t1 = time.perf_counter()
-        dets = self.detector.detect(frame) if detections is None else detections
+        raw = self.detector.detect(frame) if detections is None else detections
         t2 = time.perf_counter()
         if detections is not None:
             t1 = t2 - detect_seconds
-        compute_features(dets, frame.depth)
+        dets = compute_features(raw, frame.depth)  # new arrays: the detector's output stays as it made it
         dets.track = self._tracker.update(frame.index, dets)
         t3 = time.perf_counter()
         dets.pred, patches = predict_detections(self.model, frame.rgb, dets)
@@ -157,7 +185,8 @@ class FramePipeline:
                            running_estimate=running, timings=timings, events=events)
 
     def _update_selection(self, dets: Detections, offset: int) -> tuple[np.ndarray, float]:
-        new = select_k_nearest(dets.d, dets.score, self.k, self.detector.threshold)
+        local = self._exclude[(self._exclude >= offset) & (self._exclude < offset + len(dets))] - offset
+        new = select_k_nearest(dets.d, dets.score, self.k, self.selection.threshold, local)
         idx = np.concatenate([self._sel, offset + new])
         d = np.concatenate([self._sel_d, dets.d[new]])
         pred = np.concatenate([self._sel_pred, dets.pred[new].astype(np.float64)])
@@ -171,7 +200,8 @@ class FramePipeline:
         for i, patch in self._nearest.patches.items():
             detections.patches[i] = patch
         t5 = time.perf_counter()
-        selection = select_k_nearest(detections.d, detections.score, self.k, self.detector.threshold)
+        excluded = self._exclude[self._exclude < len(detections)]
+        selection = select_k_nearest(detections.d, detections.score, self.k, self.selection.threshold, excluded)
         estimate = estimate_mass(detections.pred, selection)
         timings = dict(self.timings)
         timings["select"] = time.perf_counter() - t5
@@ -179,9 +209,9 @@ class FramePipeline:
         events = [*self.events, *describe_selection(detections, selection, estimate, self.k)]
         info = self.recording if self.recording is not None else RecordingInfo(id="live")
         return Trace(recording=info, detector={"name": self.detector.name, **self.detector.settings()},
-                     detect_threshold=float(self.detector.threshold), threshold=float(self.detector.threshold),
+                     detect_threshold=self.detect_threshold, threshold=self.selection.threshold,
                      k=self.k, stride=self.stride, frames=np.asarray(self._frames, dtype=np.int32),
-                     detections=detections, selection=selection, estimate=estimate,
+                     detections=detections, selection=selection, estimate=estimate, excluded=excluded,
                      weights_id=getattr(self.model, "weights_id", ""), timings=timings, events=events,
                      frame_timings={n: np.asarray(v) for n, v in self._frame_timings.items()})
 
@@ -219,17 +249,19 @@ def detect_in_batches(frames, detector: Detector, batch: int = 1):
             yield frame, d, r, share
 
 
-def run(recording, detector: Detector, model, *, k: int = 5, stride: int = 1, keep_patches: int = KEEP_PATCHES,
-        progress: bool = False, batch: int = 1, prefetch: int = 2) -> Trace:
-    """Run the pipeline over ``recording`` (a loop over ``FramePipeline.step``) and select the ``k`` nearest.
+def run(recording, detector: Detector, model, *, selection: Selection | None = None, k: int | None = None,
+        stride: int | None = None, keep_patches: int = KEEP_PATCHES, progress: bool = False, batch: int = 1,
+        prefetch: int = 2) -> Trace:
+    """Run the pipeline over ``recording`` (a loop over ``FramePipeline.step``) and select as ``selection`` says
+    (``k=``/``stride=``: shorthand, see ``FramePipeline``).
 
     ``batch``: frames per detector call (``detect_in_batches``); ``prefetch``: frames read ahead in a background
     thread (``massviz.core.prefetch.Prefetcher``, at least ``batch``; 0 reads in this thread). Neither changes the
     result; the ``read`` timing is then the time spent waiting for frames.
     """
-    from massviz.core.prefetch import Prefetcher
-
-    fp = FramePipeline(detector, model, k=k, stride=stride, recording=recording.info(), keep_patches=keep_patches)
+    fp = FramePipeline(detector, model, selection=resolve_selection(selection, k, stride), recording=recording.info(),
+                       keep_patches=keep_patches)
+    stride = fp.stride
     total = math.ceil(recording.num_frames / stride)
     bar = tqdm(total=total, desc=f"{recording.id}", unit="frame", file=sys.stderr, disable=not progress,
                leave=False)
@@ -265,39 +297,5 @@ def repredict(trace: Trace, recording, model, progress: bool = False) -> Trace:
     return out.reselect()
 
 
-def process(recording, detector: Detector, model, *, k: int = 5, stride: int = 1, cache=None,
-            progress: bool = False, exclude=None, batch: int = 1, prefetch: int = 2, annotate=None) -> Trace:
-    """``run`` with the trace cache: reuse cached detections when the recording, detector settings and stride match
-    and the cached threshold is <= this one; re-predict only when the model differs. ``cache`` is a
-    ``massviz.io.cache.TraceCache`` or None (no caching). ``batch``/``prefetch``: see ``run``. ``annotate``: a
-    function trace -> trace applied to every trace this returns, before a new one is cached (``massviz.app`` passes
-    ``massviz.io.ground_truth.with_ground_truth``); None: none."""
-    annotate = annotate or (lambda t: t)
-    info = {"name": detector.name, **detector.settings()}
-    trace = cache.load(recording, info, stride, detector.threshold) if cache is not None else None
-    if trace is not None:
-        t0 = time.perf_counter()
-        note = (f"reused cached detections (made at threshold {trace.detect_threshold}); the detector did not run")
-        if trace.weights_id != getattr(model, "weights_id", ""):
-            trace = repredict(trace, recording, model, progress=progress)
-            cache.save(trace, recording, info)
-            note += "; predictions recomputed for this model"
-        trace = trace.reselect(k=k, threshold=detector.threshold, exclude=exclude)
-        events = [e for e in trace.events if not e.is_selection]
-        events.append(Event(-1, note, "cache", "debug"))
-        events.extend(e for e in trace.events if e.is_selection)
-        timings = {"cache": time.perf_counter() - t0}
-        # the key is the frames' content: the recording's path, meta and intrinsics are today's, not the cached run's
-        return annotate(dataclasses.replace(trace, recording=recording.info(), events=events,
-                                            timings={**trace.timings, **timings}))
-    trace = annotate(run(recording, detector, model, k=k, stride=stride, progress=progress, batch=batch,
-                         prefetch=prefetch))
-    if cache is not None:
-        cache.save(trace, recording, info)
-    if exclude is not None:
-        trace = trace.reselect(exclude=exclude)
-    return trace
-
-
 __all__ = ["FramePipeline", "FrameResult", "KEEP_PATCHES", "predict_detections", "detect_in_batches", "run",
-           "repredict", "process"]
+           "repredict", "resolve_selection"]

@@ -17,9 +17,45 @@ Deliberate differences from the original code (CORSMAL/Visual, demo/generate_vid
 """
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import dataclass
+
 import numpy as np
 
 from massviz.core.types import Detections
+
+
+@dataclass(frozen=True)
+class Selection:
+    """What the selection stage is asked for, one value from the CLI or a notebook to ``FramePipeline`` and the
+    ``Trace``: the ``k`` nearest detections with score > ``threshold`` among every ``stride``-th frame, never the
+    detections ``exclude`` (indices into the recording's detections).
+
+    ``threshold`` None: the detector's own score cut (what ``FramePipeline`` resolves it to when the caller names
+    none; the CLI and ``massviz.app`` always name it).
+    """
+
+    k: int = 5
+    threshold: float | None = None
+    stride: int = 1
+    exclude: tuple = ()
+
+    def __post_init__(self) -> None:
+        if isinstance(self.k, bool) or int(self.k) != self.k or self.k < 1:
+            raise ValueError(f"k must be an integer >= 1, got {self.k!r}")
+        if isinstance(self.stride, bool) or int(self.stride) != self.stride or self.stride < 1:
+            raise ValueError(f"stride must be an integer >= 1, got {self.stride!r}")
+        if self.threshold is not None and not 0.0 <= float(self.threshold) < 1.0:
+            raise ValueError(f"threshold must be in [0, 1), got {self.threshold!r}")
+        ex = np.asarray(self.exclude if self.exclude is not None else ())
+        ex = np.flatnonzero(ex) if ex.dtype == bool else ex.astype(np.int64).reshape(-1)
+        object.__setattr__(self, "k", int(self.k))
+        object.__setattr__(self, "stride", int(self.stride))
+        object.__setattr__(self, "threshold", None if self.threshold is None else float(self.threshold))
+        object.__setattr__(self, "exclude", tuple(int(i) for i in ex))
+
+    def replace(self, **changes) -> "Selection":
+        return dataclasses.replace(self, **changes)
 
 
 def box_ratios(xyxy: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
@@ -44,11 +80,12 @@ def mask_distance(depth: np.ndarray, xyxy, mask: np.ndarray) -> float:
 
 
 def compute_features(dets: Detections, depth: np.ndarray) -> Detections:
-    """Fill ``d``, ``a`` and ``b`` of detections made on one frame (in place; also returned)."""
+    """The detections made on one frame with their ``d``, ``a`` and ``b``: a new ``Detections`` (``dets`` is left as
+    it was)."""
     height, width = depth.shape[:2]
-    dets.a, dets.b = box_ratios(dets.xyxy, width, height)
-    dets.d = np.array([mask_distance(depth, dets.xyxy[i], dets.mask(i)) for i in range(len(dets))], np.float64)
-    return dets
+    a, b = box_ratios(dets.xyxy, width, height)
+    d = np.array([mask_distance(depth, dets.xyxy[i], dets.mask(i)) for i in range(len(dets))], np.float64)
+    return dataclasses.replace(dets, d=d, a=a, b=b, masks=list(dets.masks), patches=list(dets.patches))
 
 
 class NearestOrder:

@@ -16,62 +16,20 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from massviz.errors import MassvizError
+from massviz.runners.worker import FAULT_ENV, Outcome, RecordingWorker, Task, worker_name  # noqa: F401
 
 ENGINES = ("local", "ray")
 ON_ERROR = ("stop", "skip")
 REPORT_FORMAT = "massviz.run-report/1"
 #: exit status of a dataset run that finished but in which some recordings failed (their rows: "not estimated").
 EXIT_SOME_FAILED = 3
-#: test-only fault injection (Ray engine): the worker process that gets the recording with this id dies once,
-#: after reading its first frame (``os._exit``, as a crash); Ray restarts it and retries the recording.
-FAULT_ENV = "MASSVIZ_TEST_KILL_WORKER"
 STATUSES = ("done", "cached", "failed")
-
-
-@dataclass(frozen=True)
-class Task:
-    """One recording to process: its position in the input, its path (absolute: workers open it themselves), its
-    id and a small picklable ``extra`` handed to ``collect`` (e.g. the recording's label for ``extract``)."""
-
-    index: int
-    path: str
-    id: str
-    extra: Any = None
-
-
-@dataclass
-class Outcome:
-    """What came back for one task. ``status``: "done" (computed), "cached" (trace reused from the cache) or
-    "failed" (``error``: the one-line reason); ``value``: what ``collect`` returned (None when failed); ``frames``:
-    frames run through the detector (0 when cached); ``worker``: "host:pid" of the process that made it."""
-
-    index: int
-    id: str
-    path: str
-    status: str
-    error: str | None = None
-    seconds: float = 0.0
-    worker: str = ""
-    frames: int = 0
-    value: Any = None
-    internal: bool = False
-
-    @property
-    def ok(self) -> bool:
-        return self.status != "failed"
-
-    def report_entry(self) -> dict:
-        return {"index": self.index, "id": self.id, "path": self.path, "status": self.status, "error": self.error,
-                "seconds": round(self.seconds, 3), "worker": self.worker, "frames": self.frames}
 
 
 class RunStopped(MassvizError):
@@ -80,10 +38,6 @@ class RunStopped(MassvizError):
     def __init__(self, outcome: Outcome, outcomes: list[Outcome]):
         super().__init__(outcome.error or f"{outcome.path}: failed")
         self.outcome, self.outcomes = outcome, outcomes
-
-
-def worker_name() -> str:
-    return f"{socket.gethostname()}:{os.getpid()}"
 
 
 def portable_options(pipeline):
@@ -101,54 +55,6 @@ def portable_options(pipeline):
                      detector_weights=absolute(o.detector_weights), replay=absolute(o.replay),
                      cache=None if pipeline.cache is None else absolute(pipeline.cache.root),
                      no_cache=pipeline.cache is None, quiet=True)
-
-
-class RecordingWorker:
-    """Builds the pipeline once from ``options`` (or takes a built ``pipeline``) and processes tasks: what every
-    engine's worker runs.
-
-    ``collect(trace, recording, extra)`` runs where the trace was made and returns what the driver needs (keep it
-    small: it travels back). ``threads``: torch intra-op threads in this worker (None: leave torch's setting)."""
-
-    def __init__(self, options, collect: Callable | None = None, threads: int | None = None, pipeline=None):
-        from massviz.app import build_pipeline
-
-        if threads:
-            import torch
-
-            torch.set_num_threads(int(threads))
-        self.pipeline = pipeline if pipeline is not None else build_pipeline(options)
-        self.collect = collect
-        self.name = worker_name()
-
-    def ready(self) -> str:
-        return self.name
-
-    def run(self, task: Task, *, collect: Callable | None = None, fault: Callable | None = None,
-            debug: bool = False, progress: bool = False) -> Outcome:
-        """Process one task (``collect``: instead of the worker's own); errors become a failed ``Outcome``."""
-        from massviz.io.recording import open_recording
-
-        collect = collect if collect is not None else self.collect
-
-        t0 = time.perf_counter()
-        out = Outcome(task.index, task.id, task.path, "failed", worker=self.name)
-        try:
-            rec = open_recording(task.path, allow_partial=self.pipeline.options.allow_partial)
-            if fault is not None:
-                fault(rec)
-            trace = self.pipeline.process(rec, progress=progress)
-            out.value = collect(trace, rec, task.extra) if collect is not None else None
-            out.status = "cached" if "cache" in trace.timings else "done"
-            out.frames = 0 if out.status == "cached" else len(trace.frames)
-        except MassvizError as err:
-            out.error = str(err)
-        except Exception as err:  # noqa: BLE001 - a bug or an unexpected library error: one line in the report
-            if debug:
-                raise
-            out.error, out.internal = f"{task.path}: internal error: {type(err).__name__}: {err}", True
-        out.seconds = time.perf_counter() - t0
-        return out
 
 
 class Progress:

@@ -21,7 +21,7 @@ import time
 from collections import deque
 
 from massviz.errors import MassvizError
-from massviz.runners.dataset import FAULT_ENV, Outcome, RecordingWorker
+from massviz.runners.worker import FAULT_ENV, Outcome, RecordingWorker
 
 #: restarts of a dead actor process, and retries of each call it was running, that Ray makes.
 MAX_RETRIES = 3
