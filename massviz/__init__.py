@@ -7,8 +7,9 @@
     trace = mv.process(rec, mv.make_detector("depth"), mv.load_checkpoint(weights))
     mv.log_trace(trace, rec, rrd="cup.rrd")
 
-The packages: ``massviz.core`` (types, trace, selection, model, the per-frame step, the builder), ``massviz.detect``,
-``massviz.io`` (recordings, cache, weights, CSV), ``massviz.views`` (Rerun, Open3D, figures, widgets),
+The packages: ``massviz.core`` (types, trace, selection, model, the per-frame step; no file I/O), ``massviz.app``
+(the builder and ``process``), ``massviz.detect``, ``massviz.io`` (recordings, trace files, cache, checkpoints,
+weights, CSV), ``massviz.views`` (Rerun, Open3D, figures, widgets),
 ``massviz.evaluation``, ``massviz.training``, ``massviz.samples``, ``massviz.runners``, ``massviz.commands``.
 """
 from __future__ import annotations
@@ -33,6 +34,7 @@ _API = {
     "PipelineOptions": "massviz.app",
     "build_pipeline": "massviz.app",
     "process_recordings": "massviz.app",
+    "Selection": "massviz.core.selection",
     "Trace": "massviz.core.trace",
     "Event": "massviz.core.trace",
     "Detections": "massviz.core.types",

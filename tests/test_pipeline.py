@@ -11,7 +11,9 @@ from massviz.io.cache import TraceCache
 from massviz.errors import MassvizError
 from massviz.io.checkpoint import load_checkpoint
 from massviz.app import process
-from massviz.core.pipeline import run
+from massviz.app import PipelineOptions
+from massviz.core.pipeline import FramePipeline, run
+from massviz.core.selection import Selection
 from massviz.io.recording import open_recording
 from massviz.core.trace import Trace
 from massviz.io.trace_file import load_trace, save_trace
@@ -100,6 +102,35 @@ def test_run_builds_the_trace(rec, model):
     assert (trace.k, trace.threshold, trace.detect_threshold, trace.stride) == (3, 0.4, 0.4, 1)
     assert trace.weights_id == model.weights_id and trace.recording.id == "scene"
     assert {"read", "detect", "features", "predict", "select", "total"} <= set(trace.timings)
+
+
+def test_the_selection_travels_explicitly_and_step_changes_no_detector_output(rec, fast):
+    # one Selection value from the options to FramePipeline and the trace; the detector keeps only its score cut
+    assert PipelineOptions(threshold=0.5, k=3, stride=2).selection == Selection(k=3, threshold=0.5, stride=2)
+    det = ListDetector(DETECTIONS, threshold=0.4)
+    sel = Selection(k=2, threshold=0.6, exclude=[1])
+    trace = run(rec, det, fast, selection=sel)
+    assert (trace.k, trace.threshold, trace.detect_threshold, trace.excluded.tolist()) == (2, 0.6, 0.4, [1])
+    assert trace.selection_params == sel and det.threshold == 0.4
+    same = run(rec, ListDetector(DETECTIONS), fast, k=2).reselect(threshold=0.6, exclude=[1])
+    assert trace.selection.tolist() == same.selection.tolist() and len(trace.selection) == 2
+    assert 1 not in trace.selection.tolist() and trace.estimate == same.estimate
+    with pytest.raises(ValueError, match="below the detector's score cut"):
+        FramePipeline(det, fast, selection=Selection(threshold=0.3))
+    with pytest.raises(ValueError, match="not both"):
+        FramePipeline(det, fast, selection=sel, k=3)
+    # step returns new arrays: the detector's Detections stay as it made them; the running estimate skips exclusions
+    fp = FramePipeline(det, fast, selection=sel, recording=rec.info())
+    running = []
+    for frame in rec.frames():
+        raw = det.detect(frame)
+        out = fp.step(frame, detections=raw)
+        assert np.isnan(raw.d).all() and np.isnan(raw.pred).all() and (raw.track == 0).all()
+        assert len(out.detections) == len(raw) and np.isfinite(out.detections.d).all() and out.detections is not raw
+        running.append(out.running_estimate)
+    stepped = fp.finish()
+    assert stepped.selection.tolist() == trace.selection.tolist() and running[-1] == stepped.estimate
+    np.testing.assert_array_equal(running, stepped.running_estimate())
 
 
 def test_run_with_stride(rec, model):

@@ -25,7 +25,7 @@ import numpy as np
 
 from massviz.errors import MassvizError
 from massviz.core.flags import Flags, analyse
-from massviz.core.selection import NearestOrder, estimate_mass, select_k_nearest
+from massviz.core.selection import NearestOrder, Selection, estimate_mass, select_k_nearest
 from massviz.core.tracks import assign_tracks
 from massviz.core.types import Detections, GroundTruth, RecordingInfo, class_name
 
@@ -117,6 +117,11 @@ class Trace:
             self.flags = analyse(self)
 
     # -- views -----------------------------------------------------------------------------------------------------
+    @property
+    def selection_params(self) -> Selection:
+        """The ``Selection`` (K, threshold, stride, exclusions) this trace's ``selection`` and ``estimate`` use."""
+        return Selection(k=self.k, threshold=self.threshold, stride=self.stride, exclude=self.excluded)
+
     @property
     def selected(self) -> Detections:
         return self.detections[self.selection]
