@@ -208,7 +208,7 @@ def test_the_checks_catch_a_bad_arrow(tmp_path):
     # a view that imports the pipeline is found by the same reader
     bad = tmp_path / "massviz" / "views" / "bad.py"
     bad.parent.mkdir(parents=True)
-    bad.write_text("def f():\n    from massviz.core.pipeline import process\n")
+    bad.write_text("def f():\n    from massviz.core.pipeline import run\n")
     assert "massviz.core.pipeline" in imports_of(bad)
 
 

@@ -1,4 +1,4 @@
-"""Detectors behind one interface (``massviz.detect.base.Detector``) and the factory the CLI uses.
+"""Detectors behind one interface (``massviz.core.detector.Detector``) and the factory the CLI uses.
 
 * ``maskrcnn``: the paper's torchvision Mask R-CNN (COCO; cup, book, wine glass, bottle).
 * ``depth``: no weights; the nearest object(s) in the depth map (works offline).
