@@ -201,3 +201,4 @@ def test_score_on_a_subset_warns_and_only_predicted_scores_the_subset(tmp_path):
     assert "score 50.00 %" in run.stdout, run.stdout
     run = massviz("score", pred, "--annotations", ann, "--only-predicted")
     assert "warning" not in run.stderr and "score 100.00 % over 2 recordings" in run.stdout, run.stdout
+    assert "scored the 2 predicted of the 4 annotated recordings (--only-predicted)" in run.stderr

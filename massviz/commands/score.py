@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     class_of = parse_class_map(args.classes) if args.classes else default_class_of
     pairs = _pairs(args)
     annotations = {path: read_annotations(path) for path in dict.fromkeys(ann for _, _, ann in pairs)}
-    reports = []
+    reports, notes = [], []  # notes go to stderr at the end: an error before then stays the only line
     for label, pred_path, ann_path in pairs:
         pred, ann = read_predictions(pred_path), annotations[ann_path]
         covered = ann[ANN_ID].isin(pred[PRED_ID])
@@ -83,13 +83,13 @@ def run(args: argparse.Namespace) -> int:
                 if not covered.any():
                     raise MassvizError(f"--only-predicted: none of the recordings {pred_path} predicts is annotated "
                                        f"in {ann_path}")
-                print(f"massviz score: {label}: scoring the {int(covered.sum())} predicted of the {len(ann)} "
-                      f"annotated recordings (--only-predicted)", file=sys.stderr)
+                notes.append(f"massviz score: {label}: scored the {int(covered.sum())} predicted of the {len(ann)} "
+                             f"annotated recordings (--only-predicted)")
                 ann = ann[covered]
             else:
-                print(f"massviz score: warning: {label}: {pred_path} predicts {int(covered.sum())} of the {len(ann)} "
-                      f"recordings in {ann_path}; the {int((~covered).sum())} missing count 0 in the score (score "
-                      "the predicted ones only with --only-predicted)", file=sys.stderr)
+                notes.append(f"massviz score: warning: {label}: {pred_path} predicts {int(covered.sum())} of the "
+                             f"{len(ann)} recordings in {ann_path}; the {int((~covered).sum())} missing count 0 in "
+                             "the score (score the predicted ones only with --only-predicted)")
         reports.append(score(pred, ann, class_of))
 
     for (label, pred, ann), report in zip(pairs, reports):
@@ -109,4 +109,6 @@ def run(args: argparse.Namespace) -> int:
 
         save_figure(plot_score_analysis(reports, [label for label, _, _ in pairs]), args.plot)
         print(f"wrote {args.plot}")
+    for note in notes:
+        print(note, file=sys.stderr)
     return 0

@@ -24,7 +24,6 @@ view, 0 for other recordings), ``source``, ``frames`` (processed), ``detections`
 """
 from __future__ import annotations
 
-import math
 import re
 from pathlib import Path
 
@@ -37,21 +36,20 @@ import rerun.blueprint as rrb
 from massviz.core.patches import crop
 from massviz.core.trace import Trace
 from massviz.errors import MassvizError
+from massviz.evaluation.browser import INDEX_NAME, PATCH_COLUMNS as _PATCH_COLUMNS, PATCHES_NAME, best_frame, \
+    patch_rows, recording_properties, recordings_table
 from massviz.io.atomic import atomic_path
 from massviz.io.untrusted import safe_filename
 from massviz.views import rerun_log as rl
 
 PROPERTY = "massviz"
-INDEX_NAME = "index.csv"
-PATCHES_NAME = "patches.csv"
 PATCHES_DIR = "patches"
 #: width (px) of ``/thumbnail`` and of the patch thumbnails' longer side.
 THUMB_PX = 160
 #: the columns of the segment table the dataset's table blueprint shows first (in this order).
 TABLE_COLUMNS = ("id", "container_class", "rel_error", "score", "estimate_g", "gt_mass_g", "n_flagged", "cues",
                  "detector", "k", "threshold", "stride", "view", "weights_id", "source")
-PATCH_COLUMNS = ("recording", "rank", "detection", "frame", "track", "class", "score", "d_mm", "a", "b", "pred_g",
-                 "flagged", "severity", "cues", "x1", "y1", "x2", "y2", "thumb")
+PATCH_COLUMNS = (*_PATCH_COLUMNS, "thumb")
 
 
 def property_column(name: str) -> str:
@@ -71,40 +69,6 @@ def input_bytes(recording) -> int:
         return int(sum(Path(p).stat().st_size for p in recording.input_files()))
     except (AttributeError, OSError):
         return 0
-
-
-def best_frame(trace: Trace) -> int:
-    """The frame the recording is opened at: that of the nearest chosen patch, else the first processed frame."""
-    if len(trace.selection):
-        return int(trace.detections.frame[int(trace.selection[0])])
-    return int(trace.frames[0]) if len(trace.frames) else 0
-
-
-def recording_properties(trace: Trace, *, source: str = "", view: int = 0, n_input_bytes: int = 0,
-                         kind: str = "light") -> dict:
-    """The properties of one recording (module docstring); unknown values are left out."""
-    gt = trace.ground_truth
-    true = trace.ground_truth_mass
-    est = float(trace.estimate)
-    flagged = trace.flags.flagged
-    cues = sorted({k for p in flagged for k in p.cue_kinds} | ({"ground truth"} if any(p.by_ground_truth
-                                                                                        for p in flagged) else set()))
-    props = {"id": trace.recording.id, "container_class": (gt.cls if gt is not None else None) or "",
-             "n_flagged": len(flagged), "cues": cues, "flagged_ranks": [int(p.rank) for p in flagged],
-             "detector": trace.detector.get("name", "?") + (f" {trace.detector['precision']}"
-                                                            if "precision" in trace.detector else ""),
-             "k": int(trace.k), "threshold": float(trace.threshold), "stride": int(trace.stride),
-             "weights_id": trace.weights_id or "", "view": int(view), "source": source,
-             "frames": len(trace.frames), "detections": len(trace.detections), "best_frame": best_frame(trace),
-             "estimated": est >= 0, "input_bytes": int(n_input_bytes), "kind": kind}
-    if est >= 0:
-        props["estimate_g"] = est
-    if true is not None and true > 0:
-        props["gt_mass_g"] = float(true)
-        props["score"] = math.exp(-abs(est - true) / true) if est >= 0 else 0.0
-        if est >= 0:
-            props["rel_error"] = abs(est - true) / true
-    return props
 
 
 def send_properties(stream: rr.RecordingStream, props: dict) -> None:
@@ -207,27 +171,16 @@ def rrd_name(recording_id: str) -> str:
     return f"{safe_filename(recording_id)}.rrd"
 
 
-def patch_rows(trace: Trace, patches: dict, out_dir: Path | None) -> list[dict]:
-    """One row per chosen patch (``PATCH_COLUMNS``); with ``out_dir`` its thumbnail is written to
-    ``out_dir/patches/<id>_<rank>.jpg``."""
-    dets = trace.detections
-    names = dets.class_names()
+def patch_table_rows(trace: Trace, patches: dict, out_dir: Path | None) -> list[dict]:
+    """``massviz.evaluation.browser.patch_rows`` with a ``thumb`` column; with ``out_dir`` each thumbnail is
+    written to ``out_dir/patches/<id>_<rank>.jpg``."""
     rows = []
-    for rank, i in enumerate(int(i) for i in trace.selection):
-        flag = trace.flags.of(i)
-        thumb = f"{PATCHES_DIR}/{safe_filename(trace.recording.id)}_{rank}.jpg"
-        if out_dir is not None and i in patches:
-            with atomic_path(out_dir / thumb) as tmp:
-                tmp.write_bytes(_jpeg(thumbnail(patches[i], 96), 85))
-        x1, y1, x2, y2 = (int(v) for v in dets.xyxy[i])
-        rows.append({"recording": trace.recording.id, "rank": rank, "detection": i, "frame": int(dets.frame[i]),
-                     "track": int(dets.track[i]), "class": names[i], "score": float(dets.score[i]), "d_mm": float(dets.d[i]), "a": float(dets.a[i]),
-                     "b": float(dets.b[i]), "pred_g": float(dets.pred[i]),
-                     "flagged": bool(flag is not None and flag.flagged),
-                     "severity": "none" if flag is None else flag.severity,
-                     "cues": "" if flag is None or not flag.flagged else ",".join(
-                         list(flag.cue_kinds) + (["ground truth"] if flag.by_ground_truth else [])),
-                     "x1": x1, "y1": y1, "x2": x2, "y2": y2, "thumb": thumb})
+    for row in patch_rows(trace):
+        row["thumb"] = f"{PATCHES_DIR}/{safe_filename(trace.recording.id)}_{row['rank']}.jpg"
+        if out_dir is not None and row["detection"] in patches:
+            with atomic_path(out_dir / row["thumb"]) as tmp:
+                tmp.write_bytes(_jpeg(thumbnail(patches[row["detection"]], 96), 85))
+        rows.append(row)
     return rows
 
 
@@ -261,26 +214,29 @@ def write_recording(trace: Trace, recording, out_dir: str | Path, *, full: bool 
         finally:
             stream.disconnect()
     return {"properties": props, "rrd": name, "rrd_bytes": (out_dir / name).stat().st_size,
-            "patches": patch_rows(trace, patches, out_dir)}
+            "patches": patch_table_rows(trace, patches, out_dir)}
 
 
 def write_index(out_dir: str | Path, results: list[dict]) -> tuple[pd.DataFrame, pd.DataFrame]:
     """``index.csv`` (one row per recording: its properties, ``rrd``, ``rrd_bytes``) and ``patches.csv`` (one row
     per chosen patch), atomically. Returns both tables."""
     out_dir = Path(out_dir)
-    rows = []
-    for r in results:
-        p = dict(r["properties"])
-        p["cues"] = ",".join(p.get("cues", []))
-        p["flagged_ranks"] = ",".join(str(v) for v in p.get("flagged_ranks", []))
-        rows.append({**p, "rrd": r["rrd"], "rrd_bytes": r["rrd_bytes"]})
-    index = pd.DataFrame(rows)
+    index = recordings_table([{**r["properties"], "rrd": r["rrd"], "rrd_bytes": r["rrd_bytes"]} for r in results]) \
+        if results else pd.DataFrame(columns=["id", "rrd", "rrd_bytes", "input_bytes"])
     patches = pd.DataFrame([row for r in results for row in r["patches"]], columns=list(PATCH_COLUMNS))
     with atomic_path(out_dir / INDEX_NAME) as tmp:
         index.to_csv(tmp, index=False)
     with atomic_path(out_dir / PATCHES_NAME) as tmp:
         patches.to_csv(tmp, index=False)
     return index, patches
+
+
+def write_dataset(traces, recordings, out_dir: str | Path, *, full: bool = False) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """A dataset folder from traces made in this process (notebooks; ``massviz log --rrd-dir`` runs
+    ``write_recording`` on the dataset runner's workers instead): one .rrd per trace, then ``write_index``."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    return write_index(out_dir, [write_recording(t, r, out_dir, full=full) for t, r in zip(traces, recordings)])
 
 
 # ----------------------------------------------------------------------------------------------- catalog layout
@@ -313,5 +269,5 @@ def save_blueprints(folder: str | Path, k: int = 5) -> tuple[Path, Path]:
 
 
 __all__ = ["PROPERTY", "INDEX_NAME", "PATCHES_NAME", "TABLE_COLUMNS", "PATCH_COLUMNS", "property_column", "ccm_view",
-           "input_bytes", "best_frame", "recording_properties", "send_properties", "write_recording", "write_index",
+           "input_bytes", "best_frame", "recording_properties", "send_properties", "write_recording", "write_index", "write_dataset",
            "log_light", "light_blueprint", "dataset_blueprint", "table_blueprint", "save_blueprints", "rrd_name"]

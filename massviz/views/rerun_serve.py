@@ -1,8 +1,8 @@
 """Serve a folder of massviz .rrd recordings as a dataset of Rerun's catalog server (``rr.server.Server``), with
 massviz's layouts as the dataset's defaults and a Rerun web viewer, all bound to 127.0.0.1.
 
-``catalog(folder)`` is the in-process part (a context manager: the server, its dataset entry and a DataFusion-backed
-client; needs ``rerun-sdk[catalog]``), ``serve`` the blocking command (``massviz serve``). The web viewer is Rerun's
+``open_catalog(folder)`` / ``catalog(folder)`` (a context manager) is the in-process part (the server, its dataset
+entry and a DataFusion-backed client; needs ``rerun-sdk[catalog]``), ``serve`` the blocking command (``massviz serve``). The web viewer is Rerun's
 own binary (``rerun --web-viewer --bind 127.0.0.1 URL``) in a child process that dies with this one (Linux
 ``PR_SET_PDEATHSIG``) and is stopped and waited for when the server stops; nothing is left running.
 """
@@ -35,6 +35,16 @@ class Catalog:
     name: str
     dataset: object
     client: object
+    _tmp: object = None  # the folder of the registered .rbl files, removed by close()
+
+    def close(self) -> None:
+        """Stop the server (idempotent)."""
+        with contextlib.suppress(Exception):
+            if self.server.is_running():
+                self.server.shutdown()
+        if self._tmp is not None:
+            self._tmp.cleanup()
+            self._tmp = None
 
     @property
     def url(self) -> str:
@@ -70,11 +80,10 @@ def _require_datafusion() -> None:
                            "'massviz[catalog]')") from None
 
 
-@contextlib.contextmanager
-def catalog(folder: str | Path, *, name: str | None = None, port: int = 0, k: int = 5):
+def open_catalog(folder: str | Path, *, name: str | None = None, port: int = 0, k: int = 5) -> "Catalog":
     """Start the catalog server on 127.0.0.1 with ``folder``'s .rrd files as dataset ``name`` (default: the folder's
-    name) and massviz's recording and segment-table layouts registered as its defaults; yields a ``Catalog`` and
-    shuts the server down when the block ends."""
+    name) and massviz's recording and segment-table layouts registered as its defaults. Runs until
+    ``Catalog.close()`` (or the process ends); ``catalog`` is the same as a context manager."""
     import rerun as rr
 
     from massviz.views.rerun_dataset import save_blueprints
@@ -83,8 +92,9 @@ def catalog(folder: str | Path, *, name: str | None = None, port: int = 0, k: in
     _rrd_files(folder)
     _require_datafusion()
     name = name or re.sub(r"[^A-Za-z0-9_.-]", "_", folder.name) or "massviz"
-    with tempfile.TemporaryDirectory(prefix="massviz-serve-") as tmp:
-        rec_bp, table_bp = save_blueprints(tmp, k)
+    tmp = tempfile.TemporaryDirectory(prefix="massviz-serve-")
+    try:
+        rec_bp, table_bp = save_blueprints(tmp.name, k)
         try:
             server = rr.server.Server(host=HOST, port=port or None, datasets={name: str(folder)})
         except Exception as err:  # noqa: BLE001 - a busy port, an unreadable file: one line
@@ -94,10 +104,24 @@ def catalog(folder: str | Path, *, name: str | None = None, port: int = 0, k: in
             dataset = client.get_dataset(name)
             dataset.register_blueprint(rec_bp.as_uri())
             dataset.register_blueprint(table_bp.as_uri(), segment_table=True)
-            yield Catalog(server, name, dataset, client)
-        finally:
+        except BaseException:
             with contextlib.suppress(Exception):
                 server.shutdown()
+            raise
+    except BaseException:
+        tmp.cleanup()
+        raise
+    return Catalog(server, name, dataset, client, tmp)
+
+
+@contextlib.contextmanager
+def catalog(folder: str | Path, *, name: str | None = None, port: int = 0, k: int = 5):
+    """``open_catalog`` as a context manager: yields the ``Catalog``, shuts the server down when the block ends."""
+    cat = open_catalog(folder, name=name, port=port, k=k)
+    try:
+        yield cat
+    finally:
+        cat.close()
 
 
 def _viewer_binary() -> Path:
@@ -197,4 +221,4 @@ def serve(folder: str | Path, *, name: str | None = None, port: int = 0, web_por
         signal.signal(signal.SIGTERM, previous)
 
 
-__all__ = ["Catalog", "catalog", "WebViewer", "serve", "HOST"]
+__all__ = ["Catalog", "open_catalog", "catalog", "WebViewer", "serve", "HOST"]
