@@ -154,7 +154,9 @@ class FailureBrowser:
         border = f"3px solid {FLAGGED_HEX}" if row.flagged else f"2px solid {CHOSEN_HEX}"
         box = W.VBox([image, W.HTML(tile_caption(row, self.state.recordings)), W.HBox([open_button, exclude]), tag],
                      layout=W.Layout(border=border, padding="2px"))
-        box.add_class("massviz-tile" + (" massviz-flagged" if row.flagged else ""))
+        box.add_class("massviz-tile")
+        if row.flagged:
+            box.add_class("massviz-flagged")
         return box
 
     def refresh(self) -> None:

@@ -246,14 +246,12 @@ def dataset_blueprint(k: int = 5) -> rrb.Blueprint:
 
 
 def table_blueprint():
-    """The segment table's layout: massviz's columns first (``TABLE_COLUMNS``), the worst relative error first, a
-    preview of each recording's ``/thumbnail``."""
+    """The segment table's layout: massviz's columns first (``TABLE_COLUMNS``), the worst relative error first.
+    (A ``PreviewCell`` of ``/thumbnail`` needs a column of recording URLs, which the segment table has not.)"""
     from rerun.blueprint import table as rbt
     from rerun.blueprint.encodings import SortBy
 
     columns = [rbt.Column("rerun_segment_id", name="recording")]
-    columns.append(rbt.Column(property_column("id"), name="preview",
-                              column_type=rbt.PreviewCell(rrb.Spatial2DView(origin="/thumbnail", name="thumbnail"))))
     columns += [rbt.Column(property_column(c), name=c) for c in TABLE_COLUMNS if c != "id"]
     return rbt.TableBlueprint(table_layout=rbt.TableLayout(columns=columns),
                               sort_by=SortBy(property_column("rel_error"), direction="descending"))

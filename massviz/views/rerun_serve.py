@@ -50,6 +50,11 @@ class Catalog:
     def url(self) -> str:
         return self.server.url()
 
+    @property
+    def dataset_url(self) -> str:
+        """The dataset's URL (``rerun+http://127.0.0.1:PORT/dataset/ID``): a viewer opens its segment table."""
+        return f"{self.url}/dataset/{self.dataset.id}"
+
     def segment_table(self):
         """The dataset's segment table as a pandas DataFrame (one row per recording, ``property:massviz:*``)."""
         return self.dataset.segment_table().to_pandas()
@@ -200,9 +205,9 @@ def serve(folder: str | Path, *, name: str | None = None, port: int = 0, web_por
             n = len(cat.dataset.segment_ids())
             lines = [f"massviz serve: dataset {cat.name!r}: {n} recording(s) from {Path(folder).resolve()}",
                      f"  catalog server: {cat.url}",
-                     f"  native viewer:  rerun {cat.url}"]
+                     f"  native viewer:  rerun {cat.dataset_url}"]
             if web_viewer:
-                viewer = WebViewer(cat.url, web_port)
+                viewer = WebViewer(cat.dataset_url, web_port)
                 lines.append(f"  web viewer:     {viewer.url}")
             lines.append("  Ctrl-C stops the server" + (" and the web viewer" if viewer else ""))
             print("\n".join(lines), file=out, flush=True)
