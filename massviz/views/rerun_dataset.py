@@ -150,8 +150,26 @@ def log_light(stream: rr.RecordingStream, trace: Trace, recording, patches: dict
 
 
 def light_blueprint(n_patches: int, flagged=()) -> rrb.Blueprint:
-    """The layout of a light recording: ``default_blueprint`` without the depth and 3D views (no depth logged)."""
-    return rl.default_blueprint(n_patches, has_3d=False, flagged=flagged)
+    """The layout of a light recording: the best frame with every frame's overlays, the chosen patches, the
+    predictions and the text (decisions, summary, the source frames, timings); no depth or 3D view (no depth is
+    logged). Tiles are named as in ``default_blueprint`` ("patch ★r ⚑ flagged")."""
+    flagged = {int(r) for r in flagged}
+    tiles = rrb.Grid(*[rrb.Spatial2DView(name=f"patch ★{r}" + (" ⚑ flagged" if r in flagged else ""),
+                                         origin=f"/patches/{r}") for r in range(n_patches)],
+                     name="Chosen patches (model input)") if n_patches else \
+        rrb.TextDocumentView(name="Summary", origin="/summary")
+    camera = rrb.Spatial2DView(name="best frame · detections of every frame", origin="/camera",
+                               contents=["/camera/rgb", "/camera/detections"])
+    text = rrb.Tabs(rrb.TextLogView(name="Decisions", origin="/log"),
+                    rrb.TextDocumentView(name="Summary", origin="/summary"),
+                    rrb.TextDocumentView(name="Source", origin="/source"),
+                    rrb.TextDocumentView(name="Timings", origin="/timings"))
+    return rrb.Blueprint(
+        rrb.Horizontal(rrb.Vertical(camera, text, row_shares=[3, 2]),
+                       rrb.Vertical(tiles, rrb.TimeSeriesView(name="Predictions (g)", origin="/predictions"),
+                                    row_shares=[1, 1]),
+                       column_shares=[3, 2]),
+        rrb.TimePanel(timeline="frame"), collapse_panels=False)
 
 
 def source_markdown(trace: Trace, recording) -> str:
