@@ -202,3 +202,38 @@ def test_score_on_a_subset_warns_and_only_predicted_scores_the_subset(tmp_path):
     run = massviz("score", pred, "--annotations", ann, "--only-predicted")
     assert "warning" not in run.stderr and "score 100.00 % over 2 recordings" in run.stdout, run.stdout
     assert "scored the 2 predicted of the 4 annotated recordings (--only-predicted)" in run.stderr
+
+
+def test_browser_tables_rank_and_filter_the_dataset(rrd_dir):
+    from massviz.evaluation import browser as B
+
+    out, _ = rrd_dir
+    recordings, patches = B.read_dataset(out)
+    ranked = B.ranked(recordings)
+    cups = ranked[ranked["container_class"] == "cup"]
+    assert list(cups["id"]) == ["cup_handover", "618"] and list(cups["rank"]) == [1, 2]  # 5.38 > 1.07
+    assert len(B.filter_patches(patches, recordings, flagged=True)) == int(recordings["n_flagged"].sum())
+    worst = B.filter_patches(patches, recordings, min_error=2.0)
+    assert set(worst["recording"]) == {"cup_handover"} and len(worst) == 5
+    sized = B.filter_patches(patches, recordings, cue="size", cls="cup")
+    assert len(sized) and sized["flagged"].all() and sized["cues"].str.contains("size").all()
+    track = int(patches.loc[patches["recording"] == "cup_handover", "track"].iloc[0])
+    on_track = B.filter_patches(patches, recordings, track=track)
+    assert (on_track["track"] == track).all()
+    ex = B.patch_exclusions(worst[worst["flagged"]], {("cup_handover", 0): "pitcher"})
+    assert [e.note for e in ex][:1] == ["pitcher"] and {e.recording for e in ex} == {"cup_handover"}
+
+
+def test_log_rrd_dir_full_logs_every_frame(samples_dir, cache, env, tmp_path):
+    out = tmp_path / "full"
+    run = massviz("log", samples_dir / "cup_handover", "--detector", "depth", "--rrd-dir", out, "--full",
+                  "--cache", cache, "--quiet", env=env)
+    assert "wrote 1 full recording(s)" in run.stderr
+    from massviz.views.rerun_log import rrd_contents
+
+    contents = rrd_contents(out / "cup_handover.rrd")
+    assert {"/camera/depth", "/camera/masks", "/camera/rgb", "/thumbnail"} <= set(contents)
+    assert rrd_properties(out / "cup_handover.rrd")["kind"] == "full"
+    again = massviz("log", samples_dir / "cup_handover", "--detector", "depth", "--rrd-dir", out, "--cache", cache,
+                    "--quiet", env=env, check=False)
+    assert again.returncode == 2 and "already holds a dataset" in again.stderr
