@@ -237,3 +237,26 @@ def test_log_rrd_dir_full_logs_every_frame(samples_dir, cache, env, tmp_path):
     again = massviz("log", samples_dir / "cup_handover", "--detector", "depth", "--rrd-dir", out, "--cache", cache,
                     "--quiet", env=env, check=False)
     assert again.returncode == 2 and "already holds a dataset" in again.stderr
+
+
+@pytest.mark.parametrize("column, value, expected", [
+    ("thumb", "../../etc/passwd", "leads outside"), ("thumb", "/etc/passwd", "is an absolute path"),
+    ("recording", "a\x1b[2Jb", "contains control characters"), ("flagged", "maybe", "is not True or False"),
+    ("frame", "1.5", "is not an integer")])
+def test_read_dataset_refuses_hostile_patch_rows(rrd_dir, tmp_path, column, value, expected):
+    import shutil
+
+    from massviz.errors import DataError
+    from massviz.evaluation.browser import read_dataset
+
+    out, _ = rrd_dir
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    for name in ("index.csv", "patches.csv"):
+        shutil.copy(out / name, bad / name)
+    patches = pd.read_csv(bad / "patches.csv", dtype=str)
+    patches.loc[0, column] = value
+    patches.to_csv(bad / "patches.csv", index=False)
+    with pytest.raises(DataError, match=re.escape(expected)) as err:
+        read_dataset(bad)
+    assert "patches.csv" in str(err.value) and "row 1" in str(err.value)

@@ -28,6 +28,7 @@ import pandas as pd
 from massviz.core.trace import Trace
 from massviz.errors import DataError
 from massviz.evaluation.failures import Exclusion
+from massviz.io.untrusted import confined, text_id
 
 INDEX_NAME = "index.csv"
 PATCHES_NAME = "patches.csv"
@@ -120,7 +121,8 @@ def tables_from_traces(traces: Sequence[Trace]) -> tuple[pd.DataFrame, pd.DataFr
 
 def read_dataset(folder: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]:
     """(recordings, patches) of a dataset folder written by ``massviz log DATASET --rrd-dir``; ``DataError`` naming
-    the file when one is missing or lacks a column."""
+    the file when one is missing or lacks a column, an id is not text, a thumbnail path leads out of the folder, a
+    flag is not True/False or a rank, frame or track is not an integer (the folder may come from someone else)."""
     folder = Path(folder)
     tables = []
     for name, key, required in ((INDEX_NAME, "id", ("id", "n_flagged", "rrd")),
@@ -136,9 +138,26 @@ def read_dataset(folder: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]:
             raise DataError(f"missing column(s) {', '.join(missing)}", path)
         table["cues"] = table["cues"].fillna("") if "cues" in table.columns else ""
         tables.append(table)
+    index_path, patches_path = folder / INDEX_NAME, folder / PATCHES_NAME
+    for i, rid in enumerate(tables[0]["id"]):  # ids are text from a data file
+        text_id(rid if isinstance(rid, str) else "", f"row {i + 1}, column 'id'", index_path)
+    for i, (rid, thumb) in enumerate(zip(tables[1]["recording"], tables[1]["thumb"])):
+        text_id(rid if isinstance(rid, str) else "", f"row {i + 1}, column 'recording'", patches_path)
+        confined(folder, thumb if isinstance(thumb, str) else None, patches_path, f"row {i + 1}, column 'thumb'")
     recordings = tables[0].set_index("id", drop=False).rename_axis(None)
     patches = tables[1]
-    patches["flagged"] = patches["flagged"].astype(bool)
+    flagged = patches["flagged"].map({True: True, False: False, "True": True, "False": False})
+    if flagged.isna().any():
+        i = int(np.flatnonzero(flagged.isna().to_numpy())[0])
+        raise DataError(f"row {i + 1}, column 'flagged': {patches['flagged'].iloc[i]!r} is not True or False",
+                        patches_path)
+    patches["flagged"] = flagged.astype(bool)
+    for col in ("rank", "frame", "track"):
+        values = pd.to_numeric(patches[col], errors="coerce")
+        if values.isna().any() or (values != values.round()).any():
+            i = int(np.flatnonzero((values.isna() | (values != values.round())).to_numpy())[0])
+            raise DataError(f"row {i + 1}, column '{col}': {patches[col].iloc[i]!r} is not an integer", patches_path)
+        patches[col] = values.astype(np.int64)
     return recordings, patches
 
 
