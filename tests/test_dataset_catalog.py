@@ -260,3 +260,26 @@ def test_read_dataset_refuses_hostile_patch_rows(rrd_dir, tmp_path, column, valu
     with pytest.raises(DataError, match=re.escape(expected)) as err:
         read_dataset(bad)
     assert "patches.csv" in str(err.value) and "row 1" in str(err.value)
+
+
+def test_serve_ends_on_ctrl_c_with_nothing_left_running(rrd_dir):
+    import psutil
+
+    out, _ = rrd_dir
+    proc = subprocess.Popen([sys.executable, "-m", "massviz", "serve", str(out)], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 120:
+            line = proc.stdout.readline()
+            assert line or proc.poll() is None, proc.stderr.read()
+            if "Ctrl-C" in line:
+                break
+        children = psutil.Process(proc.pid).children(recursive=True)
+        assert children
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(30)
+    assert proc.returncode == 0 and "massviz serve: stopped" in proc.stderr.read()
+    time.sleep(0.5)
+    assert not [c for c in children if c.is_running() and c.status() != psutil.STATUS_ZOMBIE]
