@@ -26,7 +26,7 @@ from test_browser import (ARTIFACTS, BENIGN, browser, cache, find, lab, offline_
                           shot)
 from test_dataset_catalog import dataset, env, massviz  # noqa: F401
 
-pytestmark = [pytest.mark.browser]
+pytestmark = [pytest.mark.browser, pytest.mark.slow]  # ~50 s: a dataset of 4 recordings, a server, JupyterLab
 
 ROOT = Path(__file__).resolve().parents[1]
 HEADER = Path(__file__).parent / "data" / "rerun041_rel_error_header.png"
