@@ -191,7 +191,7 @@ class RecordingViewer:
 
         self.folder, self.catalog = (None if folder is None else Path(folder)), catalog
         self.width, self.height = width, height
-        self.widget = W.Output()
+        self.widget = W.VBox()  # the viewer's own widgets go in here (not through an Output capture)
         self.current: tuple[str, int] | None = None
         self._viewer = None
 
@@ -201,21 +201,23 @@ class RecordingViewer:
         from massviz.views.rerun_dataset import rrd_name
         from massviz.views.rerun_log import APPLICATION_ID, use_local_notebook_assets
 
-        use_local_notebook_assets()
+        use_local_notebook_assets()  # before rerun_notebook is imported
+        from rerun.notebook import Viewer
+
         self.current = (recording, frame)
-        with self.widget:
-            self.widget.clear_output(wait=True)
-            if self.catalog is not None:
-                self._viewer = rr.notebook.Viewer(width=self.width, height=self.height)
-                self._viewer.display()
-                self._viewer.open_url(self.catalog.dataset.segment_url(recording, "frame", frame))
-            else:
-                stream = rr.RecordingStream(APPLICATION_ID, recording_id=f"browser-{recording}-{np.random.randint(1e9)}")
-                self._viewer = rr.notebook.Viewer(width=self.width, height=self.height, recording=stream)
-                self._viewer.display()
-                stream.log_file_from_path(self.folder / rrd_name(recording))
-                stream.flush()
-            self._viewer.set_time_ctrl(timeline="frame", sequence=int(frame))
+        if self.catalog is not None:
+            viewer = Viewer(width=self.width, height=self.height)
+            viewer.open_url(self.catalog.dataset.segment_url(recording, "frame", frame))
+        else:
+            stream = rr.RecordingStream(APPLICATION_ID, recording_id=f"browser-{recording}-{np.random.randint(1e9)}")
+            viewer = Viewer(width=self.width, height=self.height, recording=stream)
+            stream.log_file_from_path(self.folder / rrd_name(recording))
+            stream.flush()
+        viewer.set_time_ctrl(timeline="frame", sequence=int(frame))
+        # the viewer's widget (what rerun.notebook.Viewer.display() shows) in the browser's own box: it renders from
+        # a button's callback too, where a cell's display() would go nowhere
+        self.widget.children = [viewer._viewer]
+        self._viewer = viewer
 
 
 __all__ = ["BrowserState", "FailureBrowser", "RecordingViewer", "tile_caption"]
