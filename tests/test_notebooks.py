@@ -1,4 +1,4 @@
-"""The three notebooks: stored without outputs, and executed top to bottom (headless, offline) on the bundled samples.
+"""The notebooks: stored without outputs, and executed top to bottom (headless, offline) on the bundled samples.
 
 Execution uses the venv's ``python3`` kernel spec (ipykernel), cwd ``notebooks/``, the published weights by path
 (``MASSVIZ_WEIGHTS`` from the ``shared_dir`` fixture) and the session's trace cache of the samples
@@ -18,7 +18,8 @@ from sample_traces import WEIGHTS, sample_cache
 
 ROOT = Path(__file__).resolve().parents[1]
 NOTEBOOKS = ROOT / "notebooks"
-NAMES = ["01_inspect_recording.ipynb", "02_tune_threshold_and_k.ipynb", "03_failure_cases.ipynb"]
+NAMES = ["01_inspect_recording.ipynb", "02_tune_threshold_and_k.ipynb", "03_failure_cases.ipynb",
+         "04_failure_browser.ipynb"]
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -132,6 +133,15 @@ def test_notebook_03_flags_the_pitcher(executed):
     assert "after excluding the pitcher" in text
     assert "57.4 g -> 8.3 g" in text and "chosen frames [8, 9, 10] removed" in text  # one exclude-track
     assert "cues alone flag ['★0', '★1', '★2'] ; ground truth flags ['★0', '★1', '★2']" in text
+
+
+def test_notebook_04_browses_the_dataset(executed):
+    text = _outputs_text(executed["04_failure_browser.ipynb"])
+    assert "3 recordings, 15 chosen patches, 3 of them flagged" in text
+    assert "catalog and pandas agree: True (dataset folder), True (traces); flagged patches: pandas 3, catalog 3" in text
+    assert "flagged only: 3 patches in 1 recording(s)" in text and "all: 15 patches" in text
+    assert "cup_handover: 57.4 g -> 8.3 g without them (true 9.0 g); 0 unmatched" in text
+    assert "opened cup_handover at frame" in text
 
 
 def test_notebook_01_shows_the_flags(executed):

@@ -236,3 +236,21 @@ def test_set_moves_the_sliders_and_sliders_move_the_state(traces):
     assert captions[0].startswith("<small>★0 ") and "⚑ flagged" in captions[0]
     assert [FLAGGED_HEX in tile.layout.border for tile in panel.patches.children] == \
         [p.flagged for p in tuner.current[cup].flags.patches]
+
+
+def test_tuner_estimates_without_traces_equal_the_retuned_traces(traces):
+    """A slider computes every recording's estimate without making its trace (``retuned_estimate``, for 1,140
+    recordings): the same numbers, and the same score, as the re-tuned traces give."""
+    from massviz.evaluation.tuning import retune, score_traces
+
+    cup = _pos(traces, "cup_handover")
+    tuner = Tuner(traces)
+    pitcher = int(tuner.current[cup].selection[0])
+    tuner.set_mode(cup, pitcher, "exclude track")
+    for k, threshold, stride in [(5, 0.4, 1), (3, 0.6, 1), (8, 0.4, 3), (1, 0.9, 2)]:
+        tuner.update(k=k, threshold=threshold, stride=stride)
+        made = [retune(t, k=k, threshold=threshold, stride=stride, exclude=tuner.excluded(i))
+                for i, t in enumerate(traces)]
+        assert tuner.estimates() == {t.recording.id: float(m.estimate) for t, m in zip(traces, made)}
+        assert [t.estimate for t in tuner.current] == [m.estimate for m in made]
+        assert tuner.report.score_pct == score_traces(made).score_pct

@@ -72,3 +72,9 @@ def flag_warning(command: str, trace) -> str | None:
     without them 8.3 g [ground truth: the pitcher]"; None when nothing is flagged."""
     line = trace.flags.warning()
     return None if line is None else f"massviz {command}: warning: {trace.recording.id}: {line}"
+
+
+def unmatched_line(command: str, trace, unmatched) -> str:
+    """The line for exclusion entries of a recording that match none of its detections."""
+    return (f"massviz {command}: {trace.recording.id}: {len(unmatched)} exclusion(s) match no detection "
+            f"(first: frame {unmatched[0].frame}, box {list(unmatched[0].box)})")

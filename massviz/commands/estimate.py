@@ -43,15 +43,13 @@ def register(sub) -> None:
 def apply_exclusions(trace, exclusions):
     """The trace re-selected without the detections the exclusion entries name (matched by recording id, frame and
     box; ``massviz.evaluation.failures.match_exclusions``); entries of this recording that match nothing are reported."""
-    from massviz.evaluation.failures import match_exclusions
+    from massviz.commands._common import unmatched_line
+    from massviz.evaluation.failures import exclude_detections
 
-    indices, unmatched = match_exclusions(trace, exclusions)
+    trace, unmatched = exclude_detections(trace, exclusions)
     if unmatched:
-        print(f"massviz estimate: {trace.recording.id}: {len(unmatched)} exclusion(s) match no detection "
-              f"(first: frame {unmatched[0].frame}, box {list(unmatched[0].box)})", file=sys.stderr)
-    if len(indices) == 0:
-        return trace
-    return trace.reselect(exclude=indices)
+        print(unmatched_line("estimate", trace, unmatched), file=sys.stderr)
+    return trace
 
 
 def estimate_row(trace, recording, extra, *, exclusions=None, exec_time: str = "measured") -> dict:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 
 from massviz.commands._common import PIPELINE_HELP, add_dataset_args, add_pipeline_args
@@ -14,7 +15,7 @@ def register(sub) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Run detection and the K-nearest selection over every recording (reusing cached traces) and "
         "write a patch set: OUT/images/<recording>_<rank>.png (RGB crops) and OUT/index.csv (file, recording, "
-        "rank, frame, a, b, d, mass_g, container_id, dimensions, class, score, box, source). Each patch gets its "
+        "rank, frame, a, b, d, mass_g, container_id, dimensions, class, score, box, source, flagged, cues). Each patch gets its "
         "recording's annotation: its row in --annotations (CCM annotation CSV, matched on 'id'), else the "
         "container.mass_g of the recording's meta.json. The set is written to a temporary folder and moved into "
         "place when complete.",
@@ -26,16 +27,35 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, metavar="PATCHES", help="output folder (must not exist unless --force)")
     p.add_argument("--annotations", metavar="CSV", help="CCM annotation CSV (default: each recording's meta.json)")
     p.add_argument("--force", action="store_true", help="replace an existing PATCHES folder")
+    p.add_argument("--exclude", metavar="FILE",
+                   help="never select the detections listed in FILE (massviz.exclusions/1 JSON, as for estimate; "
+                   "e.g. written by notebooks 03 and 04)")
+    p.add_argument("--skip-flagged", action="store_true",
+                   help="leave out the chosen patches flagged as probably not the container (index.csv column "
+                   "'flagged'; by default they are kept, flagged, with a warning line per recording)")
     add_pipeline_args(p)
     add_engine_args(p)
     p.set_defaults(func=run)
 
 
-def collect_patches(trace, recording, label):
-    """What a worker sends back for one recording: its patches as PNG bytes with their index rows."""
+def collect_patches(trace, recording, label, *, exclusions=None, skip_flagged: bool = False) -> dict:
+    """What a worker sends back for one recording: ``files`` (its patches as PNG bytes with their index rows, the
+    flagged ones left out with ``skip_flagged``), ``warning`` (the flags' line) and ``notes`` (unmatched exclusions)."""
+    from massviz.commands._common import flag_warning, unmatched_line
+    from massviz.evaluation.failures import exclude_detections
     from massviz.training.train import patch_files
 
-    return patch_files(trace, label)
+    notes = []
+    if exclusions:
+        trace, unmatched = exclude_detections(trace, exclusions)
+        if unmatched:
+            notes.append(unmatched_line("extract", trace, unmatched))
+    files = patch_files(trace, label)
+    warning = flag_warning("extract", trace)
+    if skip_flagged:
+        files = [f for f in files if not f[2]["flagged"]]
+        warning = warning and f"{warning} (left out: --skip-flagged)"
+    return {"files": files, "warning": warning, "notes": notes}
 
 
 def run(args) -> int:
@@ -53,8 +73,19 @@ def run(args) -> int:
     labels = check_extract([recordings[t.index] for t in tasks], args.out, table, args.annotations,
                            force=args.force)
     tasks = [Task(t.index, t.path, t.id, label) for t, label in zip(tasks, labels)]
-    outcomes = run_tasks(args, "extract", build(args), tasks, failed, on_error, collect_patches, desc="extract")
-    result = write_patch_set(args.out, [(o.id, o.value) for o in outcomes if o.ok], n_recordings=len(outcomes))
+    exclusions = None
+    if args.exclude:
+        from massviz.evaluation.failures import load_exclusions
+
+        exclusions = load_exclusions(args.exclude)
+    collect = functools.partial(collect_patches, exclusions=exclusions, skip_flagged=args.skip_flagged)
+    outcomes = run_tasks(args, "extract", build(args), tasks, failed, on_error, collect, desc="extract")
+    for o in outcomes:
+        if o.ok:
+            for line in [*o.value["notes"], *([o.value["warning"]] if o.value["warning"] else [])]:
+                print(line, file=sys.stderr)
+    result = write_patch_set(args.out, [(o.id, o.value["files"]) for o in outcomes if o.ok],
+                             n_recordings=len(outcomes))
     if result.empty:
         print(f"no patch (no detection with depth) in {len(result.empty)} recording(s): "
               f"{', '.join(result.empty[:10])}{' ...' if len(result.empty) > 10 else ''}", file=sys.stderr)

@@ -5,6 +5,7 @@ import argparse
 import sys
 
 from massviz.commands._common import PIPELINE_HELP, add_pipeline_args
+from massviz.commands._runner import ENGINE_HELP, add_engine_args
 
 
 def register(sub) -> None:
@@ -16,9 +17,18 @@ def register(sub) -> None:
         "Rerun: frames, depth, detections, masks, point cloud, the chosen patches as the model saw them, "
         "per-patch predictions, the estimate, the decisions and the stage timings (entity tree in the README).",
         epilog="examples:\n  massviz log data_samples/cup_handover --rrd cup.rrd && rerun cup.rrd\n"
-        "  massviz log data_samples/glass_handover --spawn --k 3\n" + PIPELINE_HELP)
-    p.add_argument("recording", metavar="REC", help="recording folder, CCM video path or RealSense file (.db3, .bag)")
+        "  massviz log data_samples/glass_handover --spawn --k 3\n"
+        "  massviz log data_samples --rrd-dir out/samples && massviz serve out/samples\n"
+        "  massviz log /data/CCM/train --view 3 --annotations ann.csv --rrd-dir out/train --engine ray\n"
+        + PIPELINE_HELP + ENGINE_HELP)
+    p.add_argument("recording", metavar="REC", help="recording folder, CCM video path or RealSense file (.db3, .bag); "
+                   "with --rrd-dir also a CCM dataset root or a folder of recordings")
     out = p.add_argument_group("output (one of them is required)")
+    out.add_argument("--rrd-dir", metavar="OUT", help="a dataset: one .rrd per recording of REC (a dataset root or "
+                     "folder of recordings) with recording properties (id, class, ground truth, estimate, error, "
+                     "score, flags, settings), plus OUT/index.csv and OUT/patches.csv; browse with 'massviz serve "
+                     "OUT'. Light recordings by default (overlays, chosen patches, predictions, decisions, the best "
+                     "frame; the source frames are referenced, not copied); --full logs everything")
     out.add_argument("--rrd", metavar="OUT.rrd", help="write the Rerun recording to this file")
     out.add_argument("--spawn", action="store_true", help="spawn (or connect to) a Rerun viewer")
     p.add_argument("--video", choices=["auto", "asset", "images"], default="auto",
@@ -30,7 +40,16 @@ def register(sub) -> None:
                    "recording); by default the 3D view shows the depth image back-projected by Rerun itself")
     p.add_argument("--ply", metavar="DIR", help="also write the chosen frames' point clouds (.ply) into DIR "
                    "(as 'massviz cloud' does)")
+    ds = p.add_argument_group("dataset (--rrd-dir)")
+    ds.add_argument("--full", action="store_true", help="with --rrd-dir: full recordings (every frame, depth, "
+                    "masks, 3D), as 'massviz log REC --rrd' writes them")
+    ds.add_argument("--view", type=int, default=3, choices=[1, 2, 3, 4],
+                    help="camera view of a CCM dataset root (default: 3)")
+    ds.add_argument("--annotations", metavar="CSV", help="with --rrd-dir: CCM annotation CSV for the ground truth "
+                    "(default: each recording's meta.json)")
+    ds.add_argument("--force", action="store_true", help="with --rrd-dir: replace the dataset already in OUT")
     add_pipeline_args(p)
+    add_engine_args(p)
     p.set_defaults(func=run)
 
 
@@ -42,8 +61,12 @@ def run(args) -> int:
     from massviz.io.recording import open_recording
     from massviz.views.rerun_log import log_trace
 
+    if args.rrd_dir:
+        from massviz.commands._dataset_log import run_rrd_dir
+
+        return run_rrd_dir(args)
     if not args.rrd and not args.spawn:
-        raise MassvizError("say where to log: --rrd OUT.rrd and/or --spawn")
+        raise MassvizError("say where to log: --rrd OUT.rrd, --spawn or --rrd-dir OUT")
     from massviz.io.atomic import check_output_dir, check_output_file
 
     if args.rrd:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import textwrap
 from pathlib import Path
 
@@ -39,6 +40,10 @@ def register(subparsers) -> None:
     parser.add_argument("--plot", metavar="OUT.png",
                         help="also draw the paper's Fig. 4 analogue: per-class and total score (top) and mean ε "
                         "(bottom), one group of bars per PRED file")
+    parser.add_argument("--only-predicted", action="store_true",
+                        help="score over the annotated recordings the predictions name only (default: over every "
+                        "annotated recording, a missing one counting 0; when predictions cover fewer recordings than "
+                        "the annotations hold, a warning says so)")
     parser.set_defaults(func=run)
 
 
@@ -57,7 +62,8 @@ def _pairs(args: argparse.Namespace) -> list[tuple[str, str, str]]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from massviz.evaluation.metrics import default_class_of, parse_class_map, read_annotations, read_predictions, score
+    from massviz.evaluation.metrics import (ANN_ID, PRED_ID, default_class_of, parse_class_map, read_annotations,
+                                            read_predictions, score)
     from massviz.io.atomic import atomic_path
 
     from massviz.io.atomic import check_output_file
@@ -68,7 +74,23 @@ def run(args: argparse.Namespace) -> int:
     class_of = parse_class_map(args.classes) if args.classes else default_class_of
     pairs = _pairs(args)
     annotations = {path: read_annotations(path) for path in dict.fromkeys(ann for _, _, ann in pairs)}
-    reports = [score(read_predictions(pred), annotations[ann], class_of) for _, pred, ann in pairs]
+    reports, notes = [], []  # notes go to stderr at the end: an error before then stays the only line
+    for label, pred_path, ann_path in pairs:
+        pred, ann = read_predictions(pred_path), annotations[ann_path]
+        covered = ann[ANN_ID].isin(pred[PRED_ID])
+        if not covered.all():
+            if args.only_predicted:
+                if not covered.any():
+                    raise MassvizError(f"--only-predicted: none of the recordings {pred_path} predicts is annotated "
+                                       f"in {ann_path}")
+                notes.append(f"massviz score: {label}: scored the {int(covered.sum())} predicted of the {len(ann)} "
+                             f"annotated recordings (--only-predicted)")
+                ann = ann[covered]
+            else:
+                notes.append(f"massviz score: warning: {label}: {pred_path} predicts {int(covered.sum())} of the "
+                             f"{len(ann)} recordings in {ann_path}; the {int((~covered).sum())} missing count 0 in "
+                             "the score (score the predicted ones only with --only-predicted)")
+        reports.append(score(pred, ann, class_of))
 
     for (label, pred, ann), report in zip(pairs, reports):
         if len(pairs) > 1:
@@ -87,4 +109,6 @@ def run(args: argparse.Namespace) -> int:
 
         save_figure(plot_score_analysis(reports, [label for label, _, _ in pairs]), args.plot)
         print(f"wrote {args.plot}")
+    for note in notes:
+        print(note, file=sys.stderr)
     return 0

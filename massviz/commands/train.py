@@ -56,6 +56,12 @@ def run(args) -> int:
     split = result.split
     print(f"split {split.name}: {len(split.train)} training, {len(split.val)} validation, {len(split.test)} test "
           f"recordings", file=sys.stderr)
+    n_train, n_val = result.flagged.get("train", 0), result.flagged.get("val", 0)
+    line = f"flagged patches in the split: {n_train} training, {n_val} validation"
+    if n_train + n_val:
+        line = (f"massviz train: warning: {line} (probably not the container, index.csv column 'flagged'; "
+                "leave them out with massviz extract --skip-flagged or --exclude FILE)")
+    print(line, file=sys.stderr)
     print(f"best epoch {result.best_epoch}/{len(result.metrics) - 1}: val loss {result.best_val_loss:.4f}, "
           f"val MAE {result.best_val_mae_g:.1f} g -> {result.best}", file=sys.stderr)
     return 0

@@ -171,6 +171,13 @@ def match_exclusions(trace: Trace, exclusions: Iterable[Exclusion],
     return np.array(sorted(found), dtype=np.int64), unmatched
 
 
+def exclude_detections(trace: Trace, exclusions: Iterable[Exclusion]) -> tuple[Trace, list[Exclusion]]:
+    """(``trace`` re-selected without the detections the entries name — ``trace`` itself when none matches —, the
+    entries of this recording that match no detection). What ``estimate --exclude`` and ``extract --exclude`` do."""
+    indices, unmatched = match_exclusions(trace, exclusions)
+    return (trace if len(indices) == 0 else trace.reselect(exclude=indices)), unmatched
+
+
 def track_of(trace: Trace, index: int) -> np.ndarray:
     """Every detection of ``trace`` on the same object track as detection ``index`` (``detections.track``; the
     lifted pitcher of ``cup_handover`` in frames 0-23 is one track), ascending. Includes ``index``."""
@@ -230,5 +237,5 @@ def rank_by_error(traces: Sequence[Trace]) -> pd.DataFrame:
 
 
 __all__ = ["EXCLUSIONS_FORMAT", "GT_MIN_IOU", "Exclusion", "exclusion_of", "save_exclusions",
-           "load_exclusions", "match_exclusions", "box_iou", "track_of", "ground_truth_masks",
+           "load_exclusions", "match_exclusions", "exclude_detections", "box_iou", "track_of", "ground_truth_masks",
            "ground_truth_overlap", "chosen_table", "rank_by_error", "recording_id"]

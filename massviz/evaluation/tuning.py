@@ -22,6 +22,7 @@ import pandas as pd
 
 from massviz.evaluation.metrics import ScoreReport, default_class_of, score_from_estimates
 from massviz.evaluation.sweep import annotations_from_meta, match_annotations
+from massviz.core.selection import estimate_mass, select_k_nearest
 from massviz.core.trace import Trace
 
 
@@ -75,13 +76,37 @@ def score_traces(traces: Sequence[Trace], ann: pd.DataFrame | None = None, class
     frame (``massviz.evaluation.metrics.read_annotations``) matched by the recordings' configuration ids, with ``class_of``
     (default: the CCM classes).
     """
+    return score_estimates(traces, [float(t.estimate) for t in traces], ann, class_of)
+
+
+def score_estimates(traces: Sequence[Trace], estimates: Sequence[float], ann: pd.DataFrame | None = None,
+                    class_of=None) -> ScoreReport:
+    """``score_traces`` with the estimates given (``estimates[j]`` for ``traces[j]``): the traces only name the
+    recordings and carry their ground truth."""
     if ann is None:
         ann, classes = annotations_from_meta(traces)
-        estimates = {i: float(t.estimate) for i, t in enumerate(traces)}
-        return score_from_estimates(estimates, ann, class_of or classes)
+        return score_from_estimates(dict(enumerate(estimates)), ann, class_of or classes)
     index = match_annotations(traces, ann)
-    estimates = {int(a): (float(traces[j].estimate) if j >= 0 else None) for a, j in zip(ann["id"], index)}
-    return score_from_estimates(estimates, ann, class_of or default_class_of)
+    values = {int(a): (float(estimates[j]) if j >= 0 else None) for a, j in zip(ann["id"], index)}
+    return score_from_estimates(values, ann, class_of or default_class_of)
 
 
-__all__ = ["kept_indices", "subsample", "retune", "original_selection", "score_traces"]
+def retuned_estimate(trace: Trace, *, k: int, threshold: float, stride: int = 1, exclude=()) -> float:
+    """``retune(trace, k=, threshold=, stride=, exclude=).estimate`` without making the trace (no flags analysis):
+    what a slider needs for every recording but the one shown."""
+    if threshold < trace.detect_threshold - 1e-9:
+        return retune(trace, k=k, threshold=threshold, stride=stride, exclude=exclude).estimate  # its error
+    dets = trace.detections
+    excluded = np.asarray(exclude, dtype=np.int64).reshape(-1)
+    if int(stride) == 1:
+        return estimate_mass(dets.pred, select_k_nearest(dets.d, dets.score, int(k), float(threshold), excluded))
+    keep = kept_indices(trace, stride)
+    renumber = np.full(len(dets), -1, dtype=np.int64)
+    renumber[keep] = np.arange(len(keep))
+    ex = renumber[excluded]
+    sel = select_k_nearest(dets.d[keep], dets.score[keep], int(k), float(threshold), ex[ex >= 0])
+    return estimate_mass(dets.pred[keep], sel)
+
+
+__all__ = ["kept_indices", "subsample", "retune", "retuned_estimate", "original_selection", "score_traces",
+           "score_estimates"]

@@ -42,7 +42,7 @@ import math
 import random
 import sys
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Iterator, Sequence
 
@@ -71,7 +71,7 @@ IMAGES_DIR = "images"
 #: ``container_id`` is -1 and a dimension NaN when the annotation does not give it.
 INDEX_COLUMNS = ("file", "recording", "config_id", "rank", "frame", "a", "b", "d", "mass_g", "container_id",
                  "width_top_mm", "width_bottom_mm", "height_mm", "depth_mm", "capacity_ml", "class", "score",
-                 "x1", "y1", "x2", "y2", "source")
+                 "x1", "y1", "x2", "y2", "source", "flagged", "cues")
 #: container dimensions: index column -> (annotation CSV column, meta.json ``container`` key).
 DIMENSIONS = {"width_top_mm": ("width at the top", "width_top_mm"),
               "width_bottom_mm": ("width at the bottom", "width_bottom_mm"),
@@ -125,6 +125,15 @@ def annotation_for(recording, table: pd.DataFrame | None, path: str | Path | Non
     return Annotation(float(row[ANN_MASS]), int(row[ANN_CONTAINER]), dims)
 
 
+def flag_columns(trace, detection: int) -> dict:
+    """``flagged`` (the trace's flags say the chosen patch is probably not the container) and ``cues`` (the kinds of
+    its cues, ``ground truth`` when ground-truth masks decided; comma-separated) of one chosen detection."""
+    flag = trace.flags.of(detection)
+    if flag is None or not flag.flagged:
+        return {"flagged": False, "cues": ""}
+    return {"flagged": True, "cues": ",".join([*flag.cue_kinds, *(["ground truth"] if flag.by_ground_truth else [])])}
+
+
 def patch_rows(trace, annotation: Annotation) -> list[tuple[str, np.ndarray, dict]]:
     """(image file name, RGB patch, index row) for each of a trace's selected patches, nearest first."""
     rec = trace.recording
@@ -142,7 +151,7 @@ def patch_rows(trace, annotation: Annotation) -> list[tuple[str, np.ndarray, dic
                "d": float(selected.d[rank]), "mass_g": annotation.mass_g, "container_id": annotation.container_id,
                **dict(annotation.dims), "class": selected.class_names()[rank],
                "score": round(float(selected.score[rank]), 4), "x1": x1, "y1": y1, "x2": x2, "y2": y2,
-               "source": rec.path}
+               "source": rec.path, **flag_columns(trace, int(trace.selection[rank]))}
         out.append((name, patch, row))
     return out
 
@@ -256,6 +265,15 @@ def read_index(patches: str | Path) -> pd.DataFrame:
         raise DataError(f"row {i + 1}, column 'container_id': {table['container_id'].iloc[i]!r} is not an integer "
                         "id >= -1", path)
     table["container_id"] = ids.fillna(-1).astype(np.int64)
+    if "flagged" in table.columns:  # patch sets made before massviz flagged patches have no such column
+        flagged = table["flagged"].fillna(False).map({True: True, False: False, "True": True, "False": False,
+                                                      1: True, 0: False})  # empty: not flagged
+        if flagged.isna().any():
+            i = int(np.flatnonzero(flagged.isna().to_numpy())[0])
+            raise DataError(f"row {i + 1}, column 'flagged': {table['flagged'].iloc[i]!r} is not True or False", path)
+        table["flagged"] = flagged.astype(bool)
+    else:
+        table["flagged"] = False
     for i, rec in enumerate(table["recording"]):
         text_id(rec if isinstance(rec, str) else "", f"row {i + 1}, column 'recording'", path)
     for i, name in enumerate(table["file"]):  # a path from a data file: it must stay inside the patch set
@@ -513,6 +531,8 @@ class TrainResult:
     ranges: Ranges
     split: Split
     metrics: tuple[EpochMetrics, ...]  # epoch 0 (before training) first
+    #: flagged patches (``index.csv`` ``flagged``: probably not the container) in each part: {"train": n, "val": n}
+    flagged: dict = field(default_factory=dict)
 
 
 def _log_scalars(stream, m: EpochMetrics) -> None:
@@ -588,11 +608,12 @@ def train_run(patches: str | Path, out: str | Path, config: TrainConfig, *, init
                                            "val_mae_g": m.val_mae_g})
         stream.flush()
         stream.disconnect()
+    flagged = {"train": int(train_rows["flagged"].sum()), "val": int(val_rows["flagged"].sum())}
     return TrainResult(out, out / "best.torch", best.epoch, best.val_loss, best.val_mae_g, ranges, split,
-                       tuple(history))
+                       tuple(history), flagged)
 
 
 __all__ = ["INDEX_NAME", "IMAGES_DIR", "INDEX_COLUMNS", "FOLDS", "SPLITS", "AUGMENT_FACTOR", "DEFAULT_EPOCHS",
-           "Annotation", "annotation_for", "patch_rows", "ExtractResult", "check_extract", "extract_patches", "read_index", "Split",
+           "Annotation", "annotation_for", "flag_columns", "patch_rows", "ExtractResult", "check_extract", "extract_patches", "read_index", "Split",
            "split_recordings", "compute_ranges", "make_augmentation", "PatchDataset", "TrainConfig", "EpochMetrics",
            "seed_everything", "deterministic", "resolve_device", "evaluate", "fit", "TrainResult", "train_run"]

@@ -35,7 +35,7 @@ import pandas as pd
 from massviz.evaluation.failures import (Exclusion, chosen_table, exclusion_of, rank_by_error, save_exclusions,
                                          track_of)
 from massviz.core.trace import Trace
-from massviz.evaluation.tuning import original_selection, retune, score_traces
+from massviz.evaluation.tuning import original_selection, retune, retuned_estimate, score_estimates
 from massviz.views.palette import CHOSEN_HEX, FLAGGED_HEX
 
 MODES = ("keep", "exclude", "exclude track")
@@ -79,6 +79,7 @@ class Tuner:
         else:
             self.modes[i][int(detection)] = mode
         self.current[i] = self._retune(i)
+        self._estimates[i] = float(self.current[i].estimate)
         self.report = self._score()
 
     def exclusions(self) -> list[Exclusion]:
@@ -102,7 +103,9 @@ class Tuner:
             self.threshold = float(threshold)
         if stride is not None:
             self.stride = int(stride)
-        self.current = [self._retune(i) for i in range(len(self.traces))]
+        self.current = _LazyTraces(self._retune, len(self.traces))  # made when read: the shown ones
+        self._estimates = [retuned_estimate(t, k=self.k, threshold=self.threshold, stride=self.stride,
+                                            exclude=self.excluded(i)) for i, t in enumerate(self.traces)]
         self.report = self._score()
 
     def _retune(self, i: int) -> Trace:
@@ -111,7 +114,7 @@ class Tuner:
 
     def _score(self):
         try:
-            return score_traces(self.current, self.ann, self.class_of)
+            return score_estimates(self.traces, self._estimates, self.ann, self.class_of)
         except Exception:  # noqa: BLE001 - recordings without ground truth: no score, the rest still works
             return None
 
@@ -120,7 +123,7 @@ class Tuner:
         return original_selection(self.traces[i], self.current[i], self.stride)
 
     def estimates(self) -> dict[str, float]:
-        return {t.recording.id: float(t.estimate) for t in self.current}
+        return {t.recording.id: e for t, e in zip(self.traces, self._estimates)}
 
     def patch_table(self, i: int) -> pd.DataFrame:
         """The chosen patches of recording ``i``: rank, detection, frame, class, score, a, b, d_mm, pred_g."""
@@ -130,6 +133,28 @@ class Tuner:
         out.insert(0, "detection", sel)
         out.insert(0, "rank", np.arange(len(sel)))
         return out.reset_index(drop=True)
+
+
+class _LazyTraces(Sequence):
+    """``Tuner.current``: the re-tuned trace of each recording, made on first read (``make(i)``) and kept. A slider
+    change makes only the shown recording's (its flags analysis is what costs); every estimate is computed at once
+    without it (``retuned_estimate``)."""
+
+    def __init__(self, make, n: int):
+        self._make, self._items = make, [None] * n
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [self[j] for j in range(*i.indices(len(self)))]
+        if self._items[i] is None:
+            self._items[i] = self._make(range(len(self))[i])
+        return self._items[i]
+
+    def __setitem__(self, i, trace) -> None:
+        self._items[i] = trace
 
 
 # ------------------------------------------------------------------------------------------------------- views

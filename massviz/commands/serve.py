@@ -1,0 +1,35 @@
+"""``massviz serve OUT/``: Rerun's catalog server on 127.0.0.1 with a dataset of .rrd recordings (made by
+``massviz log DATASET --rrd-dir OUT/``), massviz's layouts registered as the dataset's defaults, and a web viewer."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "serve", help="serve a folder of .rrd recordings (massviz log --rrd-dir) as a Rerun catalog dataset",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Start Rerun's catalog server on 127.0.0.1 with OUT as one dataset (one segment per .rrd; the "
+        "recording properties massviz wrote are the segment table's columns), register massviz's layouts as the "
+        "dataset's defaults (the recording layout, and the segment table sorted by relative error), start a web "
+        "viewer on 127.0.0.1 and print how to open it. Runs until Ctrl-C (or SIGTERM); then the server and the web "
+        "viewer stop and nothing is left running.",
+        epilog="examples:\n  massviz log data_samples --detector depth --rrd-dir out/samples\n"
+        "  massviz serve out/samples                 # then open the printed http://127.0.0.1:... URL\n"
+        "  massviz serve out/samples --no-web-viewer --port 51234 && rerun rerun+http://127.0.0.1:51234")
+    p.add_argument("folder", metavar="OUT", help="folder of .rrd files (massviz log DATASET --rrd-dir OUT)")
+    p.add_argument("--name", default=None, help="dataset name (default: the folder's name)")
+    p.add_argument("--port", type=int, default=0, help="catalog server port (default: a free one)")
+    p.add_argument("--web-port", type=int, default=0, help="web viewer port (default: a free one)")
+    p.add_argument("--no-web-viewer", action="store_true", help="only the catalog server (open it with the native "
+                   "viewer: rerun rerun+http://127.0.0.1:PORT)")
+    p.add_argument("--k", type=int, default=5, metavar="K", help="patch tiles in the recording layout (default: 5)")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from massviz.views.rerun_serve import serve
+
+    return serve(args.folder, name=args.name, port=args.port, web_port=args.web_port,
+                 web_viewer=not args.no_web_viewer, k=args.k, out=sys.stdout)
