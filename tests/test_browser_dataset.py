@@ -23,7 +23,7 @@ from urllib.parse import quote
 import cv2
 import numpy as np
 import pytest
-from test_browser import (ARTIFACTS, BENIGN, browser, cache, find, lab, offline_page, open_and_run,  # noqa: F401
+from test_browser import (ARTIFACTS, BENIGN, cache, find, lab, offline_page, open_and_run,  # noqa: F401
                           shot)
 from test_dataset_catalog import dataset, env, massviz  # noqa: F401
 

@@ -100,7 +100,16 @@ def test_regenerating_reproduces_the_committed_bytes(samples_dir, tmp_path):
     print(f"regenerated {name} in {time.perf_counter() - start:.1f} s")
     new, old = _files(out), _files(samples_dir / name)
     assert sorted(new) == sorted(old)
-    assert [f for f in new if new[f] != old[f]] == [], "regenerate with 'massviz samples'"
+    changed = [f for f in new if new[f] != old[f]]
+    # Every file but the rendered RGB/depth PNGs is byte-identical (meta, intrinsics, ground-truth masks). The renders
+    # are pixel-identical but for float-rounding drift between numerical libraries' builds: with today's wheels
+    # (also on 4517aed) at most 3 depth pixels and 1 RGB value of a 480x270 frame differ, so allow 1e-4 of the values.
+    assert [f for f in changed if not f.startswith(("rgb/", "depth/"))] == [], "regenerate with 'massviz samples'"
+    for f in changed:
+        a = cv2.imread(str(out / f), cv2.IMREAD_UNCHANGED)
+        b = cv2.imread(str(samples_dir / name / f), cv2.IMREAD_UNCHANGED)
+        assert a.shape == b.shape and a.dtype == b.dtype, f
+        assert (a != b).mean() <= 1e-4, f"{f}: {(a != b).mean():.2e} of the values differ; regenerate with 'massviz samples'"
     assert [p.name for p in tmp_path.iterdir()] == [name]  # no temporary folder left behind
 
 
