@@ -35,7 +35,6 @@ import rerun.blueprint as rrb
 
 from massviz.core.patches import crop
 from massviz.core.trace import Trace
-from massviz.errors import MassvizError
 from massviz.evaluation.browser import INDEX_NAME, PATCH_COLUMNS as _PATCH_COLUMNS, PATCHES_NAME, best_frame, \
     patch_rows, recording_properties, recordings_table
 from massviz.io.atomic import atomic_path
@@ -77,11 +76,11 @@ def send_properties(stream: rr.RecordingStream, props: dict) -> None:
     stream.send_property(PROPERTY, rr.AnyValues(**values))
 
 
-def _jpeg(rgb: np.ndarray, quality: int = 85) -> bytes:
-    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, quality])
-    if not ok:
-        raise MassvizError("cannot JPEG-encode a frame")
-    return buf.tobytes()
+def log_thumbnail(stream: rr.RecordingStream, rgb_best: np.ndarray | None) -> None:
+    """``/thumbnail``: the best frame, small (static); nothing when there is no best frame."""
+    if rgb_best is not None:
+        stream.log("/thumbnail", rr.EncodedImage(contents=rl.jpeg_bytes(thumbnail(rgb_best), 80),
+                                                 media_type="image/jpeg"), static=True)
 
 
 def thumbnail(rgb: np.ndarray, px: int = THUMB_PX) -> np.ndarray:
@@ -125,15 +124,13 @@ def log_light(stream: rr.RecordingStream, trace: Trace, recording, patches: dict
     for i, f in enumerate(dets.frame):
         by_frame.setdefault(int(f), []).append(i)
     best = best_frame(trace)
-    if rgb_best is not None:
-        stream.log("/thumbnail", rr.EncodedImage(contents=_jpeg(thumbnail(rgb_best), 80), media_type="image/jpeg"),
-                   static=True)
+    log_thumbnail(stream, rgb_best)
     for f in frames:
         stream.set_time("frame", sequence=f)
         if f == first and recording.intrinsics is not None:
             rl.log_pinhole(stream, recording.intrinsics, 0.3)
         if f == best and rgb_best is not None:
-            stream.log("/camera/rgb", rr.EncodedImage(contents=_jpeg(rgb_best), media_type="image/jpeg"))
+            stream.log("/camera/rgb", rr.EncodedImage(contents=rl.jpeg_bytes(rgb_best, 85), media_type="image/jpeg"))
         idx = by_frame.get(f, [])
         class_ids = rl.detection_class_ids(dets, idx, rank_of, trace.threshold, flagged)
         rl.log_detections(stream, dets, idx, class_ids, rank_of)
@@ -197,7 +194,7 @@ def patch_table_rows(trace: Trace, patches: dict, out_dir: Path | None) -> list[
         row["thumb"] = f"{PATCHES_DIR}/{safe_filename(trace.recording.id)}_{row['rank']}.jpg"
         if out_dir is not None and row["detection"] in patches:
             with atomic_path(out_dir / row["thumb"]) as tmp:
-                tmp.write_bytes(_jpeg(thumbnail(patches[row["detection"]], 96), 85))
+                tmp.write_bytes(rl.jpeg_bytes(thumbnail(patches[row["detection"]], 96), 85))
         rows.append(row)
     return rows
 
@@ -221,9 +218,7 @@ def write_recording(trace: Trace, recording, out_dir: str | Path, *, full: bool 
             send_properties(stream, props)
             if full:
                 rl.log_trace(trace, recording, stream=stream, video=video)
-                if rgb_best is not None:
-                    stream.log("/thumbnail", rr.EncodedImage(contents=_jpeg(thumbnail(rgb_best), 80),
-                                                             media_type="image/jpeg"), static=True)
+                log_thumbnail(stream, rgb_best)
             else:
                 stream.send_blueprint(light_blueprint(len(trace.selection), [p.rank for p in trace.flags.flagged]),
                                       make_active=True, make_default=True)

@@ -27,7 +27,6 @@ import time
 import uuid
 from pathlib import Path
 
-import cv2
 import numpy as np
 import rerun as rr
 
@@ -38,7 +37,7 @@ from massviz.io.atomic import atomic_path
 from massviz.views.rerun_log import (APPLICATION_ID, MAX_POINTS, POINT_STEP, RUNNING_COLOUR, default_blueprint,
                                      detection_class_ids, frustum_depth, log_annotation_context, log_depth,
                                      log_detections, log_masks, log_patch, log_pinhole, log_points, log_predictions,
-                                     log_summary, log_timings)
+                                     jpeg_bytes, log_summary, log_timings)
 
 _LEVELS = {"debug": rr.TextLogLevel.DEBUG, "info": rr.TextLogLevel.INFO, "warn": rr.TextLogLevel.WARN}
 
@@ -92,11 +91,8 @@ class LiveLogger:
             rec.set_time("capture_time", duration=(timestamp_ms - self._t0_ms) / 1000.0)
         if self.frames == 0 and self.intrinsics is not None:
             log_pinhole(rec, self.intrinsics, frustum_depth(frame.depth))
-        ok, buf = cv2.imencode(".jpg", cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR),
-                               [cv2.IMWRITE_JPEG_QUALITY, self.quality])
-        if not ok:
-            raise MassvizError(f"cannot JPEG-encode frame {frame.index}")
-        rec.log("/camera/rgb", rr.EncodedImage(contents=buf.tobytes(), media_type="image/jpeg"))
+        rec.log("/camera/rgb", rr.EncodedImage(contents=jpeg_bytes(frame.rgb, self.quality, f"frame {frame.index}"),
+                                               media_type="image/jpeg"))
         log_depth(rec, frame.depth)
         if self.points:
             log_points(rec, frame.depth, frame.rgb, self.intrinsics, POINT_STEP, MAX_POINTS)

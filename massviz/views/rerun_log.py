@@ -183,10 +183,16 @@ class RgbLogger:
         elif self.mode == "files":
             rec.log("/camera/rgb", rr.EncodedImage(path=self.recording.rgb_files[index]))
         else:
-            ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 90])
-            if not ok:
-                raise MassvizError(f"cannot JPEG-encode frame {index}", self.recording.path)
-            rec.log("/camera/rgb", rr.EncodedImage(contents=buf.tobytes(), media_type="image/jpeg"))
+            rec.log("/camera/rgb", rr.EncodedImage(contents=jpeg_bytes(rgb, 90, f"frame {index}", self.recording.path),
+                                                   media_type="image/jpeg"))
+
+
+def jpeg_bytes(rgb: np.ndarray, quality: int, what: str = "a frame", path=None) -> bytes:
+    """``rgb`` (H×W×3 RGB) as JPEG bytes at ``quality``; an encoder failure is one line naming ``what``/``path``."""
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise MassvizError(f"cannot JPEG-encode {what}", path)
+    return buf.tobytes()
 
 
 # ----------------------------------------------------------------------------------------------- depth and points
