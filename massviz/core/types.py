@@ -54,11 +54,19 @@ class Intrinsics:
 
 @dataclass
 class Frame:
-    """One RGB-D frame: ``rgb`` H×W×3 uint8 (RGB order), ``depth`` H×W uint16 millimetres (0 = no depth)."""
+    """One RGB-D frame: ``rgb`` H×W×3 uint8 (RGB order), ``depth`` H×W uint16 millimetres (0 = no depth).
+
+    ``rgb_encoded`` / ``depth_encoded``: the frame's bytes as the format stored them, when the reader read a file of
+    this one frame (a PNG/JPEG frame file, a 16-bit depth PNG), so that a sink can log them without reading the file
+    again or re-encoding; ``rgb_media_type`` is their MIME type (``image/png``, ``image/jpeg``). None when the format
+    has no per-frame file (a video, a RealSense file, a live camera): a sink then encodes the decoded arrays."""
 
     index: int
     rgb: np.ndarray
     depth: np.ndarray
+    rgb_encoded: bytes | None = None
+    rgb_media_type: str | None = None
+    depth_encoded: bytes | None = None
 
     @property
     def height(self) -> int:
