@@ -115,13 +115,34 @@ class Recording:
                              rgb=str(self.rgb_video) if self.rgb_video else "frames", intrinsics=self.intrinsics,
                              meta=self.meta)
 
+    # -- what sinks ask for (instead of testing the attributes above) ----------------------------------------------
+    def video_file(self) -> Path | None:
+        """The RGB video a viewer can show as one asset (frames referenced by time), or None when the format has no
+        such file (frame images, RealSense files, cameras)."""
+        return self.rgb_video
+
+    def source_description(self) -> dict[str, str]:
+        """Where the frames come from, for people: {"rgb": ..., "depth": ...}."""
+        if self.rgb_video is not None:
+            rgb = str(self.rgb_video)
+        elif self.rgb_files:
+            rgb = f"{len(self.rgb_files)} images in `{Path(self.rgb_files[0]).parent}`"
+        else:
+            rgb = "(not in files)"
+        depth = (f"{len(self.depth_files)} PNGs in `{Path(self.depth_files[0]).parent}`" if self.depth_files
+                 else "(not in files)")
+        return {"rgb": rgb, "depth": depth}
+
     # -- frames ----------------------------------------------------------------------------------------------------
     def read_depth(self, index: int) -> np.ndarray:
         """Depth of frame ``index`` (H×W uint16, mm), checked."""
+        return self._depth_with_bytes(index)[0]
+
+    def _depth_with_bytes(self, index: int) -> tuple[np.ndarray, bytes]:
         if index >= len(self.depth_files):
             raise RecordingError(f"no depth image for frame {index} ({len(self.depth_files)} depth frames)",
                                  self.depth_files[0].parent if self.depth_files else self.path)
-        return _read_depth(self.depth_files[index], self.width, self.height)
+        return _read_depth(self.depth_files[index], self.width, self.height, with_bytes=True)
 
     def frames(self, stride: int = 1, indices=None) -> Iterator[Frame]:
         """Yield every ``stride``-th frame (or only ``indices``, ascending) as ``Frame`` objects, streamed."""
@@ -131,8 +152,11 @@ class Recording:
         keep = (lambda i: i % stride == 0) if wanted is None else (lambda i: i in wanted_set)
         wanted_set = set(wanted or [])
         last = self.num_frames - 1 if wanted is None else (wanted[-1] if wanted else -1)
-        for index, rgb in self._rgb_stream(keep, last):
-            yield Frame(index=index, rgb=rgb, depth=self.read_depth(index))
+        for index, rgb, rgb_encoded in self._rgb_stream(keep, last):
+            depth, depth_encoded = self._depth_with_bytes(index)
+            media = None if rgb_encoded is None else _media_type(self.rgb_files[index])
+            yield Frame(index=index, rgb=rgb, depth=depth, rgb_encoded=rgb_encoded, rgb_media_type=media,
+                        depth_encoded=depth_encoded)
 
     def read_frame(self, index: int) -> Frame:
         """One frame by index (decodes a video up to it)."""
@@ -144,7 +168,7 @@ class Recording:
         if self.rgb_files is not None:
             for i, p in enumerate(self.rgb_files[: last + 1]):
                 if keep(i):
-                    yield i, _read_rgb(p, self.width, self.height)
+                    yield i, *_read_rgb(p, self.width, self.height, with_bytes=True)
             return
         cap = cv2.VideoCapture(str(self.rgb_video))
         try:
@@ -157,7 +181,7 @@ class Recording:
                     ok, bgr = cap.retrieve()
                     if not ok or bgr is None:
                         raise RecordingError(f"cannot decode frame {i} of the video", self.rgb_video)
-                    yield i, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+                    yield i, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), None
                 i += 1
         finally:
             cap.release()
@@ -182,19 +206,48 @@ def partial_message(decoded: int, declared: int) -> str:
 
 
 # ---------------------------------------------------------------------------------------------------------------
-def _read_rgb(path: Path, width: int | None = None, height: int | None = None) -> np.ndarray:
-    check_image_size(path, RecordingError, "RGB image")
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+def _media_type(path: Path) -> str:
+    return "image/png" if Path(path).suffix.lower() == ".png" else "image/jpeg"
+
+
+#: largest frame file read (a 1280x720 16-bit depth PNG is ~1 MB; this bounds a sparse or hostile file).
+MAX_FRAME_FILE_BYTES = 256 << 20
+
+
+def _read_bytes(path: Path, what: str) -> bytes:
+    """A frame file's bytes, read once (its header checked, decoded from memory, and kept for sinks that log them as
+    they are)."""
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read(MAX_FRAME_FILE_BYTES + 1)
+    except OSError as err:
+        raise RecordingError(f"cannot read {what} ({err.strerror or err})", path) from None
+    if len(data) > MAX_FRAME_FILE_BYTES:
+        raise RecordingError(f"{what} is larger than {MAX_FRAME_FILE_BYTES} bytes; not read", path)
+    check_image_size(path, RecordingError, what, data=data)
+    return data
+
+
+def _decode(data: bytes, flags: int):
+    return cv2.imdecode(np.frombuffer(data, np.uint8), flags) if data else None
+
+
+def _read_rgb(path: Path, width: int | None = None, height: int | None = None, *, with_bytes: bool = False):
+    """RGB of one frame file (H×W×3 uint8); ``with_bytes``: (rgb, the file's bytes), the file read once."""
+    data = _read_bytes(path, "RGB image")
+    bgr = _decode(data, cv2.IMREAD_COLOR)
     if bgr is None:
         raise RecordingError("cannot read image (missing, empty or not an image)", path)
     if width is not None and (bgr.shape[1], bgr.shape[0]) != (width, height):
         raise RecordingError(f"frame is {bgr.shape[1]}x{bgr.shape[0]} but the recording is {width}x{height}", path)
-    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    return (rgb, data) if with_bytes else rgb
 
 
-def _read_depth(path: Path, width: int, height: int) -> np.ndarray:
-    check_image_size(path, RecordingError, "depth image")
-    depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+def _read_depth(path: Path, width: int, height: int, *, with_bytes: bool = False):
+    """Depth of one 16-bit PNG (H×W uint16 mm), checked; ``with_bytes``: (depth, the file's bytes), read once."""
+    data = _read_bytes(path, "depth image")
+    depth = _decode(data, cv2.IMREAD_UNCHANGED)
     if depth is None:
         raise RecordingError("cannot read depth image (missing, empty or not a PNG)", path)
     if depth.ndim != 2:
@@ -206,7 +259,7 @@ def _read_depth(path: Path, width: int, height: int) -> np.ndarray:
     if (depth.shape[1], depth.shape[0]) != (width, height):
         raise RecordingError(f"depth is {depth.shape[1]}x{depth.shape[0]} but the RGB frames are {width}x{height}",
                              path)
-    return depth
+    return (depth, data) if with_bytes else depth
 
 
 def _sorted_images(folder: Path, suffixes=IMAGE_SUFFIXES) -> list[Path]:

@@ -255,16 +255,21 @@ def _first_line(err: BaseException) -> str:
 
 
 # ------------------------------------------------------------------------------------------------------- images
-def image_header_size(path: str | Path) -> tuple[int, int] | None:
-    """(width, height) an image file declares in its header, without decoding it; None when unknown."""
+def image_header_size(path: str | Path, data: bytes | None = None) -> tuple[int, int] | None:
+    """(width, height) an image file declares in its header, without decoding it; None when unknown. ``data``: the
+    file's bytes when the caller has read them already (the file is then not opened again)."""
+    import io
     import struct
     import warnings
 
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(24)
-    except OSError:
-        return None
+    if data is None:
+        try:
+            with open(path, "rb") as fh:
+                head = fh.read(24)
+        except OSError:
+            return None
+    else:
+        head = data[:24]
     if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
         return struct.unpack(">II", head[16:24])
     from PIL import Image
@@ -272,7 +277,7 @@ def image_header_size(path: str | Path) -> tuple[int, int] | None:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            with Image.open(path) as img:
+            with Image.open(path if data is None else io.BytesIO(data)) as img:
                 return img.size
     except Image.DecompressionBombError:  # PIL's own bound (> 179 Mpixel) is above ours
         return (MAX_IMAGE_PIXELS, MAX_IMAGE_PIXELS)
@@ -280,10 +285,11 @@ def image_header_size(path: str | Path) -> tuple[int, int] | None:
         return None
 
 
-def check_image_size(path: str | Path, error=MassvizError, what: str = "image") -> None:
+def check_image_size(path: str | Path, error=MassvizError, what: str = "image", data: bytes | None = None) -> None:
     """Refuse (``error`` naming ``path``) an image whose header declares more than MAX_IMAGE_SIDE per side or
-    MAX_IMAGE_PIXELS pixels, before it is decoded (a small file may declare gigabytes of pixels)."""
-    size = image_header_size(path)
+    MAX_IMAGE_PIXELS pixels, before it is decoded (a small file may declare gigabytes of pixels). ``data``: the
+    file's bytes when already read."""
+    size = image_header_size(path, data)
     if size is None:
         return
     w, h = size

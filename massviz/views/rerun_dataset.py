@@ -171,11 +171,8 @@ def light_blueprint(n_patches: int, flagged=()) -> rrb.Blueprint:
 
 def source_markdown(trace: Trace, recording) -> str:
     files = recording.input_files() if hasattr(recording, "input_files") else []
-    rgb = str(recording.rgb_video) if getattr(recording, "rgb_video", None) else (
-        f"{len(recording.rgb_files)} images in `{Path(recording.rgb_files[0]).parent}`"
-        if getattr(recording, "rgb_files", None) else "(not in files)")
-    depth = (f"{len(recording.depth_files)} PNGs in `{Path(recording.depth_files[0]).parent}`"
-             if getattr(recording, "depth_files", None) else "(not in files)")
+    source = recording.source_description()
+    rgb, depth = source["rgb"], source["depth"]
     return (f"# source of {trace.recording.id}\n\nThe frames are not copied into this light recording; they are "
             f"here:\n\n- recording: `{recording.path}`\n- RGB: {rgb}\n- depth: {depth}\n- {len(files)} files, "
             f"{input_bytes(recording)} bytes\n\nThe full recording: `massviz log {recording.path} --rrd FULL.rrd` "
