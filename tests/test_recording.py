@@ -108,12 +108,12 @@ def test_stride_and_read_frame(folder):
 
 def test_frames_are_streamed(folder, monkeypatch):
     """Frames are read one at a time as the generator advances, never all up front."""
-    import massviz.io.recording as R
+    import massviz.io.formats.folder as R
 
     rec = open_recording(folder)
     reads = []
-    real = R._read_depth
-    monkeypatch.setattr(R, "_read_depth", lambda p, w, h: reads.append(Path(p).name) or real(p, w, h))
+    real = R.read_depth_png
+    monkeypatch.setattr(R, "read_depth_png", lambda p, w, h, **kw: reads.append(Path(p).name) or real(p, w, h, **kw))
     gen = rec.frames()
     assert isinstance(gen, types.GeneratorType) and reads == []
     first = next(gen)

@@ -1,0 +1,124 @@
+"""Writing RealSense ``.db3`` files (librealsense 2.59 records only ROS2 .db3; .bag files can be read, not written)
+through a ``software_device`` and librealsense's ``recorder``."""
+from __future__ import annotations
+
+import contextlib
+import time
+from pathlib import Path
+
+import numpy as np
+
+from massviz.core.types import Frame, Intrinsics
+from massviz.errors import MassvizError, RecordingError
+from massviz.core.recording import Recording
+from massviz.io.formats.realsense_decode import import_rs
+
+
+def _rs_intrinsics(rs, intr: Intrinsics):
+    ri = rs.intrinsics()
+    ri.width, ri.height = int(intr.width), int(intr.height)
+    ri.fx, ri.fy, ri.ppx, ri.ppy = float(intr.fx), float(intr.fy), float(intr.cx), float(intr.cy)
+    ri.model = rs.distortion.none
+    ri.coeffs = [0.0] * 5
+    return ri
+
+
+class SoftwareRig:
+    """A ``software_device`` with a depth (z16, depth units option) and a colour (rgb8) sensor whose stream
+    profiles carry the intrinsics. By default depth is registered to colour (the colour intrinsics, identity
+    extrinsics); ``depth_intrinsics`` and ``translation_m`` (depth-to-colour, metres) describe a depth camera
+    beside the colour one instead (as on a real D400: then readers align with librealsense's align)."""
+
+    def __init__(self, rs, intr: Intrinsics, fps: float, depth_units: float = 0.001, serial: str = "massviz-sw",
+                 name: str = "massviz software camera", depth_intrinsics: Intrinsics | None = None,
+                 translation_m=(0.0, 0.0, 0.0)):
+        self.rs, self.intr, self.fps, self.depth_units = rs, intr, fps, depth_units
+        self.depth_intr = depth_intrinsics or intr
+        sd = self.device = rs.software_device()
+        sd.register_info(rs.camera_info.name, name)
+        sd.register_info(rs.camera_info.serial_number, serial)
+        self.depth_sensor, self.colour_sensor = sd.add_sensor("Depth"), sd.add_sensor("Color")
+        profiles = []
+        streams = ((self.depth_sensor, rs.stream.depth, 0, 2, rs.format.z16, self.depth_intr),
+                   (self.colour_sensor, rs.stream.color, 1, 3, rs.format.rgb8, intr))
+        for sensor, kind, uid, bpp, fmt, si in streams:
+            ri = _rs_intrinsics(rs, si)
+            vs = rs.video_stream()
+            vs.type, vs.index, vs.uid, vs.fps, vs.bpp, vs.fmt = kind, 0, uid, int(round(fps)), bpp, fmt
+            vs.width, vs.height, vs.intrinsics = ri.width, ri.height, ri
+            profiles.append(sensor.add_video_stream(vs).as_video_stream_profile())  # (not a plain stream_profile)
+        self.depth_profile, self.colour_profile = profiles
+        self.depth_sensor.add_read_only_option(rs.option.depth_units, depth_units)
+        ex = rs.extrinsics()  # all zeros by default, not the identity
+        ex.rotation, ex.translation = [1, 0, 0, 0, 1, 0, 0, 0, 1], [float(t) for t in translation_m]
+        self.depth_profile.register_extrinsics_to(self.colour_profile, ex)
+        sd.create_matcher(rs.matchers.dlr_c)
+
+    @contextlib.contextmanager
+    def record(self, path: str | Path):
+        """Record what is pushed inside the block to the ``.db3`` ``path`` (librealsense's ``recorder``; both
+        sensors open and started, stopped and closed after it, then the file is finished)."""
+        recorder = self.rs.recorder(str(path), self.device)
+        sensors = ((self.depth_sensor, self.depth_profile), (self.colour_sensor, self.colour_profile))
+        for sensor, profile in sensors:
+            sensor.open(profile)
+            sensor.start(lambda f: None)
+        try:
+            yield self
+        finally:
+            for sensor, _ in sensors:
+                sensor.stop()
+                sensor.close()
+            del recorder
+
+    def push(self, frame: Frame, number: int, timestamp_ms: float, depth: np.ndarray | None = None) -> None:
+        """Push ``frame`` (its depth in mm, or ``depth`` in mm at the depth stream's size) as frame ``number``."""
+        rs = self.rs
+        depth = frame.depth if depth is None else depth
+        if (frame.width, frame.height) != (self.intr.width, self.intr.height) or \
+                (depth.shape[1], depth.shape[0]) != (self.depth_intr.width, self.depth_intr.height):
+            raise MassvizError(f"frame {frame.index} does not have the streams' sizes "
+                               f"({self.intr.width}x{self.intr.height} colour, "
+                               f"{self.depth_intr.width}x{self.depth_intr.height} depth)")
+        z = depth if abs(self.depth_units - 0.001) < 1e-12 else \
+            np.clip(np.rint(depth / (self.depth_units * 1000.0)), 0, 65535).astype(np.uint16)
+        for sensor, profile, data, bpp in ((self.depth_sensor, self.depth_profile, z, 2),
+                                           (self.colour_sensor, self.colour_profile, frame.rgb, 3)):
+            f = rs.software_video_frame()
+            data = np.ascontiguousarray(data)
+            f.pixels, f.stride, f.bpp = data, int(data.shape[1]) * bpp, bpp
+            f.timestamp, f.domain, f.frame_number = timestamp_ms, rs.timestamp_domain.hardware_clock, number
+            f.profile = profile
+            if bpp == 2:
+                f.depth_units = self.depth_units
+            sensor.on_video_frame(f)
+
+
+def write_realsense(recording: Recording, path: str | Path, *, pace: bool = False, depth_units: float = 0.001,
+                    progress: bool = False) -> Path:
+    """Write ``recording`` as a RealSense ``.db3`` through librealsense's ``recorder`` (depth z16 with the
+    ``depth_units`` option, colour rgb8, the recording's intrinsics on both stream profiles, frame numbers
+    0..n-1, timestamps index/fps ms). ``pace``: push frames at the recording's fps, so that real-time playback
+    takes the recording's duration (the file's clock is the wall clock of recording). Written to a temporary name
+    and renamed, so nothing is left half-written."""
+    from massviz.io.atomic import atomic_path
+
+    rs = import_rs()
+    path = Path(path)
+    if path.suffix.lower() != ".db3":
+        raise MassvizError("librealsense writes RealSense recordings only as ROS2 .db3 (.bag can be read, not "
+                           "written)", path)
+    if recording.intrinsics is None:
+        raise RecordingError("the recording has no intrinsics (intrinsics.json): a RealSense stream needs them",
+                             recording.path)
+    fps = float(recording.fps or 30.0)
+    with atomic_path(path) as tmp:
+        rig = SoftwareRig(rs, recording.intrinsics, fps, depth_units)
+        with rig.record(tmp):
+            t0 = time.perf_counter()
+            for i, frame in enumerate(recording.frames()):
+                if pace:
+                    time.sleep(max(0.0, t0 + i / fps - time.perf_counter()))
+                rig.push(frame, i, i * 1000.0 / fps)
+    return path
+
