@@ -308,7 +308,7 @@ def test_cli_bad_sources_one_line_exit_2_nothing_written(rs, tmp_path):
 
 
 def test_unknown_serial_names_the_connected_ones(monkeypatch):
-    from massviz.io import realsense
+    from massviz.io.formats import realsense_live as realsense
 
     class Dev:
         def __init__(self, serial):

@@ -69,7 +69,8 @@ def run_rrd_dir(args) -> int:
         _clear(out)
     view = args.view if any(recordings[t.index].kind == "ccm" for t in tasks) else None
     collect = functools.partial(collect_rrd, out_dir=str(out.resolve()), full=args.full, view=view, video=args.video)
-    outcomes = run_tasks(args, "log", build(args), tasks, failed, on_error, collect, desc="log")
+    outcomes = run_tasks(args, "log", build(args), tasks, failed, on_error, collect, desc="log",
+                         recordings=recordings)
     results = [o.value for o in outcomes if o.ok]
     for r in results:
         if r.get("warning"):

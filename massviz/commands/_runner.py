@@ -52,7 +52,8 @@ def open_dataset(args):
 
     Dataset roots are expanded (an unusable root is an error at once); each recording is opened (checked) here; one
     that cannot be opened becomes a failed outcome under --on-error skip (the default for a dataset), an error under
-    stop. Task paths are absolute: workers open the recordings themselves."""
+    stop. Task paths are absolute: Ray workers open the recordings themselves; the local engine takes the opened
+    ones (pass them to ``run_tasks(recordings=)``)."""
     from massviz.errors import MassvizError
     from massviz.io.recording import find_recordings, open_recording
     from massviz.runners.dataset import Outcome, Task, default_on_error
@@ -74,9 +75,11 @@ def open_dataset(args):
     return tasks, failed, recordings, on_error
 
 
-def run_tasks(args, command: str, pipeline, tasks, failed, on_error, collect, desc: str = "recordings"):
+def run_tasks(args, command: str, pipeline, tasks, failed, on_error, collect, desc: str = "recordings",
+              recordings: dict | None = None):
     """Run the tasks on --engine; write --report (also when the run stops on a failure); failed recordings are
-    listed on stderr. Returns the outcomes in input order."""
+    listed on stderr. Returns the outcomes in input order. ``recordings``: the ones ``open_dataset`` opened (by
+    task index): the local engine processes them as opened, without opening them again."""
     from massviz.runners.dataset import RunStopped, portable_options, run_dataset, write_report
 
     stats: dict = {}
@@ -85,7 +88,8 @@ def run_tasks(args, command: str, pipeline, tasks, failed, on_error, collect, de
     try:
         outcomes = run_dataset(tasks, options, collect, engine=args.engine, workers=args.workers,
                                threads=args.threads, ray_address=args.ray_address, on_error=on_error,
-                               progress=not args.quiet, desc=desc, failed=failed, pipeline=pipeline, stats=stats)
+                               progress=not args.quiet, desc=desc, failed=failed, pipeline=pipeline, stats=stats,
+                               recordings=recordings)
     except RunStopped as stop:
         if args.report:
             done = {o.index for o in stop.outcomes}

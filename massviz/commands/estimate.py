@@ -93,7 +93,7 @@ def run(args) -> int:
         exclusions = load_exclusions(args.exclude)
     pipeline = build(args)
     collect = functools.partial(estimate_row, exclusions=exclusions, exec_time=args.exec_time)
-    outcomes = run_tasks(args, "estimate", pipeline, tasks, failed, on_error, collect)
+    outcomes = run_tasks(args, "estimate", pipeline, tasks, failed, on_error, collect, recordings=recordings)
     rows = []
     for o in outcomes:
         if o.ok:

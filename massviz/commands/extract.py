@@ -79,7 +79,8 @@ def run(args) -> int:
 
         exclusions = load_exclusions(args.exclude)
     collect = functools.partial(collect_patches, exclusions=exclusions, skip_flagged=args.skip_flagged)
-    outcomes = run_tasks(args, "extract", build(args), tasks, failed, on_error, collect, desc="extract")
+    outcomes = run_tasks(args, "extract", build(args), tasks, failed, on_error, collect, desc="extract",
+                         recordings=recordings)
     for o in outcomes:
         if o.ok:
             for line in [*o.value["notes"], *([o.value["warning"]] if o.value["warning"] else [])]:

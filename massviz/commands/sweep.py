@@ -85,7 +85,8 @@ def run(args) -> int:
         if not args.quiet:
             print("massviz sweep: every recording is in the cache; reading it here (--engine local)", file=sys.stderr)
         args.engine, args.workers, args.ray_address = "local", None, None
-    outcomes = run_tasks(args, "sweep", pipeline, tasks, failed, on_error, slim_trace, desc="traces")
+    outcomes = run_tasks(args, "sweep", pipeline, tasks, failed, on_error, slim_trace, desc="traces",
+                         recordings=opened)
     traces = [o.value for o in outcomes if o.ok]
     if not traces:
         raise MassvizError("no recording could be processed (see the errors above)")

@@ -98,7 +98,8 @@ def default_on_error(n_recordings: int) -> str:
 def run_dataset(tasks: Sequence[Task], options, collect: Callable | None = None, *, engine: str = "local",
                 workers: int | None = None, threads: int | None = None, ray_address: str | None = None,
                 on_error: str | None = None, progress: bool = True, desc: str = "recordings",
-                failed: Sequence[Outcome] = (), pipeline=None, stats: dict | None = None) -> list[Outcome]:
+                failed: Sequence[Outcome] = (), pipeline=None, stats: dict | None = None,
+                recordings: dict | None = None) -> list[Outcome]:
     """Process every task; one ``Outcome`` per task (and per ``failed`` outcome), in input (``index``) order.
 
     ``options``: a ``PipelineOptions`` a worker can build from (``portable_options``); ``pipeline``: the same
@@ -108,6 +109,8 @@ def run_dataset(tasks: Sequence[Task], options, collect: Callable | None = None,
     first failure, after the workers are shut down; "skip" records it and goes on; default: ``default_on_error``.
     KeyboardInterrupt stops the run (Ray: actors killed, a Ray this call started shut down) and propagates.
     ``stats`` (a dict) receives the engine, number of workers and threads, start-up and run seconds.
+    ``recordings``: {task index: the recording already opened by the caller}; the local engine uses them
+    instead of opening each recording again (Ray workers open theirs from the task's path).
     """
     if engine not in ENGINES:
         raise MassvizError(f"unknown engine {engine!r} (choose from {', '.join(ENGINES)})")
@@ -138,7 +141,7 @@ def run_dataset(tasks: Sequence[Task], options, collect: Callable | None = None,
             record(o)
         if engine == "local":
             _run_local(tasks, options, collect, threads, record, pipeline, stats,
-                       frame_progress=progress and len(tasks) + len(failed) == 1)
+                       frame_progress=progress and len(tasks) + len(failed) == 1, recordings=recordings or {})
         elif tasks:
             from massviz.runners.ray_engine import run_ray
 
@@ -150,7 +153,8 @@ def run_dataset(tasks: Sequence[Task], options, collect: Callable | None = None,
     return [outcomes[i] for i in sorted(outcomes)]
 
 
-def _run_local(tasks, options, collect, threads, record, pipeline, stats, frame_progress: bool) -> None:
+def _run_local(tasks, options, collect, threads, record, pipeline, stats, frame_progress: bool,
+               recordings: dict) -> None:
     import torch
 
     before = torch.get_num_threads()
@@ -160,7 +164,7 @@ def _run_local(tasks, options, collect, threads, record, pipeline, stats, frame_
         stats.update(workers=1, threads=torch.get_num_threads(), startup_s=time.perf_counter() - t0)
         debug = bool(os.environ.get("MASSVIZ_DEBUG"))
         for task in tasks:
-            record(worker.run(task, debug=debug, progress=frame_progress))
+            record(worker.run(task, debug=debug, progress=frame_progress, recording=recordings.get(task.index)))
     finally:
         torch.set_num_threads(before)
 

@@ -16,7 +16,6 @@ the processed frames as a massviz recording folder (so ``massviz log`` and noteb
 from __future__ import annotations
 
 import dataclasses
-import json
 import queue
 import signal
 import sys
@@ -30,7 +29,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from massviz.errors import MassvizError
-from massviz.io.meta import write_intrinsics
+from massviz.io.formats.folder import FolderFrameWriter
 
 #: seconds without any frame from a camera before the session gives up on it.
 SILENCE_S = 5.0
@@ -133,8 +132,7 @@ class FolderWriter:
             raise MassvizError("exists and is not an empty folder; --save needs a new folder", self.path)
         self._ctx = atomic_dir(self.path)
         self.tmp = self._ctx.__enter__()
-        (self.tmp / "rgb").mkdir()
-        (self.tmp / "depth").mkdir()
+        self._folder = FolderFrameWriter(self.tmp, compression=1)  # the folder format's writer; level 1: fast
         self._queue: queue.Queue = queue.Queue(maxsize=queue_size)
         self.error: BaseException | None = None
         self._thread = threading.Thread(target=self._work, name="massviz-save", daemon=True)
@@ -146,17 +144,12 @@ class FolderWriter:
         self._queue.put(frame)  # blocks when the disk is slower than the camera (more frames dropped, counted)
 
     def _work(self) -> None:
-        png = [cv2.IMWRITE_PNG_COMPRESSION, 1]
         while True:
             frame = self._queue.get()
             if frame is None:
                 return
             try:
-                name = f"{frame.index:06d}.png"
-                ok = cv2.imwrite(str(self.tmp / "rgb" / name), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR), png)
-                ok = ok and cv2.imwrite(str(self.tmp / "depth" / name), frame.depth, png)
-                if not ok:
-                    raise OSError(f"could not write frame {frame.index}")
+                self._folder.write(frame.index, frame.rgb, frame.depth)
             except BaseException as err:  # noqa: BLE001 - reported by write()/finish() on the main thread
                 self.error = err
 
@@ -167,11 +160,13 @@ class FolderWriter:
             err = MassvizError(f"cannot write the frames ({self.error})", self.path)
             self.abort(err)
             raise err
-        if intrinsics is not None:
-            write_intrinsics(intrinsics, self.tmp / "intrinsics.json")
-        (self.tmp / "meta.json").write_text(json.dumps(meta, indent=1) + "\n")
+        self._folder.finish(intrinsics, meta)
         self._ctx.__exit__(None, None, None)
         return self.path
+
+    def recording(self):
+        """The saved recording (after ``finish``), as ``open_recording`` would open it, without reading it back."""
+        return self._folder.written(self.path)
 
     def abort(self, err: BaseException | None = None) -> None:
         if self._thread.is_alive():
@@ -307,11 +302,10 @@ def run_live(stream, frame_pipeline, *, logger=None, duration: float | None = No
         if writer is not None:
             meta = dict(fp.recording.meta, id=name, fps=info.fps)
             saved = writer.finish(info.intrinsics, meta)
+            # the trace is the saved folder's (what the folder writer wrote, not read back): `massviz log SAVED`
+            # finds it in the cache and replays it exactly
+            trace = dataclasses.replace(trace, recording=writer.recording().info())
             writer = None
-            from massviz.io.recording import open_recording
-
-            # the trace is the saved folder's: `massviz log SAVED` finds it in the cache and replays it exactly
-            trace = dataclasses.replace(trace, recording=open_recording(saved).info())
         if logger is not None:
             logger.close(trace, timings={"live_seconds": stats.seconds}, summary=stats.summary())
             logger = None

@@ -78,8 +78,10 @@ class RecordingWorker:
         return self.name
 
     def run(self, task: Task, *, collect: Callable | None = None, fault: Callable | None = None,
-            debug: bool = False, progress: bool = False) -> Outcome:
-        """Process one task (``collect``: instead of the worker's own); errors become a failed ``Outcome``."""
+            debug: bool = False, progress: bool = False, recording=None) -> Outcome:
+        """Process one task (``collect``: instead of the worker's own); errors become a failed ``Outcome``.
+        ``recording``: the task's recording already opened in this process (the local engine), else it is opened
+        from ``task.path`` here (a Ray worker)."""
         from massviz.io.recording import open_recording
 
         collect = collect if collect is not None else self.collect
@@ -87,7 +89,8 @@ class RecordingWorker:
         t0 = time.perf_counter()
         out = Outcome(task.index, task.id, task.path, "failed", worker=self.name)
         try:
-            rec = open_recording(task.path, allow_partial=self.pipeline.options.allow_partial)
+            rec = recording if recording is not None else \
+                open_recording(task.path, allow_partial=self.pipeline.options.allow_partial)
             if fault is not None:
                 fault(rec)
             trace = self.pipeline.process(rec, progress=progress)

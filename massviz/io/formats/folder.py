@@ -185,6 +185,10 @@ class FolderFrameWriter:
         self.params = [cv2.IMWRITE_PNG_COMPRESSION, int(compression)]
         for sub in ("rgb", "depth", *extra):
             (self.folder / sub).mkdir()
+        self.names: list[str] = []
+        self.size: tuple[int, int] | None = None
+        self.intrinsics: Intrinsics | None = None
+        self.meta: dict = {}
 
     def _imwrite(self, path: Path, image: np.ndarray) -> None:
         if not cv2.imwrite(str(path), image, self.params):
@@ -193,16 +197,33 @@ class FolderFrameWriter:
     def write(self, index: int, rgb: np.ndarray, depth: np.ndarray, **extra: np.ndarray) -> None:
         """Frame ``index``: ``rgb`` H×W×3 uint8 RGB, ``depth`` H×W uint16 mm, ``extra`` sub-folder -> image."""
         name = f"{index:06d}.png"
+        self.size = self.size or (int(rgb.shape[1]), int(rgb.shape[0]))
         self._imwrite(self.folder / "rgb" / name, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
         self._imwrite(self.folder / "depth" / name, depth)
         for sub, image in extra.items():
             self._imwrite(self.folder / sub / name, image)
+        self.names.append(name)
 
     def finish(self, intrinsics: Intrinsics | None, meta: dict) -> Path:
         if intrinsics is not None:
             write_intrinsics(intrinsics, self.folder / "intrinsics.json")
-        (self.folder / "meta.json").write_text(json.dumps(meta, indent=1) + "\n")
+        text = json.dumps(meta, indent=1) + "\n"
+        (self.folder / "meta.json").write_text(text)
+        self.intrinsics, self.meta = intrinsics, json.loads(text)
         return self.folder
+
+    def written(self, path: str | Path) -> FrameFilesRecording:
+        """The recording this writer wrote, once its folder is at ``path`` (renamed into place), without reading
+        it back: what ``open_recording(path)`` returns for it (the frames' files, sizes, intrinsics, meta)."""
+        path = Path(path)
+        if self.size is None:
+            raise MassvizError("no frame was written", path)
+        width, height = self.size
+        return FrameFilesRecording(path=path, kind=KIND, id=str(self.meta.get("id", path.name)), width=width,
+                                   height=height, num_frames=len(self.names),
+                                   fps=float(self.meta.get("fps", 30.0)), intrinsics=self.intrinsics,
+                                   meta=self.meta, rgb_files=[path / "rgb" / n for n in self.names],
+                                   depth_files=[path / "depth" / n for n in self.names])
 
 
 def write_folder(recording, path: str | Path, compression: int = 7) -> Path:

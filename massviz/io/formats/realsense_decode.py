@@ -4,6 +4,8 @@ one depth stream, depth scale, intrinsics and depth-to-colour extrinsics checked
 for the file format, ``realsense_live`` for cameras."""
 from __future__ import annotations
 
+import math
+import unicodedata
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -12,6 +14,7 @@ import numpy as np
 
 from massviz.core.types import Frame, Intrinsics
 from massviz.errors import MassvizError, RecordingError
+from massviz.io.untrusted import MAX_IMAGE_SIDE
 
 SUFFIXES = (".db3", ".bag")
 INSTALL_HINT = "RealSense support needs pyrealsense2: pip install 'massviz[realsense]' (or pip install pyrealsense2)"
@@ -103,26 +106,74 @@ def stream_info(rs, device, profiles, source) -> StreamInfo:
     except RuntimeError:  # no depth-units option recorded: librealsense's default unit, said in the metadata
         scale = 0.001
         info["depth_scale_note"] = "no depth units option in the source: assumed 0.001 m (1 mm)"
-    if not scale > 0:
-        raise RecordingError(f"depth scale {scale} is not positive", source)
+    if not (math.isfinite(scale) and 0 < scale <= 1.0):
+        raise RecordingError(f"depth scale {scale} is not a unit in (0, 1] m", source)
     ci, di = c.get_intrinsics(), d.get_intrinsics()
+    _check_intrinsics(ci, "colour", source)
+    _check_intrinsics(di, "depth", source)
     same = ((ci.width, ci.height, ci.fx, ci.fy, ci.ppx, ci.ppy, ci.model, list(ci.coeffs))
             == (di.width, di.height, di.fx, di.fy, di.ppx, di.ppy, di.model, list(di.coeffs)))
     try:
         ex = d.get_extrinsics_to(c)
-        identity = (np.allclose(np.asarray(ex.rotation, float), np.eye(3).ravel(), atol=1e-7)
-                    and np.allclose(np.asarray(ex.translation, float), 0.0, atol=1e-9))
     except RuntimeError:
-        identity = False
+        ex = None
+    identity = False
+    if ex is not None:
+        rotation, translation = _check_extrinsics(ex, source)
+        identity = (np.allclose(rotation, np.eye(3), atol=1e-7) and np.allclose(translation, 0.0, atol=1e-9))
     for key, name in (("name", "name"), ("serial", "serial_number"), ("firmware", "firmware_version")):
         try:
             if device.supports(getattr(rs.camera_info, name)):
-                info[key] = device.get_info(getattr(rs.camera_info, name))
+                info[key] = printable(device.get_info(getattr(rs.camera_info, name)))
         except (RuntimeError, AttributeError):
             pass
     return StreamInfo(intrinsics=_intrinsics_of(c), fps=float(c.fps()), depth_scale=scale, colour_format=fmt,
                       registered=same and identity, distortion=str(ci.model).replace("distortion.", ""),
                       device=info)
+
+
+#: largest depth-to-colour translation accepted (metres): RealSense baselines are a few centimetres.
+MAX_BASELINE_M = 0.5
+
+
+def printable(text) -> str:
+    """A name read from a RealSense file or device with every control character escaped (``\\x1b``, ``\\n``):
+    safe to print on a terminal and to write in a CSV cell."""
+    return "".join(c if unicodedata.category(c)[0] != "C" else c.encode("unicode_escape").decode("ascii")
+                   for c in str(text)[:200])
+
+
+def _check_intrinsics(i, which: str, source) -> None:
+    """A stream's intrinsics from the file: fx, fy finite and > 0, the principal point finite and inside the
+    image, the size positive (else ``RecordingError`` naming ``source``: no ZeroDivisionError, no alignment that
+    silently maps every pixel away)."""
+    w, h = int(i.width), int(i.height)
+    if not (0 < w <= MAX_IMAGE_SIDE and 0 < h <= MAX_IMAGE_SIDE):
+        raise RecordingError(f"{which} stream is {w}x{h} pixels (1..{MAX_IMAGE_SIDE} per side)", source)
+    for key, value in (("fx", i.fx), ("fy", i.fy)):
+        if not (math.isfinite(value) and value > 0):
+            raise RecordingError(f"{which} intrinsics: {key} = {value} (must be finite and > 0)", source)
+    for key, value, hi in (("ppx", i.ppx, w), ("ppy", i.ppy, h)):
+        if not (math.isfinite(value) and 0 <= value <= hi):
+            raise RecordingError(f"{which} intrinsics: principal point {key} = {value} is outside the image "
+                                 f"(0..{hi})", source)
+
+
+def _check_extrinsics(ex, source) -> tuple[np.ndarray, np.ndarray]:
+    """Depth-to-colour extrinsics from the file: a finite rotation (orthonormal, determinant 1) and a finite
+    translation of at most ``MAX_BASELINE_M`` (an all-zero or NaN matrix, or a camera metres away, is refused)."""
+    rotation = np.asarray(ex.rotation, float).reshape(3, 3).T  # librealsense stores it column-major
+    translation = np.asarray(ex.translation, float)
+    if not (np.isfinite(rotation).all() and np.isfinite(translation).all()):
+        raise RecordingError("depth-to-colour extrinsics are not finite (NaN or infinite values)", source)
+    if not (np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3) and abs(np.linalg.det(rotation) - 1) < 1e-3):
+        raise RecordingError("depth-to-colour extrinsics: the rotation is not a rotation matrix (e.g. all zeros)",
+                             source)
+    if np.linalg.norm(translation) > MAX_BASELINE_M:
+        raise RecordingError(f"depth-to-colour extrinsics: the depth camera is {np.linalg.norm(translation):.3g} m "
+                             f"from the colour camera (at most {MAX_BASELINE_M} m: metres instead of millimetres?)",
+                             source)
+    return rotation, translation
 
 
 class FrameDecoder:

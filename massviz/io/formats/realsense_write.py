@@ -27,11 +27,12 @@ class SoftwareRig:
     """A ``software_device`` with a depth (z16, depth units option) and a colour (rgb8) sensor whose stream
     profiles carry the intrinsics. By default depth is registered to colour (the colour intrinsics, identity
     extrinsics); ``depth_intrinsics`` and ``translation_m`` (depth-to-colour, metres) describe a depth camera
-    beside the colour one instead (as on a real D400: then readers align with librealsense's align)."""
+    beside the colour one instead (as on a real D400: then readers align with librealsense's align); ``rotation``
+    (9 numbers, column-major) is the depth-to-colour rotation (tests write degenerate ones)."""
 
     def __init__(self, rs, intr: Intrinsics, fps: float, depth_units: float = 0.001, serial: str = "massviz-sw",
                  name: str = "massviz software camera", depth_intrinsics: Intrinsics | None = None,
-                 translation_m=(0.0, 0.0, 0.0)):
+                 translation_m=(0.0, 0.0, 0.0), rotation=(1, 0, 0, 0, 1, 0, 0, 0, 1)):
         self.rs, self.intr, self.fps, self.depth_units = rs, intr, fps, depth_units
         self.depth_intr = depth_intrinsics or intr
         sd = self.device = rs.software_device()
@@ -50,7 +51,7 @@ class SoftwareRig:
         self.depth_profile, self.colour_profile = profiles
         self.depth_sensor.add_read_only_option(rs.option.depth_units, depth_units)
         ex = rs.extrinsics()  # all zeros by default, not the identity
-        ex.rotation, ex.translation = [1, 0, 0, 0, 1, 0, 0, 0, 1], [float(t) for t in translation_m]
+        ex.rotation, ex.translation = [float(r) for r in rotation], [float(t) for t in translation_m]
         self.depth_profile.register_extrinsics_to(self.colour_profile, ex)
         sd.create_matcher(rs.matchers.dlr_c)
 
