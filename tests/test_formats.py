@@ -5,6 +5,7 @@ and a CCM root without the asked view says so (issue 22 item 9)."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import shutil
 from pathlib import Path
 
@@ -76,11 +77,11 @@ def test_estimate_opens_each_recording_once(tmp_path, monkeypatch):
     calls = []
     real = R.open_recording
     monkeypatch.setattr(R, "open_recording", lambda p, **kw: calls.append(Path(p).name) or real(p, **kw))
-    rec = copy_sample(tmp_path / "rec")
     ds = tmp_path / "ds"
-    ds.mkdir()
-    (ds / "a").symlink_to(rec, target_is_directory=True)
-    (ds / "b").symlink_to(rec, target_is_directory=True)
+    for name in ("a", "b"):
+        rec = copy_sample(ds / name)
+        meta = json.loads((rec / "meta.json").read_text())
+        (rec / "meta.json").write_text(json.dumps(dict(meta, id=name)))
     weights = _weights(tmp_path)
     code, _, err = run_cli(["estimate", ds, "--out", tmp_path / "p.csv", "--detector", "depth", "--weights", weights,
                             "--no-cache", "--quiet"])
