@@ -98,6 +98,32 @@ def _jpeg_header_only(width: int, height: int) -> bytes:
     return b"\xff\xd8" + b"\xff\xc0" + struct.pack(">H", len(sof) + 2) + sof + b"\xff\xd9"
 
 
+def _video_bomb(tmp: Path) -> bytes:
+    """An MJPEG AVI (named rgb.mp4: the container is probed, not the name) whose stream header declares 60000x60000
+    and whose frames' JPEG headers declare 12000x12000."""
+    path = tmp.parent / f"{tmp.name}-bomb.avi"
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30, (64, 48))
+    for i in range(3):
+        w.write(np.full((48, 64, 3), 50 * i, np.uint8))
+    w.release()
+    data = bytearray(path.read_bytes())
+    path.unlink()
+    avih, strf = data.find(b"avih"), data.find(b"strf")
+    struct.pack_into("<II", data, avih + 8 + 32, 60000, 60000)
+    struct.pack_into("<ii", data, strf + 8 + 4, 60000, 60000)
+    at = data.find(b"\xff\xc0")
+    while at >= 0:
+        struct.pack_into(">HH", data, at + 5, 12000, 12000)
+        at = data.find(b"\xff\xc0", at + 2)
+    return bytes(data)
+
+
+def _video_rec(tmp: Path, weights=None) -> Path:
+    rec = copy_sample(tmp, video=True)
+    (rec / "rgb.mp4").write_bytes(_video_bomb(tmp))
+    return rec
+
+
 BOMBS = {
     "rgb-png": ("rgb", "000001.png", lambda: png_header_only(60000, 60000)),
     "rgb-jpeg": ("rgb", "000001.jpg", lambda: _jpeg_header_only(65000, 65000)),
@@ -118,6 +144,14 @@ def test_header_bombs_are_refused_naming_the_file(name, tmp_path, weights):
     (rec / sub / file).write_bytes(make())
     argv, out = estimate_argv(work, rec, weights)
     refused(argv, work, rec / sub / file, r"declares \d+x\d+ pixels", [out])
+
+
+def test_video_bomb_is_refused_naming_the_video(tmp_path, weights):
+    work = tmp_path / "w"
+    work.mkdir()
+    rec = _video_rec(work / "rec")
+    argv, out = estimate_argv(work, rec, weights)
+    refused(argv, work, rec / "rgb.mp4", r"declares|cannot decode", [out])
 
 
 def test_header_bombs_do_not_allocate(tmp_path):
@@ -147,6 +181,10 @@ def test_header_bombs_do_not_allocate(tmp_path):
         assert f"refused: {rec / sub / file}" in r.stdout, (name, r.stdout)
         rss = float(r.stdout.split("rss_mb")[1])
         assert rss < MAX_RSS_MB, (name, rss)
+    rec = _video_rec(tmp_path / "video")
+    r = subprocess.run([sys.executable, str(script), str(rec)], capture_output=True, text=True, timeout=120, env=env)
+    assert f"refused: {rec / 'rgb.mp4'}" in r.stdout, r.stdout + r.stderr
+    assert float(r.stdout.split("rss_mb")[1]) < MAX_RSS_MB, r.stdout
 
 
 # ==================================================================================================== frame folders

@@ -178,12 +178,12 @@ def _cache(pipeline, trace, result, args, stream):
     from massviz.io.recording import open_recording
 
     info = {"name": pipeline.detector.name, **pipeline.detector.settings()}
-    if result.saved is not None:
-        return pipeline.cache.save(trace, open_recording(result.saved), info)
+    if result.saved is not None:  # the recording the folder writer wrote (not read back)
+        return pipeline.cache.save(trace, result.recording, info)
     if args.file:
         import dataclasses
 
-        rec = open_recording(args.file)
+        rec = stream.recording if stream.recording is not None else open_recording(args.file)
         numbers = rec.meta.get("realsense", {}).get("frame_numbers")
         if result.stats.dropped == 0 and numbers == result.stats.frame_numbers:
             return pipeline.cache.save(dataclasses.replace(trace, recording=rec.info()), rec, info)

@@ -117,6 +117,8 @@ class LiveResult:
     trace: object
     stats: LiveStats
     saved: Path | None = None
+    #: the saved recording (``save``) as the folder writer wrote it: what ``open_recording(saved)`` returns
+    recording: object = None
 
 
 class FolderWriter:
@@ -298,18 +300,20 @@ def run_live(stream, frame_pipeline, *, logger=None, duration: float | None = No
         fp.recording.num_frames = stats.processed
         fp.recording.meta.setdefault("live", {}).update(live_meta(stats, source or stream.description))
         trace = fp.finish()
-        saved = None
+        saved = saved_recording = None
         if writer is not None:
             meta = dict(fp.recording.meta, id=name, fps=info.fps)
             saved = writer.finish(info.intrinsics, meta)
             # the trace is the saved folder's (what the folder writer wrote, not read back): `massviz log SAVED`
             # finds it in the cache and replays it exactly
-            trace = dataclasses.replace(trace, recording=writer.recording().info())
+            saved_recording = writer.recording()
+            trace = dataclasses.replace(trace, recording=saved_recording.info())
             writer = None
         if logger is not None:
             logger.close(trace, timings={"live_seconds": stats.seconds}, summary=stats.summary())
             logger = None
-        return LiveResult(trace=trace, stats=stats, saved=saved)
+        return LiveResult(trace=trace, stats=stats, saved=saved,
+                          recording=saved_recording)
     except BaseException as err:
         try:
             stream.stop()

@@ -21,8 +21,10 @@ class LiveStream:
     librealsense's threads as it arrives (the sink must not block: it keeps the newest); ``frame(c, d, index)``
     turns a pair into a massviz ``Frame`` (align, copy, mm)."""
 
-    def __init__(self, reader: DeviceReader, description: str, on_stop=None):
+    def __init__(self, reader: DeviceReader, description: str, on_stop=None, recording=None):
         self.reader, self.description, self._on_stop = reader, description, on_stop
+        #: a file's ``RealSenseRecording`` (opened and checked once, before its real-time playback); None otherwise
+        self.recording = recording
 
     @property
     def info(self) -> StreamInfo:
@@ -60,7 +62,8 @@ def open_file_stream(path: str | Path) -> LiveStream:
     rec = open_realsense(path)  # every check (and a clear line) up front
     rs, device, playback, profiles = playback_device(rec.path, real_time=True)
     reader = DeviceReader(rs, device, profiles, rec.path, None, playback=playback)
-    return LiveStream(reader, f"{rec.path.name} (real-time playback, {rec.num_frames} frames at {rec.fps:g} fps)")
+    return LiveStream(reader, f"{rec.path.name} (real-time playback, {rec.num_frames} frames at {rec.fps:g} fps)",
+                      recording=rec)
 
 
 def list_cameras() -> list[dict]:
