@@ -15,6 +15,7 @@ import numpy as np
 from massviz.core.types import Frame
 from massviz.errors import RecordingError
 from massviz.io.formats.common import RecordingBase, wanted_frames
+from massviz.io.untrusted import text_id
 from massviz.io.formats.realsense_decode import StreamInfo, import_rs, stream_info
 from massviz.io.formats.realsense_device import FileFrames, playback_device
 
@@ -160,6 +161,7 @@ def open_realsense(path: str | Path) -> RealSenseRecording:
     path = Path(path)
     if not path.is_file():
         raise RecordingError("no such file", path)
+    text_id(path.stem, "recording id (the file's name)", path, RecordingError)  # as folders' and CCM videos' names
     rs = import_rs()
     counted = None
     if path.suffix.lower() == ".db3":
