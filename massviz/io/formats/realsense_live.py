@@ -9,7 +9,7 @@ from pathlib import Path
 
 from massviz.core.types import Frame, Intrinsics
 from massviz.errors import MassvizError
-from massviz.io.formats.realsense_decode import StreamInfo, import_rs
+from massviz.io.formats.realsense_decode import StreamInfo, import_rs, printable
 from massviz.io.formats.realsense_device import DeviceReader, playback_device
 from massviz.io.formats.realsense_file import open_realsense
 from massviz.io.formats.realsense_write import SoftwareRig
@@ -74,7 +74,7 @@ def list_cameras() -> list[dict]:
         info = {}
         for key, name in (("name", "name"), ("serial", "serial_number")):
             if dev.supports(getattr(rs.camera_info, name)):
-                info[key] = dev.get_info(getattr(rs.camera_info, name))
+                info[key] = printable(dev.get_info(getattr(rs.camera_info, name)))
         out.append(info)
     return out
 
@@ -106,7 +106,9 @@ def open_camera(serial: str | None = None, width: int = 640, height: int = 480, 
     elif serial in serials:
         device = devices[serials.index(serial)]
     else:
-        raise MassvizError(f"no RealSense camera with serial {serial} (connected: {', '.join(serials)})")
+        raise MassvizError(f"no RealSense camera with serial {printable(serial)} "
+                           f"(connected: {', '.join(map(printable, serials))})")
+    serial = printable(serial)  # from the device: printed in messages and descriptions
     profiles = []
     for stream, formats in ((rs.stream.color, [rs.format.rgb8, rs.format.bgr8, rs.format.yuyv]),
                             (rs.stream.depth, [rs.format.z16])):
