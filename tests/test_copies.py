@@ -1,0 +1,31 @@
+"""One copy of each small thing (issue 19): the shared helpers equal the library calls they stand for."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+
+def test_box_iou_equals_torchvisions_box_iou_in_float64():
+    from torchvision.ops import box_iou as tv_box_iou
+
+    from massviz.core.tracks import box_iou
+
+    rng = np.random.default_rng(0)
+    boxes = rng.integers(0, 50, (200, 4)).astype(np.float64)
+    boxes[:, 2:] = boxes[:, :2] + rng.integers(0, 20, (200, 2))  # some empty boxes too
+    expected = torch.nan_to_num(tv_box_iou(torch.from_numpy(boxes[:20]), torch.from_numpy(boxes)), nan=0.0).numpy()
+    got = box_iou(boxes[:20], boxes)
+    assert got.shape == (20, 200) and got.dtype == np.float64
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12)
+    assert (got == 0).any() and (got == 1).any() and ((got > 0) & (got < 1)).any()
+    np.testing.assert_array_equal(box_iou(boxes[3], boxes), got[3:4])  # one box against many
+    assert box_iou(boxes[:0], boxes).shape == (0, 200)
+
+
+def test_box_iou_is_the_one_copy():
+    import massviz.core.tracks as tracks
+    import massviz.evaluation.compare as compare
+    import massviz.evaluation.failures as failures
+
+    assert compare.box_iou is tracks.box_iou and failures.box_iou is tracks.box_iou
