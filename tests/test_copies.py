@@ -29,3 +29,21 @@ def test_box_iou_is_the_one_copy():
     import massviz.evaluation.failures as failures
 
     assert compare.box_iou is tracks.box_iou and failures.box_iou is tracks.box_iou
+
+
+def test_one_precision_list():
+    import argparse
+
+    import massviz.app as app
+    import massviz.detect.maskrcnn as maskrcnn
+    from massviz.commands._common import add_pipeline_args
+    from massviz.core.model import MassNet
+    from massviz.core.types import PRECISIONS
+
+    assert PRECISIONS[0] == "fp32" and app.PRECISIONS is PRECISIONS and maskrcnn.PRECISIONS is PRECISIONS
+    p = argparse.ArgumentParser()
+    add_pipeline_args(p)
+    (action,) = [a for a in p._actions if a.dest == "precision"]
+    assert tuple(action.choices) == PRECISIONS and action.default == "fp32"
+    with pytest.raises(ValueError, match="fp32, bf16, fp16"):
+        MassNet().set_precision("fp64")

@@ -43,11 +43,9 @@ import numpy as np
 import torch
 
 from massviz.errors import MassvizError, WeightsError
-from massviz.core.types import COCO_KEEP, Detections, Frame
+from massviz.core.types import COCO_KEEP, PRECISIONS, Detections, Frame
 
 MASK_THRESHOLD = 0.5
-#: ``--precision`` choices; fp32 is the default and the paper's.
-PRECISIONS = ("fp32", "bf16", "fp16")
 _DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
 
 
