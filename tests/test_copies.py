@@ -47,3 +47,28 @@ def test_one_precision_list():
     assert tuple(action.choices) == PRECISIONS and action.default == "fp32"
     with pytest.raises(ValueError, match="fp32, bf16, fp16"):
         MassNet().set_precision("fp64")
+
+
+def test_png_header_size_is_the_one_png_header_reader(tmp_path):
+    import struct
+
+    import cv2
+
+    import massviz.io.untrusted as untrusted
+
+    buf = cv2.imencode(".png", np.zeros((7, 13, 3), np.uint8))[1].tobytes()
+    assert untrusted.png_header_size(buf[:24]) == (13, 7)
+    assert untrusted.png_header_size(buf[:23]) is None and untrusted.png_header_size(b"\0" * 24) is None
+    big = buf[:16] + struct.pack(">II", 70000, 3) + buf[24:]
+    assert untrusted.png_header_size(big) == (70000, 3)
+    assert untrusted.image_header_size("x.png", big) == (70000, 3)  # header only, never decoded
+    path = tmp_path / "a.png"
+    path.write_bytes(buf)
+    assert untrusted.image_header_size(path) == (13, 7)
+    # the trace file's patch check reads headers through it (no second parser)
+    import inspect
+
+    import massviz.io.trace_file as trace_file
+
+    assert "png_header_size" in inspect.getsource(trace_file.check_trace_arrays)
+    assert b"IHDR" not in inspect.getsource(trace_file).encode()
