@@ -72,3 +72,28 @@ def test_png_header_size_is_the_one_png_header_reader(tmp_path):
 
     assert "png_header_size" in inspect.getsource(trace_file.check_trace_arrays)
     assert b"IHDR" not in inspect.getsource(trace_file).encode()
+
+
+def test_file_hasher_memo_is_written_through_atomic_path(tmp_path, monkeypatch):
+    import json
+    import os
+
+    import massviz.io.filehash as filehash
+
+    data = tmp_path / "a.bin"
+    data.write_bytes(b"abc")
+    store = tmp_path / "hashes"
+    (digest,) = filehash.FileHasher(store).digests([data], "rec")
+    assert digest == filehash.file_digest(data)
+    (memo,) = store.iterdir()  # one memo file, no temporary left beside it
+    assert json.loads(memo.read_text())[os.path.abspath(data)][1] == digest
+    assert filehash.FileHasher(store).digests([data], "rec") == [digest]
+
+    def fail(*a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(filehash.json, "dumps", fail)  # the memo cannot be written: ignored, nothing half-written
+    data.write_bytes(b"abcd")
+    assert filehash.FileHasher(store).digests([data], "rec") == [filehash.file_digest(data)]
+    assert list(store.iterdir()) == [memo] and json.loads(memo.read_text())[os.path.abspath(data)][1] == digest
+    assert "atomic_path" in filehash.FileHasher._write.__code__.co_names
