@@ -97,3 +97,30 @@ def test_file_hasher_memo_is_written_through_atomic_path(tmp_path, monkeypatch):
     assert filehash.FileHasher(store).digests([data], "rec") == [filehash.file_digest(data)]
     assert list(store.iterdir()) == [memo] and json.loads(memo.read_text())[os.path.abspath(data)][1] == digest
     assert "atomic_path" in filehash.FileHasher._write.__code__.co_names
+
+
+def test_fold_batchnorm_is_torchs_fuse_conv_bn_weights():
+    from torchvision.ops.misc import FrozenBatchNorm2d
+
+    from massviz.detect.maskrcnn import fold_batchnorm
+
+    torch.manual_seed(0)
+    net = torch.nn.Sequential(torch.nn.Conv2d(3, 8, 3, padding=1, bias=False), FrozenBatchNorm2d(8), torch.nn.ReLU(),
+                              torch.nn.Conv2d(8, 4, 3, padding=1, bias=False), torch.nn.BatchNorm2d(4),
+                              torch.nn.Conv2d(4, 4, 1), torch.nn.BatchNorm2d(4)).eval()  # last conv has a bias: kept
+    for bn in (net[1], net[4], net[6]):
+        bn.running_mean.uniform_(-0.5, 0.5)
+        bn.running_var.uniform_(0.5, 2.0)
+        bn.weight.data.uniform_(-1.5, 1.5)
+        bn.bias.data.uniform_(-0.2, 0.2)
+    expected_conv = torch.nn.utils.fuse_conv_bn_eval(net[3], net[4])
+    x = torch.rand(2, 3, 16, 16)
+    with torch.no_grad():
+        expected = net(x)
+        assert fold_batchnorm(net) == 2
+        got = net(x)
+    assert [type(m).__name__ for m in net] == ["Conv2d", "Identity", "ReLU", "Conv2d", "Identity", "Conv2d",
+                                               "BatchNorm2d"]
+    assert torch.equal(net[3].weight, expected_conv.weight) and torch.equal(net[3].bias, expected_conv.bias)
+    assert not net[3].weight.requires_grad and net[3].weight.device.type == "cpu"
+    torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-5)

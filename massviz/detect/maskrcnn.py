@@ -122,9 +122,11 @@ def fold_batchnorm(module: torch.nn.Module) -> int:
     pairs) into that convolution, replacing the norm by ``Identity``; returns how many were folded.
 
     Eval-mode statistics are used (``BatchNorm2d`` in eval mode or ``FrozenBatchNorm2d``): y = conv(x) * s + t with
-    s = weight / sqrt(var + eps), t = bias - mean * s becomes one convolution with weight * s and bias t. New tensors
-    are created (nothing is modified in place), so a module that shares parameters with another is safe to fold.
+    s = weight / sqrt(var + eps), t = bias - mean * s becomes one convolution with weight * s and bias t, computed by
+    ``torch.nn.utils.fuse_conv_bn_weights``. New tensors are created (nothing is modified in place), so a module that
+    shares parameters with another is safe to fold.
     """
+    from torch.nn.utils import fuse_conv_bn_weights
     from torchvision.ops.misc import FrozenBatchNorm2d
 
     folded = 0
@@ -137,14 +139,13 @@ def fold_batchnorm(module: torch.nn.Module) -> int:
             if conv.bias is not None or (isinstance(bn, torch.nn.BatchNorm2d) and (bn.training or bn.running_var is None)):
                 continue
             with torch.no_grad():
-                scale = bn.weight * torch.rsqrt(bn.running_var + bn.eps)
-                shift = bn.bias - bn.running_mean * scale
                 new = torch.nn.Conv2d(conv.in_channels, conv.out_channels, conv.kernel_size, conv.stride,
                                       conv.padding, conv.dilation, conv.groups, bias=True,
-                                      padding_mode=conv.padding_mode, device=conv.weight.device,
-                                      dtype=conv.weight.dtype)
-                new.weight = torch.nn.Parameter(conv.weight * scale.reshape(-1, 1, 1, 1), requires_grad=False)
-                new.bias = torch.nn.Parameter(shift.clone(), requires_grad=False)
+                                      padding_mode=conv.padding_mode, device="meta")
+                weight, bias = fuse_conv_bn_weights(conv.weight, None, bn.running_mean, bn.running_var, bn.eps,
+                                                    bn.weight, bn.bias)
+                new.weight = torch.nn.Parameter(weight, requires_grad=False)
+                new.bias = torch.nn.Parameter(bias, requires_grad=False)
             parent._modules[prev], parent._modules[name] = new, torch.nn.Identity()
             folded += 1
     return folded
