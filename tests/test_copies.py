@@ -124,3 +124,81 @@ def test_fold_batchnorm_is_torchs_fuse_conv_bn_weights():
     assert torch.equal(net[3].weight, expected_conv.weight) and torch.equal(net[3].bias, expected_conv.bias)
     assert not net[3].weight.requires_grad and net[3].weight.device.type == "cpu"
     torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-5)
+
+
+def test_roialign_torchvision_privates_are_those_of_the_pinned_version():
+    """roialign.py calls private torchvision helpers: another torchvision must fail here, loudly, until re-checked."""
+    import inspect
+    import re
+    from pathlib import Path
+
+    import torchvision
+    from torchvision.ops import poolers
+
+    import massviz.detect.roialign as roialign
+
+    pyproject = (Path(__file__).parents[1] / "pyproject.toml").read_text()
+    assert f'"torchvision=={roialign.TESTED_TORCHVISION}"' in pyproject
+    assert torchvision.__version__.split("+")[0] == roialign.TESTED_TORCHVISION, (
+        f"torchvision {torchvision.__version__} is not {roialign.TESTED_TORCHVISION}: re-check the private helpers "
+        f"massviz/detect/roialign.py uses ({', '.join(roialign.TORCHVISION_PRIVATES)}) and MultiScaleRoIAlign's "
+        "attributes, then update TESTED_TORCHVISION")
+    source = inspect.getsource(roialign)
+    used = set(re.findall(r"from torchvision\.ops\.poolers import ([\w, ]+)", source)[0].replace(" ", "").split(","))
+    assert used == set(roialign.TORCHVISION_PRIVATES)
+    for name in roialign.TORCHVISION_PRIVATES:
+        assert callable(getattr(poolers, name, None)), f"torchvision.ops.poolers.{name} is gone"
+    pool = poolers.MultiScaleRoIAlign(["0", "1"], 7, 2)
+    for attr in ("featmap_names", "sampling_ratio", "output_size", "scales", "map_levels", "canonical_scale",
+                 "canonical_level"):
+        assert hasattr(pool, attr), f"MultiScaleRoIAlign has no {attr}"
+    assert list(inspect.signature(poolers._setup_scales).parameters) == ["features", "image_shapes", "canonical_scale",
+                                                                          "canonical_level"]
+
+
+@pytest.fixture(scope="module")
+def random_maskrcnn():
+    from massviz.detect.maskrcnn import build_model
+
+    return build_model(0.4, pretrained=False)
+
+
+def test_class_filter_is_a_roiheads_subclass_with_torchvisions_settings(random_maskrcnn):
+    from torchvision.models.detection import maskrcnn_resnet50_fpn
+    from torchvision.models.detection.roi_heads import RoIHeads
+
+    from massviz.detect.maskrcnn import ClassFilterRoIHeads
+
+    heads = random_maskrcnn.roi_heads
+    assert type(heads) is ClassFilterRoIHeads and isinstance(heads, RoIHeads)
+    assert "postprocess_detections" not in vars(heads)  # no instance patch
+    stock = maskrcnn_resnet50_fpn(weights=None, weights_backbone=None, num_classes=91, box_score_thresh=0.4).roi_heads
+    for get in (lambda h: h.proposal_matcher.high_threshold, lambda h: h.proposal_matcher.low_threshold,
+                lambda h: h.proposal_matcher.allow_low_quality_matches, lambda h: h.fg_bg_sampler.batch_size_per_image,
+                lambda h: h.fg_bg_sampler.positive_fraction, lambda h: h.box_coder.weights,
+                lambda h: h.box_coder.bbox_xform_clip, lambda h: h.score_thresh, lambda h: h.nms_thresh,
+                lambda h: h.detections_per_img, lambda h: h.has_mask(), lambda h: h.has_keypoint(),
+                lambda h: h.training):
+        assert get(heads) == get(stock.eval())
+    assert heads.state_dict().keys() == stock.state_dict().keys()  # keep_classes is not saved
+    assert heads.keep_classes.tolist() == [44, 46, 47, 84]
+    # one proposal scoring 0.45 as a person (1) and as a cup (47): torchvision keeps both, the subclass the cup
+    logits = torch.zeros(1, 91)
+    logits[0, [1, 47]] = 6.0
+    args = (logits, torch.zeros(1, 91 * 4), [torch.tensor([[10.0, 10.0, 50.0, 50.0]])], [(100, 100)])
+    _, s_scores, s_labels = stock.postprocess_detections(*args)
+    boxes, scores, labels = heads.postprocess_detections(*args)
+    assert sorted(s_labels[0].tolist()) == [1, 47] and labels[0].tolist() == [47]
+    assert scores[0].tolist() == s_scores[0][s_labels[0] == 47].tolist() and boxes[0].shape == (1, 4)
+
+
+def test_mask_crop_transform_is_a_transform_subclass_with_torchvisions_settings(random_maskrcnn):
+    from massviz.detect.maskrcnn import MaskCropTransform, runtime_model
+
+    stock = random_maskrcnn.transform
+    fast = runtime_model(random_maskrcnn).transform
+    assert type(fast) is MaskCropTransform and "postprocess" not in vars(fast)
+    for attr in ("min_size", "max_size", "image_mean", "image_std", "size_divisible", "fixed_size", "_skip_resize",
+                 "training"):
+        assert getattr(fast, attr) == getattr(stock, attr)
+    assert type(random_maskrcnn.transform) is not MaskCropTransform  # the torchvision model is left as it was

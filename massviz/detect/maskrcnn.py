@@ -36,11 +36,12 @@ the proposals are decoded in bf16, whose 8-bit mantissa puts a 1000-pixel coordi
 from __future__ import annotations
 
 import copy
-import types
 from pathlib import Path
 
 import numpy as np
 import torch
+from torchvision.models.detection.roi_heads import RoIHeads
+from torchvision.models.detection.transform import GeneralizedRCNNTransform, resize_boxes
 
 from massviz.errors import MassvizError, WeightsError
 from massviz.core.types import COCO_KEEP, PRECISIONS, Detections, Frame
@@ -103,17 +104,31 @@ def build_model(threshold: float, weights: str | Path | None = None, pretrained:
             raise WeightsError(f"could not download torchvision's COCO Mask R-CNN weights ({err}); pass "
                                "--detector-weights PATH (an offline copy) or use --detector depth") from None
         model.load_state_dict(state)
-    keep = torch.tensor(sorted(int(c) for c in classes))
-    stock = type(model.roi_heads).postprocess_detections
+    model.roi_heads = ClassFilterRoIHeads.of(model.roi_heads, classes)
+    return model.eval()
+
+
+class ClassFilterRoIHeads(RoIHeads):
+    """torchvision's ``RoIHeads`` whose box post-processing keeps only the classes in ``keep_classes``: the other
+    boxes are dropped before the mask head runs (module docstring). Same submodules, so the same ``state_dict``."""
+
+    @classmethod
+    def of(cls, stock, classes) -> "ClassFilterRoIHeads":
+        """A copy of ``stock`` (a torchvision ``RoIHeads`` without keypoints) sharing its submodules."""
+        heads = cls(stock.box_roi_pool, stock.box_head, stock.box_predictor,
+                    stock.proposal_matcher.high_threshold, stock.proposal_matcher.low_threshold,
+                    stock.fg_bg_sampler.batch_size_per_image, stock.fg_bg_sampler.positive_fraction,
+                    stock.box_coder.weights, stock.score_thresh, stock.nms_thresh, stock.detections_per_img,
+                    mask_roi_pool=stock.mask_roi_pool, mask_head=stock.mask_head,
+                    mask_predictor=stock.mask_predictor)
+        heads.register_buffer("keep_classes", torch.tensor(sorted(int(c) for c in classes)), persistent=False)
+        return heads.train(stock.training)
 
     def postprocess_detections(self, *args, **kwargs):
-        boxes, scores, labels = stock(self, *args, **kwargs)
-        out = [torch.isin(lab, keep.to(lab.device)) for lab in labels]
-        return [b[m] for b, m in zip(boxes, out)], [s[m] for s, m in zip(scores, out)], [lab[m] for lab, m in
-                                                                                         zip(labels, out)]
-
-    model.roi_heads.postprocess_detections = types.MethodType(postprocess_detections, model.roi_heads)
-    return model.eval()
+        boxes, scores, labels = super().postprocess_detections(*args, **kwargs)
+        keep = [torch.isin(lab, self.keep_classes.to(lab.device)) for lab in labels]
+        return ([b[m] for b, m in zip(boxes, keep)], [s[m] for s, m in zip(scores, keep)],
+                [lab[m] for lab, m in zip(labels, keep)])
 
 
 # ------------------------------------------------------------------------------------------------ faithful speed-ups
@@ -178,16 +193,25 @@ def paste_mask_crops(masks: torch.Tensor, boxes: torch.Tensor, im_h: int, im_w: 
     return out
 
 
-def _postprocess_mask_crops(self, result, image_shapes, original_image_sizes):
-    """``GeneralizedRCNNTransform.postprocess`` with ``paste_mask_crops`` instead of full-image mask pasting: boxes are
-    rescaled as torchvision does; ``masks`` is replaced by ``mask_crops`` (bool arrays, one per box)."""
-    from torchvision.models.detection.transform import resize_boxes
+class MaskCropTransform(GeneralizedRCNNTransform):
+    """torchvision's ``GeneralizedRCNNTransform`` whose ``postprocess`` uses ``paste_mask_crops`` instead of
+    full-image mask pasting: boxes are rescaled as torchvision does; ``masks`` is replaced by ``mask_crops`` (bool
+    arrays, one per box)."""
 
-    for pred, im_s, o_im_s in zip(result, image_shapes, original_image_sizes):
-        pred["boxes"] = resize_boxes(pred["boxes"], im_s, o_im_s)
-        if "masks" in pred:
-            pred["mask_crops"] = paste_mask_crops(pred.pop("masks"), pred["boxes"], *o_im_s)
-    return result
+    @classmethod
+    def of(cls, stock) -> "MaskCropTransform":
+        """The same pre-processing as the torchvision transform ``stock``."""
+        return cls(stock.min_size, stock.max_size, stock.image_mean, stock.image_std, stock.size_divisible,
+                   stock.fixed_size, _skip_resize=stock._skip_resize).train(stock.training)
+
+    def postprocess(self, result, image_shapes, original_image_sizes):
+        if self.training:
+            return result
+        for pred, im_s, o_im_s in zip(result, image_shapes, original_image_sizes):
+            pred["boxes"] = resize_boxes(pred["boxes"], im_s, o_im_s)
+            if "masks" in pred:
+                pred["mask_crops"] = paste_mask_crops(pred.pop("masks"), pred["boxes"], *o_im_s)
+        return result
 
 
 def _float32(x):
@@ -268,7 +292,7 @@ def runtime_model(model: torch.nn.Module, precision: str = "fp32", device=None, 
                 if p is not None and p.dim() == 4:
                     m._parameters[name] = torch.nn.Parameter(p.contiguous(memory_format=torch.channels_last),
                                                              requires_grad=False)
-    fast.transform.postprocess = types.MethodType(_postprocess_mask_crops, fast.transform)
+    fast.transform = MaskCropTransform.of(fast.transform)
     if fused and device.type == "cpu":
         from massviz.detect.roialign import ChannelsLastMultiScaleRoIAlign
 
