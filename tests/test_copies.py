@@ -202,3 +202,65 @@ def test_mask_crop_transform_is_a_transform_subclass_with_torchvisions_settings(
                  "training"):
         assert getattr(fast, attr) == getattr(stock, attr)
     assert type(random_maskrcnn.transform) is not MaskCropTransform  # the torchvision model is left as it was
+
+
+def test_download_is_torch_hubs_with_the_sha256_checked(tmp_path, monkeypatch):
+    import email.message
+    import hashlib
+    import subprocess
+    import sys
+
+    import torch.hub
+
+    import massviz.io.weights as W
+    from massviz.errors import WeightsError
+
+    src = tmp_path / "src" / "model.bin"
+    src.parent.mkdir()
+    src.write_bytes(b"x" * 200_000)
+    digest = hashlib.sha256(src.read_bytes()).hexdigest()
+    calls = []
+    real = torch.hub.download_url_to_file
+    monkeypatch.setattr(torch.hub, "download_url_to_file", lambda *a, **k: calls.append((a, k)) or real(*a, **k))
+    dst = tmp_path / "cache" / "sub" / "model.bin"
+    assert W.download(src.as_uri(), dst, digest.upper(), progress=False) == dst  # the folder is made
+    assert dst.read_bytes() == src.read_bytes() and calls[0][1]["hash_prefix"] == digest
+    assert sorted(p.name for p in dst.parent.iterdir()) == ["model.bin"]
+
+    other = tmp_path / "other"  # a wrong sha256: an error naming the URL, nothing kept, an existing file untouched
+    with pytest.raises(WeightsError, match="sha256") as e:
+        W.download(src.as_uri(), other / "model.bin", "0" * 64, progress=False)
+    assert src.as_uri() in str(e.value) and W.ENV_WEIGHTS in str(e.value) and list(other.iterdir()) == []
+    with pytest.raises(WeightsError, match="sha256"):
+        W.download(src.as_uri(), dst, "1" * 64, progress=False)
+    assert dst.read_bytes() == src.read_bytes() and sorted(p.name for p in dst.parent.iterdir()) == ["model.bin"]
+    with pytest.raises(ValueError, match="64 hex"):  # torch.hub checks a prefix: an empty one must not pass
+        W.download(src.as_uri(), other / "x.bin", "", progress=False)
+
+    class Broken:  # the connection drops after the first chunk
+        def __init__(self, *a, **k):
+            self.sent = False
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def info(self):
+            msg = email.message.Message()
+            msg["Content-Length"] = "1000000"
+            return msg
+
+        def read(self, n):
+            if self.sent:
+                raise ConnectionResetError(104, "Connection reset by peer")
+            self.sent = True
+            return b"y" * 1000
+
+    monkeypatch.setattr(torch.hub, "urlopen", Broken)
+    with pytest.raises(WeightsError, match="cannot download"):
+        W.download("https://example.invalid/model.bin", other / "model.bin", digest, progress=False)
+    assert list(other.iterdir()) == []
+    code = "import sys, massviz.io.weights; sys.exit('torch' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", code]).returncode == 0  # importing it stays torch-free
