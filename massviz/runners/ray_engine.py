@@ -13,7 +13,7 @@
   times each); a recording whose actor has no restart left is tried once more on another actor, then fails with
   "the Ray worker processing it died".
 
-Why not ``ray.util.ActorPool`` (checked on Ray 2.x as installed): when a call fails, ``get_next_unordered`` raises
+Why not ``ray.util.ActorPool`` (checked on Ray 2.60): when a call fails, ``get_next_unordered`` raises
 without saying which value it was for, so the recording could neither be retried on another actor nor named in
 its failure line; an actor whose process died stays out of the pool but the values queued for it stay in the pool's
 private ``_pending_submits`` (``has_next()`` is then False: they would be silently dropped instead of reported
