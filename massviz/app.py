@@ -19,10 +19,9 @@ from pathlib import Path
 from massviz.core.pipeline import FramePipeline, repredict, resolve_selection, run
 from massviz.core.selection import Selection
 from massviz.core.trace import Event
+from massviz.core.types import PRECISIONS
 from massviz.errors import MassvizError
 
-#: ``--precision`` choices (``massviz.detect.maskrcnn`` runs them).
-PRECISIONS = ("fp32", "bf16", "fp16")
 
 
 @dataclass(frozen=True)

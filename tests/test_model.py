@@ -312,16 +312,16 @@ def test_download_via_file_url_into_cache(weights_dir, monkeypatch, no_weights_e
 def test_download_wrong_checksum_leaves_nothing(weights_dir, tmp_path):
     dest = tmp_path / "cache"
     with pytest.raises(WeightsError, match="sha256"):
-        W.download("Encoder_pool_aug_158.torch", dest, base_url=weights_dir.as_uri(), expected_sha256="0" * 64,
+        W.download_published("Encoder_pool_aug_158.torch", dest, base_url=weights_dir.as_uri(), expected_sha256="0" * 64,
                    progress=False)
     assert list(dest.iterdir()) == []
 
 
 def test_download_failure_says_how_to_run_offline(tmp_path):
     with pytest.raises(WeightsError) as e:
-        W.download("Encoder_pool_aug_158.torch", tmp_path / "c", base_url=(tmp_path / "nowhere").as_uri(),
+        W.download_published("Encoder_pool_aug_158.torch", tmp_path / "c", base_url=(tmp_path / "nowhere").as_uri(),
                    progress=False)
     assert "--weights PATH" in str(e.value) and W.ENV_WEIGHTS in str(e.value)
     assert list((tmp_path / "c").iterdir()) == []
     with pytest.raises(WeightsError, match="unknown published checkpoint"):
-        W.download("Encoder_77.torch", tmp_path)
+        W.download_published("Encoder_77.torch", tmp_path)

@@ -404,20 +404,6 @@ def test_mass_cnn_eval_forward_is_bit_identical_to_the_papers_forward(mass_model
         random.forward_eval(images, features)
 
 
-def test_tracker_box_ious_equal_torchvisions_box_iou():
-    from torchvision.ops import box_iou
-
-    from massviz.core.tracks import box_ious
-
-    rng = np.random.default_rng(0)
-    boxes = rng.integers(0, 50, (200, 4)).astype(np.float64)
-    boxes[:, 2:] = boxes[:, :2] + rng.integers(0, 20, (200, 2))  # some empty boxes too
-    expected = torch.nan_to_num(box_iou(torch.from_numpy(boxes[:20]), torch.from_numpy(boxes)), nan=0.0).numpy()
-    got = np.stack([box_ious(a, boxes) for a in boxes[:20]])
-    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12)
-    assert (got == 0).any() and (got == 1).any() and ((got > 0) & (got < 1)).any()
-
-
 @pytest.mark.skipif(not bf16_supported(), reason="this CPU has no bfloat16 support")
 def test_mass_cnn_precision_changes_its_id_and_stays_close(shared_dir):
     from massviz.io.checkpoint import load_checkpoint

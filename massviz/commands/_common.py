@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import argparse
 
+from massviz.core.types import PRECISIONS
+
 PIPELINE_HELP = """
 detectors (--detector):
   auto      maskrcnn when its COCO weights are cached or downloadable, else depth (default)
@@ -44,7 +46,7 @@ def add_pipeline_args(p: argparse.ArgumentParser, selection: bool = True) -> Non
     g.add_argument("--replay", metavar="PATH", help="with --detector replay: a saved trace (.npz) or detections JSON")
     g.add_argument("--batch", type=int, metavar="N",
                    help="frames per Mask R-CNN forward (default: 1 on a CPU, 4 on CUDA); results are identical")
-    g.add_argument("--precision", choices=["fp32", "bf16", "fp16"], default="fp32",
+    g.add_argument("--precision", choices=PRECISIONS, default="fp32",
                    help="Mask R-CNN arithmetic: fp32 (default, the paper's), bf16 (CPUs with bfloat16 support, "
                    "CUDA; the mass CNN runs in bf16 too) or fp16 (CUDA; the mass CNN stays fp32). Reduced "
                    "precision is faster but changes results: measure how much with 'massviz compare'. Recorded in "

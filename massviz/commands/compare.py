@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from massviz.commands._common import PIPELINE_HELP, add_pipeline_args
+from massviz.core.types import PRECISIONS
 
 #: side-B options: ``--b-NAME`` overrides pipeline option NAME for B.
 B_OPTIONS = ("detector", "threshold", "precision", "weights", "detector_weights", "replay", "k", "stride")
@@ -40,7 +41,7 @@ def register(sub) -> None:
     gb.add_argument("--b-detector", choices=["auto", "maskrcnn", "depth", "replay"], metavar="NAME",
                     help="B's detector")
     gb.add_argument("--b-threshold", type=float, metavar="T", help="B's detection threshold")
-    gb.add_argument("--b-precision", choices=["fp32", "bf16", "fp16"], help="B's Mask R-CNN precision")
+    gb.add_argument("--b-precision", choices=PRECISIONS, help="B's Mask R-CNN precision")
     gb.add_argument("--b-weights", metavar="PATH", help="B's mass-CNN checkpoint")
     gb.add_argument("--b-detector-weights", metavar="PATH", help="B's Mask R-CNN state_dict")
     gb.add_argument("--b-replay", metavar="PATH", help="B's --replay input")

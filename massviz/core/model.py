@@ -38,6 +38,7 @@ from torchvision import transforms
 from torchvision.transforms import InterpolationMode
 from torchvision.transforms import functional as TF
 
+from massviz.core.types import PRECISIONS
 from massviz.errors import WeightsError
 
 #: side of the square patch the network sees.
@@ -213,8 +214,8 @@ class MassNet(nn.Module):
         """``"fp32"`` (default) or ``"bf16"`` for :meth:`predict` (bf16: CPUs with bfloat16 support or CUDA; the
         caller checks, as ``massviz.detect.maskrcnn.check_precision`` does). ``"fp16"`` keeps the mass CNN in fp32:
         it runs on the CPU, where fp16 is not a fast format."""
-        if precision not in ("fp32", "bf16", "fp16"):
-            raise ValueError(f"precision must be fp32, bf16 or fp16, got {precision!r}")
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
         base = (self.weights_id or "").split("+")[0]
         self.precision = "bf16" if precision == "bf16" else "fp32"
         if self.weights_id is not None:

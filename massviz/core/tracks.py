@@ -45,12 +45,20 @@ MAX_GAP_S = 1.0
 DEFAULT_FPS = 30.0
 
 
-def box_ious(a, boxes: np.ndarray) -> np.ndarray:
-    """IoU of the x1, y1, x2, y2 box ``a`` with each row of ``boxes`` (N, 4), in float64; 0 where the union is empty."""
-    w = np.minimum(a[2], boxes[:, 2]) - np.maximum(a[0], boxes[:, 0])
-    h = np.minimum(a[3], boxes[:, 3]) - np.maximum(a[1], boxes[:, 1])
+def box_iou(a, b) -> np.ndarray:
+    """IoU matrix (len(a) x len(b)) of x1, y1, x2, y2 boxes, in float64; 0 where the union is empty.
+
+    The one box IoU of massviz (tracker, ``massviz compare``, exclusion matching); numpy so that warm commands do not
+    import torch. Equal to ``torchvision.ops.box_iou`` in float64 with NaN (empty union) as 0 (tests/test_copies.py).
+    """
+    a = np.asarray(a, dtype=np.float64).reshape(-1, 4)
+    b = np.asarray(b, dtype=np.float64).reshape(-1, 4)
+    area_a = (a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1])
+    area_b = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
+    w = np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0])
+    h = np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1])
     inter = np.maximum(w, 0.0) * np.maximum(h, 0.0)
-    union = (a[2] - a[0]) * (a[3] - a[1]) + (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1]) - inter
+    union = area_a[:, None] + area_b[None, :] - inter
     return np.where(union > 0, inter / np.where(union > 0, union, 1.0), 0.0)
 
 
@@ -96,7 +104,7 @@ class Tracker:
     def _gate(self, tr: _Track, frame: int, boxes: np.ndarray, depths: np.ndarray) -> np.ndarray:
         """IoU of each (track, detection) candidate, NaN where a gate rejects it (all detections at once)."""
         gap = frame - tr.frame
-        overlap = np.maximum(box_ious(tr.box, boxes), box_ious(tr.box + tr.velocity * gap, boxes))
+        overlap = np.maximum(box_iou(tr.box, boxes)[0], box_iou(tr.box + tr.velocity * gap, boxes)[0])
         ok = overlap >= IOU_MIN
         both = np.isfinite(depths) & math.isfinite(tr.d)
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
@@ -156,5 +164,5 @@ def track_members(dets: Detections, track: int) -> np.ndarray:
     return np.array(sorted(idx.tolist(), key=lambda i: (int(dets.frame[i]), i)), dtype=np.int64)
 
 
-__all__ = ["Tracker", "assign_tracks", "track_members", "box_ious", "metric_size", "IOU_MIN", "DEPTH_GATE",
+__all__ = ["Tracker", "assign_tracks", "track_members", "box_iou", "metric_size", "IOU_MIN", "DEPTH_GATE",
            "SIZE_GATE", "MAX_GAP_S"]

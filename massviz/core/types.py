@@ -15,6 +15,8 @@ import numpy as np
 #: torchvision's COCO category ids (index into ``MaskRCNN_ResNet50_FPN_Weights.meta["categories"]``) of the four
 #: classes the paper keeps.
 COCO_KEEP = {"bottle": 44, "wine glass": 46, "cup": 47, "book": 84}
+#: ``--precision`` choices (Mask R-CNN's arithmetic, the mass CNN's too for bf16); fp32 is the default and the paper's.
+PRECISIONS = ("fp32", "bf16", "fp16")
 #: class id used by class-agnostic detectors (the depth detector).
 OBJECT_CLASS_ID = -1
 

@@ -36,18 +36,17 @@ the proposals are decoded in bf16, whose 8-bit mantissa puts a 1000-pixel coordi
 from __future__ import annotations
 
 import copy
-import types
 from pathlib import Path
 
 import numpy as np
 import torch
+from torchvision.models.detection.roi_heads import RoIHeads
+from torchvision.models.detection.transform import GeneralizedRCNNTransform, resize_boxes
 
 from massviz.errors import MassvizError, WeightsError
-from massviz.core.types import COCO_KEEP, Detections, Frame
+from massviz.core.types import COCO_KEEP, PRECISIONS, Detections, Frame
 
 MASK_THRESHOLD = 0.5
-#: ``--precision`` choices; fp32 is the default and the paper's.
-PRECISIONS = ("fp32", "bf16", "fp16")
 _DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
 
 
@@ -105,17 +104,31 @@ def build_model(threshold: float, weights: str | Path | None = None, pretrained:
             raise WeightsError(f"could not download torchvision's COCO Mask R-CNN weights ({err}); pass "
                                "--detector-weights PATH (an offline copy) or use --detector depth") from None
         model.load_state_dict(state)
-    keep = torch.tensor(sorted(int(c) for c in classes))
-    stock = type(model.roi_heads).postprocess_detections
+    model.roi_heads = ClassFilterRoIHeads.of(model.roi_heads, classes)
+    return model.eval()
+
+
+class ClassFilterRoIHeads(RoIHeads):
+    """torchvision's ``RoIHeads`` whose box post-processing keeps only the classes in ``keep_classes``: the other
+    boxes are dropped before the mask head runs (module docstring). Same submodules, so the same ``state_dict``."""
+
+    @classmethod
+    def of(cls, stock, classes) -> "ClassFilterRoIHeads":
+        """A copy of ``stock`` (a torchvision ``RoIHeads`` without keypoints) sharing its submodules."""
+        heads = cls(stock.box_roi_pool, stock.box_head, stock.box_predictor,
+                    stock.proposal_matcher.high_threshold, stock.proposal_matcher.low_threshold,
+                    stock.fg_bg_sampler.batch_size_per_image, stock.fg_bg_sampler.positive_fraction,
+                    stock.box_coder.weights, stock.score_thresh, stock.nms_thresh, stock.detections_per_img,
+                    mask_roi_pool=stock.mask_roi_pool, mask_head=stock.mask_head,
+                    mask_predictor=stock.mask_predictor)
+        heads.register_buffer("keep_classes", torch.tensor(sorted(int(c) for c in classes)), persistent=False)
+        return heads.train(stock.training)
 
     def postprocess_detections(self, *args, **kwargs):
-        boxes, scores, labels = stock(self, *args, **kwargs)
-        out = [torch.isin(lab, keep.to(lab.device)) for lab in labels]
-        return [b[m] for b, m in zip(boxes, out)], [s[m] for s, m in zip(scores, out)], [lab[m] for lab, m in
-                                                                                         zip(labels, out)]
-
-    model.roi_heads.postprocess_detections = types.MethodType(postprocess_detections, model.roi_heads)
-    return model.eval()
+        boxes, scores, labels = super().postprocess_detections(*args, **kwargs)
+        keep = [torch.isin(lab, self.keep_classes.to(lab.device)) for lab in labels]
+        return ([b[m] for b, m in zip(boxes, keep)], [s[m] for s, m in zip(scores, keep)],
+                [lab[m] for lab, m in zip(labels, keep)])
 
 
 # ------------------------------------------------------------------------------------------------ faithful speed-ups
@@ -124,9 +137,11 @@ def fold_batchnorm(module: torch.nn.Module) -> int:
     pairs) into that convolution, replacing the norm by ``Identity``; returns how many were folded.
 
     Eval-mode statistics are used (``BatchNorm2d`` in eval mode or ``FrozenBatchNorm2d``): y = conv(x) * s + t with
-    s = weight / sqrt(var + eps), t = bias - mean * s becomes one convolution with weight * s and bias t. New tensors
-    are created (nothing is modified in place), so a module that shares parameters with another is safe to fold.
+    s = weight / sqrt(var + eps), t = bias - mean * s becomes one convolution with weight * s and bias t, computed by
+    ``torch.nn.utils.fuse_conv_bn_weights``. New tensors are created (nothing is modified in place), so a module that
+    shares parameters with another is safe to fold.
     """
+    from torch.nn.utils import fuse_conv_bn_weights
     from torchvision.ops.misc import FrozenBatchNorm2d
 
     folded = 0
@@ -139,14 +154,13 @@ def fold_batchnorm(module: torch.nn.Module) -> int:
             if conv.bias is not None or (isinstance(bn, torch.nn.BatchNorm2d) and (bn.training or bn.running_var is None)):
                 continue
             with torch.no_grad():
-                scale = bn.weight * torch.rsqrt(bn.running_var + bn.eps)
-                shift = bn.bias - bn.running_mean * scale
                 new = torch.nn.Conv2d(conv.in_channels, conv.out_channels, conv.kernel_size, conv.stride,
                                       conv.padding, conv.dilation, conv.groups, bias=True,
-                                      padding_mode=conv.padding_mode, device=conv.weight.device,
-                                      dtype=conv.weight.dtype)
-                new.weight = torch.nn.Parameter(conv.weight * scale.reshape(-1, 1, 1, 1), requires_grad=False)
-                new.bias = torch.nn.Parameter(shift.clone(), requires_grad=False)
+                                      padding_mode=conv.padding_mode, device="meta")
+                weight, bias = fuse_conv_bn_weights(conv.weight, None, bn.running_mean, bn.running_var, bn.eps,
+                                                    bn.weight, bn.bias)
+                new.weight = torch.nn.Parameter(weight, requires_grad=False)
+                new.bias = torch.nn.Parameter(bias, requires_grad=False)
             parent._modules[prev], parent._modules[name] = new, torch.nn.Identity()
             folded += 1
     return folded
@@ -179,16 +193,25 @@ def paste_mask_crops(masks: torch.Tensor, boxes: torch.Tensor, im_h: int, im_w: 
     return out
 
 
-def _postprocess_mask_crops(self, result, image_shapes, original_image_sizes):
-    """``GeneralizedRCNNTransform.postprocess`` with ``paste_mask_crops`` instead of full-image mask pasting: boxes are
-    rescaled as torchvision does; ``masks`` is replaced by ``mask_crops`` (bool arrays, one per box)."""
-    from torchvision.models.detection.transform import resize_boxes
+class MaskCropTransform(GeneralizedRCNNTransform):
+    """torchvision's ``GeneralizedRCNNTransform`` whose ``postprocess`` uses ``paste_mask_crops`` instead of
+    full-image mask pasting: boxes are rescaled as torchvision does; ``masks`` is replaced by ``mask_crops`` (bool
+    arrays, one per box)."""
 
-    for pred, im_s, o_im_s in zip(result, image_shapes, original_image_sizes):
-        pred["boxes"] = resize_boxes(pred["boxes"], im_s, o_im_s)
-        if "masks" in pred:
-            pred["mask_crops"] = paste_mask_crops(pred.pop("masks"), pred["boxes"], *o_im_s)
-    return result
+    @classmethod
+    def of(cls, stock) -> "MaskCropTransform":
+        """The same pre-processing as the torchvision transform ``stock``."""
+        return cls(stock.min_size, stock.max_size, stock.image_mean, stock.image_std, stock.size_divisible,
+                   stock.fixed_size, _skip_resize=stock._skip_resize).train(stock.training)
+
+    def postprocess(self, result, image_shapes, original_image_sizes):
+        if self.training:
+            return result
+        for pred, im_s, o_im_s in zip(result, image_shapes, original_image_sizes):
+            pred["boxes"] = resize_boxes(pred["boxes"], im_s, o_im_s)
+            if "masks" in pred:
+                pred["mask_crops"] = paste_mask_crops(pred.pop("masks"), pred["boxes"], *o_im_s)
+        return result
 
 
 def _float32(x):
@@ -269,7 +292,7 @@ def runtime_model(model: torch.nn.Module, precision: str = "fp32", device=None, 
                 if p is not None and p.dim() == 4:
                     m._parameters[name] = torch.nn.Parameter(p.contiguous(memory_format=torch.channels_last),
                                                              requires_grad=False)
-    fast.transform.postprocess = types.MethodType(_postprocess_mask_crops, fast.transform)
+    fast.transform = MaskCropTransform.of(fast.transform)
     if fused and device.type == "cpu":
         from massviz.detect.roialign import ChannelsLastMultiScaleRoIAlign
 

@@ -12,12 +12,21 @@ Same arithmetic as torchvision's kernel (``roi_align_common.h``): the sample pos
 the "outside [-1, size]" rule and the bilinear weights are computed in the features' dtype in the same order, so
 they are bit-identical; the weights are divided by the sample count (a power of two here: exact) instead of the sum.
 Only the order of the weighted additions differs (float rounding, ~1e-6 relative).
+
+``ChannelsLastMultiScaleRoIAlign`` reuses private helpers of ``torchvision.ops.poolers`` (:data:`TORCHVISION_PRIVATES`)
+and ``MultiScaleRoIAlign``'s attributes, checked against the pinned torchvision (:data:`TESTED_TORCHVISION`) by
+tests/test_copies.py, which fails on another version until they are checked again.
 """
 from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+#: the torchvision version the private helpers below were checked against (pyproject.toml pins it).
+TESTED_TORCHVISION = "0.29.1"
+#: the private names of ``torchvision.ops.poolers`` this module calls.
+TORCHVISION_PRIVATES = ("_convert_to_roi_format", "_filter_input", "_setup_scales")
 
 
 def _axis(start: torch.Tensor, bin_size: torch.Tensor, bins: int, grid: int, length: int):
@@ -102,4 +111,4 @@ class ChannelsLastMultiScaleRoIAlign(nn.Module):
         return result
 
 
-__all__ = ["roi_align_channels_last", "ChannelsLastMultiScaleRoIAlign"]
+__all__ = ["roi_align_channels_last", "ChannelsLastMultiScaleRoIAlign", "TESTED_TORCHVISION", "TORCHVISION_PRIVATES"]

@@ -17,24 +17,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from massviz.core.trace import Trace
+from massviz.core.tracks import box_iou
 from massviz.core.types import class_name
 
 #: IoU at or above which two boxes of one frame are the same detection.
 DEFAULT_IOU = 0.5
-
-
-def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """IoU matrix (len(a) × len(b)) of integer boxes x1, y1, x2, y2 (x2/y2 exclusive)."""
-    a = np.asarray(a, dtype=np.float64).reshape(-1, 4)
-    b = np.asarray(b, dtype=np.float64).reshape(-1, 4)
-    area_a = np.clip(a[:, 2] - a[:, 0], 0, None) * np.clip(a[:, 3] - a[:, 1], 0, None)
-    area_b = np.clip(b[:, 2] - b[:, 0], 0, None) * np.clip(b[:, 3] - b[:, 1], 0, None)
-    w = np.clip(np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None)
-    h = np.clip(np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1]), 0, None)
-    inter = w * h
-    union = area_a[:, None] + area_b[None, :] - inter
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(union > 0, inter / union, 0.0)
 
 
 def match_boxes(a: np.ndarray, b: np.ndarray, iou: float = DEFAULT_IOU) -> list[tuple[int, int, float]]:

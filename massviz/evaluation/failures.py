@@ -47,6 +47,7 @@ from massviz.core.flags import GT_MIN_IOU, ground_truth_overlap
 from massviz.io.ground_truth import ground_truth_masks
 from massviz.io.untrusted import _CONTROL, MAX_INDEX, text_id
 from massviz.core.trace import Trace
+from massviz.core.tracks import box_iou
 from massviz.core.types import class_name
 
 EXCLUSIONS_FORMAT = "massviz.exclusions/1"
@@ -134,16 +135,6 @@ def load_exclusions(path: str | Path) -> list[Exclusion]:
     return out
 
 
-def box_iou(box: Sequence[float], boxes: np.ndarray) -> np.ndarray:
-    """IoU of one x1, y1, x2, y2 box with each row of ``boxes`` (``torchvision.ops.box_iou``)."""
-    import torch
-    from torchvision.ops import box_iou as tv_box_iou
-
-    boxes = torch.as_tensor(np.asarray(boxes, dtype=np.float64).reshape(-1, 4))
-    one = torch.as_tensor(np.asarray(box, dtype=np.float64).reshape(1, 4))
-    return torch.nan_to_num(tv_box_iou(one, boxes)[0], nan=0.0).numpy()
-
-
 def match_exclusions(trace: Trace, exclusions: Iterable[Exclusion],
                      min_iou: float = MATCH_MIN_IOU) -> tuple[np.ndarray, list[Exclusion]]:
     """(indices into ``trace.detections`` of the entries for this trace's recording, entries for this recording that
@@ -162,7 +153,7 @@ def match_exclusions(trace: Trace, exclusions: Iterable[Exclusion],
         if len(exact):
             found.add(int(exact[0]))
             continue
-        iou = box_iou(e.box, dets.xyxy[same_frame])
+        iou = box_iou(e.box, dets.xyxy[same_frame])[0]
         best = int(np.argmax(iou))
         if iou[best] >= min_iou:
             found.add(int(same_frame[best]))

@@ -14,9 +14,11 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import tempfile
 import threading
 from pathlib import Path
+
+from massviz.errors import MassvizError
+from massviz.io.atomic import atomic_path
 
 DIGEST_SIZE = 16
 
@@ -85,16 +87,12 @@ class FileHasher:
 
     @staticmethod
     def _write(memo: Path, disk: dict) -> None:
-        tmp = None
         try:
             memo.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(prefix=f".{memo.name}.", suffix=".tmp", dir=memo.parent)
-            with os.fdopen(fd, "w") as fh:
-                json.dump(disk, fh)
-            os.replace(tmp, memo)
-        except OSError:
-            if tmp is not None:
-                Path(tmp).unlink(missing_ok=True)  # the memory is an optimisation: files are hashed again next time
+            with atomic_path(memo) as tmp:
+                tmp.write_text(json.dumps(disk))
+        except (OSError, MassvizError):
+            pass  # the memory is an optimisation: files are hashed again next time (atomic_path left nothing)
 
 
 __all__ = ["DIGEST_SIZE", "file_digest", "identity", "FileHasher"]

@@ -21,7 +21,7 @@ from massviz.core.types import Detections, PackedMask, RecordingInfo
 from massviz.errors import MassvizError
 from massviz.io.atomic import atomic_path
 from massviz.io.ground_truth import with_ground_truth
-from massviz.io.untrusted import MAX_INDEX, load_npz_checked
+from massviz.io.untrusted import MAX_INDEX, load_npz_checked, png_header_size
 
 TRACE_FORMAT = 2  # 2: typed events, recording info as a dataclass
 
@@ -111,7 +111,6 @@ def check_trace_arrays(header: dict, data: dict) -> None:
     [0, 1], d/a/b/pred finite or NaN, selection and exclusions index detections, thresholds in [0, 1), k and stride
     integers >= 1, the estimate finite."""
     import math
-    import struct
 
     def ints(name, lo=0, hi=MAX_INDEX, ndim=1):
         a = np.asarray(data[name])
@@ -161,10 +160,10 @@ def check_trace_arrays(header: dict, data: dict) -> None:
         raise ValueError("patch_index / patch_sizes / patch_bytes do not describe one PNG per kept patch")
     offsets = np.concatenate([[0], np.cumsum(psizes)]).astype(np.int64)
     for j, i in enumerate(index):
-        head = pbytes[offsets[j]:offsets[j] + 24].tobytes()
-        if head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        size = png_header_size(pbytes[offsets[j]:offsets[j] + 24].tobytes())
+        if size is None:
             raise ValueError(f"patch of detection {i} is not a PNG")
-        w, h = struct.unpack(">II", head[16:24])
+        w, h = size
         if (h, w) != tuple(box_shape[i]):
             raise ValueError(f"patch of detection {i} is {w}x{h}, not the size of its box")
     for name in ("selection", "excluded"):

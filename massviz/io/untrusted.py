@@ -255,11 +255,19 @@ def _first_line(err: BaseException) -> str:
 
 
 # ------------------------------------------------------------------------------------------------------- images
+def png_header_size(head: bytes) -> tuple[int, int] | None:
+    """(width, height) of the PNG whose first 24 bytes are ``head`` (its IHDR); None when it is not a PNG's start."""
+    import struct
+
+    if len(head) >= 24 and head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+        return struct.unpack(">II", head[16:24])
+    return None
+
+
 def image_header_size(path: str | Path, data: bytes | None = None) -> tuple[int, int] | None:
     """(width, height) an image file declares in its header, without decoding it; None when unknown. ``data``: the
     file's bytes when the caller has read them already (the file is then not opened again)."""
     import io
-    import struct
     import warnings
 
     if data is None:
@@ -270,8 +278,8 @@ def image_header_size(path: str | Path, data: bytes | None = None) -> tuple[int,
             return None
     else:
         head = data[:24]
-    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
-        return struct.unpack(">II", head[16:24])
+    if (size := png_header_size(head)) is not None:
+        return size
     from PIL import Image
 
     try:
@@ -334,4 +342,4 @@ def load_npz_checked(path: str | Path, max_bytes: int = MAX_NPZ_BYTES) -> dict[s
 
 __all__ = ["MAX_NPZ_BYTES", "load_npz_checked", "MAX_CALIB_BYTES", "MAX_ID_CHARS", "MAX_IMAGE_SIDE", "MAX_IMAGE_PIXELS", "MAX_INDEX",
            "RestrictedUnpickler", "load_calibration_pickle", "confined", "text_id", "safe_filename", "number",
-           "check_image_size", "image_header_size", "frame_path"]
+           "check_image_size", "image_header_size", "png_header_size", "frame_path"]

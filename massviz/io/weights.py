@@ -10,22 +10,19 @@ Resolution order of :func:`resolve_weights`: an explicit path, else ``$MASSVIZ_W
 (``$MASSVIZ_CACHE_DIR`` or ``platformdirs.user_cache_dir("massviz")``, sub-folder ``weights/``), downloaded once from
 ``$MASSVIZ_WEIGHTS_URL`` (default :data:`DEFAULT_URL_BASE`), sha256-checked and written atomically.
 
-This module needs neither torch nor numpy.
+Importing this module needs neither torch nor numpy (:func:`download` imports ``torch.hub`` when it runs).
 """
 from __future__ import annotations
 
 import hashlib
 import os
-import sys
+import re
 import urllib.error
-import urllib.request
 from dataclasses import dataclass
 from pathlib import Path
 
 import platformdirs
-from tqdm import tqdm
 
-from massviz.io.atomic import atomic_path
 from massviz.errors import WeightsError
 
 #: the authors' repository commit the published checkpoints are pinned to.
@@ -105,40 +102,44 @@ def _published(name: str) -> PublishedCheckpoint:
         raise WeightsError(f"unknown published checkpoint; choose one of {', '.join(PUBLISHED)}", name) from None
 
 
-def download(name: str = DEFAULT_NAME, dest_dir: str | Path | None = None, *, base_url: str | None = None,
-             expected_sha256: str | None = None, progress: bool = True) -> Path:
-    """Download a published checkpoint into ``dest_dir`` (default :func:`cache_dir`) and return its path.
+def download(url: str, dst: str | Path, sha256: str, *, progress: bool = True, hint: str = OFFLINE_HINT) -> Path:
+    """Download ``url`` to the file ``dst`` (its folder is created) and return ``dst``; the one downloader of massviz.
 
-    The bytes go to a temporary file in ``dest_dir``, are hashed on the way and only renamed into place when the
-    sha256 matches (``expected_sha256``, default the published one), so a failed or corrupt download leaves nothing
-    behind. A tqdm bar on stderr shows progress. Any failure raises :class:`WeightsError`.
+    ``torch.hub.download_url_to_file`` does the transfer: the bytes go to a temporary file beside ``dst``, are hashed
+    on the way and only moved into place when their sha256 is ``sha256``, so a failed or corrupt download leaves
+    nothing behind. A tqdm bar on stderr shows progress (``progress``). Any failure raises :class:`WeightsError`
+    naming the URL, ending with ``hint`` (how to do without the download).
     """
-    expected = (expected_sha256 or _published(name).sha256).lower()
-    dest_dir = Path(dest_dir) if dest_dir is not None else cache_dir()
-    url = (base_url if base_url is not None else url_base()).rstrip("/") + "/" + name
-    target = dest_dir / name
+    from torch.hub import download_url_to_file
+
+    dst = Path(dst)
+    expected = str(sha256).lower()
+    if not re.fullmatch(r"[0-9a-f]{64}", expected):  # torch.hub checks a prefix: an empty one would check nothing
+        raise ValueError(f"sha256 must be 64 hex digits, got {sha256!r}"[:200])
     try:
-        dest_dir.mkdir(parents=True, exist_ok=True)
+        dst.parent.mkdir(parents=True, exist_ok=True)
     except OSError as e:
-        raise WeightsError(f"cannot create the weights cache folder ({e.strerror or e}); {OFFLINE_HINT}",
-                           dest_dir) from e
+        raise WeightsError(f"cannot create the download folder ({e.strerror or e}); {hint}", dst.parent) from e
     try:
-        with urllib.request.urlopen(url, timeout=60) as resp, atomic_path(target) as tmp, open(tmp, "wb") as out:
-            total = int(resp.headers.get("Content-Length") or 0) or None
-            h = hashlib.sha256()
-            with tqdm(total=total, unit="B", unit_scale=True, desc=f"downloading {name}", file=sys.stderr,
-                      disable=not progress, leave=False) as bar:
-                for chunk in iter(lambda: resp.read(1 << 16), b""):
-                    out.write(chunk)
-                    h.update(chunk)
-                    bar.update(len(chunk))
-            if h.hexdigest() != expected:  # raised inside atomic_path: the temporary file is removed
-                raise WeightsError(f"downloaded file has sha256 {h.hexdigest()}, expected {expected}; "
-                                   f"nothing was kept; {OFFLINE_HINT}", url)
+        download_url_to_file(url, str(dst), hash_prefix=expected, progress=progress)
+    except RuntimeError as e:  # torch.hub's hash mismatch; its temporary file is removed
+        raise WeightsError(f"downloaded file does not have sha256 {expected} ({e}); nothing was kept; {hint}",
+                           url) from e
     except (urllib.error.URLError, OSError, ValueError) as e:
         reason = getattr(e, "reason", None) or getattr(e, "strerror", None) or e
-        raise WeightsError(f"cannot download ({reason}); {OFFLINE_HINT}", url) from e
-    return target
+        raise WeightsError(f"cannot download ({reason}); {hint}", url) from e
+    return dst
+
+
+def download_published(name: str = DEFAULT_NAME, dest_dir: str | Path | None = None, *,
+                       base_url: str | None = None, expected_sha256: str | None = None,
+                       progress: bool = True) -> Path:
+    """Download a published checkpoint into ``dest_dir`` (default :func:`cache_dir`) with :func:`download` and return
+    its path (checked against ``expected_sha256``, default the published one)."""
+    expected = expected_sha256 or _published(name).sha256
+    dest_dir = Path(dest_dir) if dest_dir is not None else cache_dir()
+    url = (base_url if base_url is not None else url_base()).rstrip("/") + "/" + name
+    return download(url, dest_dir / name, expected, progress=progress)
 
 
 def resolve_weights(path: str | Path | None = None, *, name: str = DEFAULT_NAME) -> Path:
@@ -160,9 +161,10 @@ def resolve_weights(path: str | Path | None = None, *, name: str = DEFAULT_NAME)
     cached = cache_dir() / name
     if cached.is_file() and sha256_file(cached) == pub.sha256:
         return cached
-    return download(name)
+    return download_published(name)
 
 
 __all__ = [
     "PINNED_COMMIT", "DEFAULT_URL_BASE", "DEFAULT_NAME", "PublishedCheckpoint", "PUBLISHED",
-    "published_by_sha256", "sha256_file", "cache_dir", "url_base", "download", "resolve_weights"]
+    "published_by_sha256", "sha256_file", "cache_dir", "url_base", "download", "download_published",
+    "resolve_weights"]

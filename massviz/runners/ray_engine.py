@@ -12,6 +12,13 @@
 * Faults: the process of an actor that dies is restarted by Ray and the calls it had are retried (``MAX_RETRIES``
   times each); a recording whose actor has no restart left is tried once more on another actor, then fails with
   "the Ray worker processing it died".
+
+Why not ``ray.util.ActorPool`` (checked on Ray 2.60): when a call fails, ``get_next_unordered`` raises
+without saying which value it was for, so the recording could neither be retried on another actor nor named in
+its failure line; an actor whose process died stays out of the pool but the values queued for it stay in the pool's
+private ``_pending_submits`` (``has_next()`` is then False: they would be silently dropped instead of reported
+"not run: every Ray worker died"); and it keeps one call per actor in flight (:data:`IN_FLIGHT` is 2 here, so an
+actor never waits a round trip for its next recording). ``_dispatch`` is the ~40 lines that keep those three.
 """
 from __future__ import annotations
 
