@@ -28,11 +28,6 @@ FRAMES = 2
 
 
 @pytest.fixture(scope="module")
-def weights(shared_dir) -> Path:
-    return shared_dir / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch"
-
-
-@pytest.fixture(scope="module")
 def ray_address():
     """A local Ray for the whole module: 2 CPUs, no dashboard, bound to 127.0.0.1 (``RAY_ENABLE_WINDOWS_OR_OSX_
     CLUSTER=0`` before the import, as ``massviz.runners.ray_engine`` does for the instances it starts)."""
