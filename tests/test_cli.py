@@ -18,6 +18,8 @@ import pytest
 from support import run_massviz as massviz
 from test_recording import OPEN_ERRORS, corrupt_middle_depth
 
+pytestmark = pytest.mark.slow  # every test runs massviz as subprocesses (dozens of recordings)
+
 CCM_VIDEO = Path("ccm_real/view1/rgb/000000.mp4")
 HELD_BOX = [672, 262, 776, 408]  # the box held in frame index 1 of the CCM sample (shared/ccm_real/README.md)
 

@@ -142,6 +142,7 @@ def test_cli_errors_are_one_line(traces, tmp_path, capsys):
     assert len(err) == 1 and "no such trace file" in err[0]
 
 
+@pytest.mark.slow
 def test_cli_two_runs_of_one_recording(weights, samples_dir, tmp_path, capsys):
     code = main(["compare", str(samples_dir / "cup_handover"), "--detector", "depth", "--stride", "12",
                  "--weights", str(weights), "--cache", str(tmp_path / "cache"), "--quiet", "--b-k", "2"])

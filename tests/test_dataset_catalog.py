@@ -19,6 +19,8 @@ import pandas as pd
 import pytest
 from support import run_massviz
 
+pytestmark = pytest.mark.slow  # a dataset of 4 recordings, servers, subprocesses of massviz
+
 ROOT = Path(__file__).resolve().parents[1]
 #: the frontal camera of CCM recording 618 (../shared/ccm_real/618/calib/c3_calib.pickle, rgb)
 INTR_618 = {"fx": 922.7552, "fy": 922.7061, "cx": 640.0656, "cy": 354.5494, "width": 1280, "height": 720}

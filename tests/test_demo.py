@@ -8,7 +8,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from support import run_massviz
+
+pytestmark = pytest.mark.slow  # the README's demo command as a subprocess
 
 ROOT = Path(__file__).resolve().parents[1]
 CONTRACT = ["/camera", "/camera/rgb", "/camera/depth", "/camera/detections", "/camera/masks", "/world",

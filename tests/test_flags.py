@@ -207,6 +207,7 @@ def test_making_replacing_and_reselecting_a_trace_opens_no_file(traces, monkeypa
     assert len({p for p in opens.opened if p.endswith(".png")}) == len(np.unique(t.detections.frame))
 
 
+@pytest.mark.slow
 def test_log_and_estimate_print_the_warning_and_the_rrd_shows_the_flags(weights, sample_cache, tmp_path):
     rrd = tmp_path / "cup.rrd"
     log = _run("log", "data_samples/cup_handover", "--detector", "depth", "--weights", weights, "--cache", sample_cache,
@@ -239,6 +240,7 @@ def test_log_and_estimate_print_the_warning_and_the_rrd_shows_the_flags(weights,
     assert "/predictions/estimate_without_flagged" in out
 
 
+@pytest.mark.slow
 def test_render_marks_a_flagged_patch_and_refuses_a_frame_without_one(weights, sample_cache, tmp_path):
     common = ["data_samples/cup_handover", "--detector", "depth", "--weights", weights, "--cache", sample_cache,
               "--quiet"]

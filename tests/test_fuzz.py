@@ -1089,6 +1089,7 @@ SUBPROCESS = ["calib-os_system_p0", "video-cut-in-half", "output-estimate-out-is
               "meta-id_escape", "replay-mask_parent"]
 
 
+@pytest.mark.slow
 def test_as_real_subprocesses(base, tmp_path):
     """A few cases as a user runs them: ``python -m massviz ...``, two at a time."""
     from concurrent.futures import ThreadPoolExecutor

@@ -247,6 +247,7 @@ def pipeline_args(replay):
     return [str(replay.parent), "--detector", "replay", "--replay", str(replay), "--no-cache", "--quiet", "--k", "1"]
 
 
+@pytest.mark.slow
 def test_cloud_and_render_commands_on_ccm_real(ccm_real, ccm_replay, tmp_path, capsys):
     args = pipeline_args(ccm_replay)
     args[0] = str(ccm_real.path)

@@ -206,6 +206,7 @@ def test_write_refuses_bag_and_recordings_without_intrinsics(rs, sample, tmp_pat
 
 
 # ------------------------------------------------------------------------------------------------- command line
+@pytest.mark.slow
 def test_estimate_on_db3_equals_the_sample_folder(weights, cup_db3, tmp_path):
     """(every 3rd frame, to keep the test quick on 2 cores: 12 frames of each)"""
     out = tmp_path / "preds.csv"
@@ -227,6 +228,7 @@ def test_estimate_on_db3_equals_the_sample_folder(weights, cup_db3, tmp_path):
             "/latency/detect"} <= rrd_entities(rrd)
 
 
+@pytest.mark.slow
 def test_cli_bad_files_exit_2_one_line_nothing_written(bad_files, tmp_path):
     for case, (path, what) in bad_files.items():
         out = tmp_path / f"{path.stem}.csv"

@@ -30,6 +30,7 @@ def inner_session(tmp_path: Path, body: str) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=120)
 
 
+@pytest.mark.slow
 def test_a_leaked_orphan_is_an_error_and_is_ended(tmp_path):
     pid_file = tmp_path / "orphan.pid"
     run = inner_session(tmp_path, f"""
@@ -46,6 +47,7 @@ def test_a_leaked_orphan_is_an_error_and_is_ended(tmp_path):
     assert not psutil.pid_exists(pid) or psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
 
 
+@pytest.mark.slow
 def test_a_session_that_ends_its_processes_passes(tmp_path):
     run = inner_session(tmp_path, """
         import subprocess

@@ -194,6 +194,7 @@ def test_annotation_mismatch_names_the_csv(shared_dir):
 
 
 # ------------------------------------------------------------------------------ extract → train → estimate, by CLI
+@pytest.mark.slow
 def test_extract_train_estimate_on_the_samples(samples_dir, shared_dir, weights, tmp_path, capsys):
     import json
 

@@ -147,6 +147,7 @@ def test_malformed_exclusions_are_data_errors(tmp_path, text):
         load_exclusions(tmp_path / "bad.json")
 
 
+@pytest.mark.slow
 def test_estimate_command_honours_exclude(sample_traces, sample_cache, weights, samples_dir, tmp_path):
     # the challenge CSV needs an integer configuration id: the sample seen through a folder of links whose meta.json
     # adds one (same frames, so the same cached trace)
