@@ -16,7 +16,8 @@ import sys
 from pathlib import Path
 
 import pytest
-from support import SAMPLES, SHARED, WEIGHTS, missing_reference, sample_cache as _fill_sample_cache
+from support import SAMPLES, SHARED, WEIGHTS, end_processes, missing_reference, started_since
+from support import sample_cache as _fill_sample_cache
 
 
 #: a test that uses one of these fixtures gets the marker (and ``slow``): the module need not say it again
@@ -47,20 +48,6 @@ def _become_subreaper() -> None:
             ctypes.CDLL(None, use_errno=True).prctl(36, 1, 0, 0, 0)  # PR_SET_CHILD_SUBREAPER
 
 
-def _end(processes) -> None:
-    """SIGTERM, then SIGKILL what is still there after 5 s; reap what was ours."""
-    import psutil
-
-    for p in processes:
-        with contextlib.suppress(psutil.Error):
-            p.terminate()
-    _, alive = psutil.wait_procs(processes, timeout=5)
-    for p in alive:
-        with contextlib.suppress(psutil.Error):
-            p.kill()
-    psutil.wait_procs(alive, timeout=5)
-
-
 @pytest.fixture(scope="session", autouse=True)
 def no_process_outlives_the_suite():
     """Fail the session (an error at its last teardown) if a process the suite started is still alive at its end
@@ -74,10 +61,9 @@ def no_process_outlives_the_suite():
             pytest.fail("psutil is missing: cannot check that no process outlives the tests", pytrace=False)
         return
     _become_subreaper()
-    me = psutil.Process()
-    before = {p.pid for p in me.children(recursive=True)}
+    before = {p.pid for p in psutil.Process().children(recursive=True)}
     yield
-    _, left = psutil.wait_procs([p for p in me.children(recursive=True) if p.pid not in before], timeout=GRACE)
+    _, left = psutil.wait_procs(started_since(before), timeout=GRACE)
     left = [p for p in left if p.is_running() and p.status() != psutil.STATUS_ZOMBIE]
     if not left:
         return
@@ -85,7 +71,7 @@ def no_process_outlives_the_suite():
     for p in left:
         with contextlib.suppress(psutil.Error):
             described.append(f"pid {p.pid} ({' '.join(p.cmdline())[:160]})")
-    _end(left)
+    end_processes(left)
     pytest.fail(f"{len(left)} process(es) started by the tests outlived them (ended now): " + "; ".join(described),
                 pytrace=False)
 

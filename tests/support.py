@@ -40,6 +40,29 @@ def run_massviz(*args, env: dict | None = None, cwd: Path | None = None, timeout
     return result
 
 
+def end_processes(processes) -> None:
+    """End ``processes`` (psutil.Process): SIGTERM, then SIGKILL what is still there after 5 s; reap our children."""
+    import contextlib
+
+    import psutil
+
+    for p in processes:
+        with contextlib.suppress(psutil.Error):
+            p.terminate()
+    _, alive = psutil.wait_procs(processes, timeout=5)
+    for p in alive:
+        with contextlib.suppress(psutil.Error):
+            p.kill()
+    psutil.wait_procs(alive, timeout=5)
+
+
+def started_since(before: set[int]) -> list:
+    """This process's descendants (psutil.Process) whose pid is not in ``before``."""
+    import psutil
+
+    return [p for p in psutil.Process().children(recursive=True) if p.pid not in before]
+
+
 def sample_cache(tmp_path_factory, shared_dir: Path, samples_dir: Path) -> Path:
     """The session's trace cache folder of the bundled samples (depth detector, published weights, the paper's
     threshold 0.4 and K = 5, every frame), filled on first use."""

@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import pytest
+from support import end_processes, started_since
 
 from massviz.cli import main
 from massviz.runners.dataset import EXIT_SOME_FAILED, FAULT_ENV, REPORT_FORMAT
@@ -40,11 +41,13 @@ def ray_address():
     else:
         ray = pytest.importorskip("ray")
     for attempt in (1, 2):  # Ray gives its raylet a hard-coded 30 s to register: a loaded machine may need two tries
+        before = {p.pid for p in started_since(set())}
         try:
             ray.init(num_cpus=2, include_dashboard=False, logging_level="WARNING")
             break
         except Exception:  # noqa: BLE001 - "The current node timed out during startup"
             ray.shutdown()
+            end_processes(started_since(before))  # a failed start leaves gcs_server, monitors, a dashboard running
             if attempt == 2:
                 raise
     try:
