@@ -33,7 +33,7 @@ from urllib.parse import quote
 import cv2
 import numpy as np
 import pytest
-from sample_traces import WEIGHTS, sample_cache
+from support import run_massviz
 
 pytestmark = pytest.mark.browser
 
@@ -168,37 +168,18 @@ def offline_page(browser, viewport: dict):
 
 
 @pytest.fixture(scope="module")
-def cache(tmp_path_factory, shared_dir, samples_dir) -> Path:
-    return sample_cache(tmp_path_factory, shared_dir, samples_dir)
-
-
-@pytest.fixture(scope="module")
-def cup(cache, shared_dir, samples_dir):
+def cup(sample_traces):
     """(recording, trace) of the demo sample, from the session's trace cache."""
-    from massviz.app import process_recordings
-    from massviz.io.recording import open_recording
-
-    rec = open_recording(samples_dir / "cup_handover")
-    return rec, sample_traces([rec], cache, shared_dir)[0]
-
-
-def sample_traces(recordings, cache: Path, shared_dir: Path) -> list:
-    """The samples' traces as the notebooks compute them (depth detector, threshold 0.4), from the session's cache."""
-    from massviz.app import process_recordings
-
-    return process_recordings(recordings, detector="depth", weights=str(shared_dir / WEIGHTS), cache=str(cache),
-                              threshold=0.4, quiet=True)
+    trace = next(t for t in sample_traces if t.recording.id == "cup_handover")
+    return trace.recording, trace
 
 
 @pytest.fixture(scope="module")
-def demo_rrd(tmp_path_factory, cache, shared_dir, samples_dir) -> Path:
+def demo_rrd(tmp_path_factory, sample_cache, weights, samples_dir) -> Path:
     """The README's demo recording (`massviz log data_samples/cup_handover --detector depth --rrd ...`)."""
     out = tmp_path_factory.mktemp("demo") / "cup_handover.rrd"
-    env = {**os.environ, "MASSVIZ_WEIGHTS": str(shared_dir / WEIGHTS)}
-    run = subprocess.run([sys.executable, "-m", "massviz", "log", str(samples_dir / "cup_handover"), "--detector",
-                          "depth", "--rrd", str(out), "--cache", str(cache), "--quiet"], cwd=ROOT, env=env,
-                         capture_output=True, text=True, timeout=600)
-    assert run.returncode == 0, run.stderr
+    run_massviz("log", samples_dir / "cup_handover", "--detector", "depth", "--rrd", out, "--cache", sample_cache,
+                "--quiet", env={"MASSVIZ_WEIGHTS": weights}, check=True)
     return out
 
 
@@ -296,7 +277,7 @@ def test_rerun_web_viewer_shows_the_demo_recording(browser, demo_rrd, cup, tmp_p
 
 # ------------------------------------------------------------------------------------------------ 2./3. notebooks
 @pytest.fixture(scope="module")
-def lab(tmp_path_factory, cache, shared_dir, samples_dir):
+def lab(tmp_path_factory, sample_cache, weights, samples_dir):
     """JupyterLab on 127.0.0.1 (no token) over a copy of notebooks/ (so nothing is saved into the repository), with
     ../data_samples beside it; kernels use this checkout, the published weights and the session's trace cache."""
     root = tmp_path_factory.mktemp("lab")
@@ -312,7 +293,7 @@ def lab(tmp_path_factory, cache, shared_dir, samples_dir):
     (settings / "notification.jupyterlab-settings").write_text(
         json.dumps({"fetchNews": "false", "checkForUpdates": False}))
     env = {k: v for k, v in os.environ.items() if k != "RERUN_NOTEBOOK_ASSET"}  # the default is what is tested
-    env.update(MASSVIZ_WEIGHTS=str(shared_dir / WEIGHTS), MASSVIZ_CACHE_DIR=str(cache), PYTHONWARNINGS="ignore",
+    env.update(MASSVIZ_WEIGHTS=str(weights), MASSVIZ_CACHE_DIR=str(sample_cache), PYTHONWARNINGS="ignore",
                PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")])),
                JUPYTER_CONFIG_DIR=str(config), JUPYTER_DATA_DIR=str(root / "data"),
                JUPYTER_RUNTIME_DIR=str(root / "runtime"), IPYTHONDIR=str(root / "ipython"),
@@ -407,11 +388,10 @@ def panel_slider(page, label: str):
         has=page.locator(".widget-label", has_text=re.compile(rf"^{label}$"))).first
 
 
-def test_notebook_02_sliders_in_the_browser(browser, lab, cache, shared_dir, samples_dir):
-    from massviz.io.recording import collect_recordings
+def test_notebook_02_sliders_in_the_browser(browser, lab, sample_traces):
     from massviz.views.widgets import Tuner
 
-    tuner = Tuner(sample_traces(collect_recordings([samples_dir]), cache, shared_dir), k=5, threshold=0.4)
+    tuner = Tuner(sample_traces, k=5, threshold=0.4)
     ids = [str(t.recording.id) for t in tuner.traces]
     cup = ids.index("cup_handover")
     tuner.update(k=6)

@@ -23,8 +23,7 @@ from urllib.parse import quote
 import cv2
 import numpy as np
 import pytest
-from test_browser import (ARTIFACTS, BENIGN, cache, find, lab, offline_page, open_and_run,  # noqa: F401
-                          shot)
+from test_browser import ARTIFACTS, BENIGN, find, lab, offline_page, open_and_run, shot  # noqa: F401
 from test_dataset_catalog import dataset, env, massviz  # noqa: F401
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]  # ~50 s: a dataset of 4 recordings, a server, JupyterLab

@@ -7,10 +7,7 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import re
-import subprocess
-import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -18,19 +15,13 @@ import cv2
 import numpy as np
 import pytest
 
+from support import run_massviz as massviz
 from test_recording import OPEN_ERRORS, corrupt_middle_depth
 
-ROOT = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.slow  # every test runs massviz as subprocesses (dozens of recordings)
+
 CCM_VIDEO = Path("ccm_real/view1/rgb/000000.mp4")
 HELD_BOX = [672, 262, 776, 408]  # the box held in frame index 1 of the CCM sample (shared/ccm_real/README.md)
-
-
-def massviz(*args, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    env = {k: v for k, v in os.environ.items() if k not in ("MASSVIZ_DEBUG", "MASSVIZ_WEIGHTS")}
-    result = subprocess.run([sys.executable, "-m", "massviz", *map(str, args)], capture_output=True,
-                            timeout=300, cwd=cwd or ROOT, env=env)  # bytes: text mode would turn \r into \n
-    result.stdout, result.stderr = result.stdout.decode(), result.stderr.decode()
-    return result
 
 
 def run_many(calls: dict) -> dict:
@@ -43,11 +34,6 @@ def visible_lines(stderr: str) -> list[str]:
     """What a terminal shows: progress bars redraw with carriage returns, so each line is its last segment."""
     lines = [line.split("\r")[-1] for line in stderr.split("\n")]
     return [line for line in lines if line.strip()]
-
-
-@pytest.fixture(scope="module")
-def weights(shared_dir) -> Path:
-    return shared_dir / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch"
 
 
 @pytest.fixture(scope="module")

@@ -142,8 +142,8 @@ def test_cli_errors_are_one_line(traces, tmp_path, capsys):
     assert len(err) == 1 and "no such trace file" in err[0]
 
 
-def test_cli_two_runs_of_one_recording(samples_dir, shared_dir, tmp_path, capsys):
-    weights = shared_dir / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch"
+@pytest.mark.slow
+def test_cli_two_runs_of_one_recording(weights, samples_dir, tmp_path, capsys):
     code = main(["compare", str(samples_dir / "cup_handover"), "--detector", "depth", "--stride", "12",
                  "--weights", str(weights), "--cache", str(tmp_path / "cache"), "--quiet", "--b-k", "2"])
     printed = capsys.readouterr().out

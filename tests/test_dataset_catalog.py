@@ -4,6 +4,7 @@ command), flags that reach training (``extract --skip-flagged`` / ``--exclude``,
 a subset. The dataset is the three bundled samples plus the real CCM recording 618 (assembled from ../shared)."""
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -16,7 +17,9 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from sample_traces import WEIGHTS
+from support import run_massviz
+
+pytestmark = pytest.mark.slow  # a dataset of 4 recordings, servers, subprocesses of massviz
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the frontal camera of CCM recording 618 (../shared/ccm_real/618/calib/c3_calib.pickle, rgb)
@@ -25,17 +28,12 @@ PROPS = ("id", "container_class", "gt_mass_g", "estimate_g", "rel_error", "score
          "k", "threshold", "stride", "weights_id", "view", "source")
 
 
-def massviz(*args, env=None, timeout=600, check=True):
-    run = subprocess.run([sys.executable, "-m", "massviz", *map(str, args)], cwd=ROOT, env=env, capture_output=True,
-                         text=True, timeout=timeout)
-    if check:
-        assert run.returncode == 0, run.stderr[-3000:]
-    return run
+massviz = functools.partial(run_massviz, check=True)  # every call here must succeed unless check=False
 
 
 @pytest.fixture(scope="module")
-def env(shared_dir):
-    return {**os.environ, "MASSVIZ_WEIGHTS": str(shared_dir / WEIGHTS)}
+def env(weights):
+    return {**os.environ, "MASSVIZ_WEIGHTS": str(weights)}
 
 
 @pytest.fixture(scope="module")

@@ -2,14 +2,16 @@
 documented tree, as `rerun rrd print -v` shows it."""
 from __future__ import annotations
 
-import os
 import re
 import shutil
 import subprocess
 import sys
 from pathlib import Path
 
-from sample_traces import WEIGHTS, sample_cache
+import pytest
+from support import run_massviz
+
+pytestmark = pytest.mark.slow  # the README's demo command as a subprocess
 
 ROOT = Path(__file__).resolve().parents[1]
 CONTRACT = ["/camera", "/camera/rgb", "/camera/depth", "/camera/detections", "/camera/masks", "/world",
@@ -24,16 +26,14 @@ def demo_command() -> list[str]:
     return line.split()[1:]  # drop ".venv/bin/massviz"
 
 
-def test_readme_demo_rrd_holds_the_entity_tree(tmp_path, tmp_path_factory, shared_dir, samples_dir):
+def test_readme_demo_rrd_holds_the_entity_tree(tmp_path, sample_cache, weights):
     readme = (ROOT / "README.md").read_text()
     assert "bash scripts/setup.sh demo" in readme and "bash scripts/setup.sh test" in readme
     args = demo_command()
     out = tmp_path / "demo.rrd"
     args[args.index("--rrd") + 1] = str(out)
-    cache = sample_cache(tmp_path_factory, shared_dir, samples_dir)  # same settings: the detector need not run
-    env = {**os.environ, "MASSVIZ_WEIGHTS": str(shared_dir / WEIGHTS)}
-    run = subprocess.run([sys.executable, "-m", "massviz", *args, "--cache", str(cache), "--quiet"], cwd=ROOT,
-                         env=env, capture_output=True, text=True, timeout=600)
+    # the sample cache has the same settings: the detector need not run
+    run = run_massviz(*args, "--cache", sample_cache, "--quiet", env={"MASSVIZ_WEIGHTS": weights})
     assert run.returncode == 0, run.stderr
     assert "cup_handover:" in run.stderr and "ground truth" in run.stderr
     rerun = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun")

@@ -14,16 +14,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from sample_traces import WEIGHTS, sample_cache
+from support import run_massviz as _run
 
-from massviz.app import process_recordings
 from massviz.core.flags import analyse, ground_truth_overlap
 from massviz.core.trace import Trace
 from massviz.core.tracks import Tracker, assign_tracks
 from massviz.core.types import Detections
 from massviz.evaluation.failures import track_of
 from massviz.evaluation.tuning import retune
-from massviz.io.recording import collect_recordings
 from massviz.io.trace_file import load_trace, save_trace
 from massviz.views.widgets import FailurePanel, Tuner
 
@@ -32,15 +30,8 @@ SETTINGS = [(1, 5), (1, 3), (1, 12), (2, 5), (3, 8), (6, 5), (6, 3)]  # (stride,
 
 
 @pytest.fixture(scope="module")
-def cache(tmp_path_factory, shared_dir, samples_dir):
-    return sample_cache(tmp_path_factory, shared_dir, samples_dir)
-
-
-@pytest.fixture(scope="module")
-def traces(cache, shared_dir, samples_dir):
-    found = process_recordings(collect_recordings([samples_dir]), detector="depth", weights=str(shared_dir / WEIGHTS),
-                               cache=str(cache), quiet=True)
-    return {t.recording.id: t for t in found}
+def traces(sample_traces):
+    return {t.recording.id: t for t in sample_traces}
 
 
 def _is_container(trace, i) -> bool:
@@ -216,22 +207,16 @@ def test_making_replacing_and_reselecting_a_trace_opens_no_file(traces, monkeypa
     assert len({p for p in opens.opened if p.endswith(".png")}) == len(np.unique(t.detections.frame))
 
 
-def _run(*args, cwd=ROOT):
-    r = subprocess.run([sys.executable, "-m", "massviz", *map(str, args)], capture_output=True, text=True, cwd=cwd,
-                       timeout=300)
-    return r
-
-
-def test_log_and_estimate_print_the_warning_and_the_rrd_shows_the_flags(cache, shared_dir, tmp_path):
-    weights = shared_dir / WEIGHTS
+@pytest.mark.slow
+def test_log_and_estimate_print_the_warning_and_the_rrd_shows_the_flags(weights, sample_cache, tmp_path):
     rrd = tmp_path / "cup.rrd"
-    log = _run("log", "data_samples/cup_handover", "--detector", "depth", "--weights", weights, "--cache", cache,
+    log = _run("log", "data_samples/cup_handover", "--detector", "depth", "--weights", weights, "--cache", sample_cache,
                "--rrd", rrd, "--quiet")
     assert log.returncode == 0, log.stderr
     warnings = [line for line in log.stderr.splitlines() if "warning" in line]
     assert warnings == ["massviz log: warning: cup_handover: 3 of 5 chosen patches look like another object "
                         "(frames 8–10, track 1): without them 8.3 g [ground truth: the pitcher]"]
-    est = _run("estimate", "data_samples", "--detector", "depth", "--weights", weights, "--cache", cache,
+    est = _run("estimate", "data_samples", "--detector", "depth", "--weights", weights, "--cache", sample_cache,
                "--out", tmp_path / "p.csv", "--quiet")
     assert est.returncode == 0, est.stderr
     lines = [line for line in est.stderr.splitlines() if "warning" in line]
@@ -255,9 +240,10 @@ def test_log_and_estimate_print_the_warning_and_the_rrd_shows_the_flags(cache, s
     assert "/predictions/estimate_without_flagged" in out
 
 
-def test_render_marks_a_flagged_patch_and_refuses_a_frame_without_one(cache, shared_dir, tmp_path):
-    weights = shared_dir / WEIGHTS
-    common = ["data_samples/cup_handover", "--detector", "depth", "--weights", weights, "--cache", cache, "--quiet"]
+@pytest.mark.slow
+def test_render_marks_a_flagged_patch_and_refuses_a_frame_without_one(weights, sample_cache, tmp_path):
+    common = ["data_samples/cup_handover", "--detector", "depth", "--weights", weights, "--cache", sample_cache,
+              "--quiet"]
     bad = _run("render", *common, "--frame", "3", "--out", tmp_path / "f3.png")
     assert bad.returncode == 2
     lines = [line for line in bad.stderr.splitlines() if line.strip()]

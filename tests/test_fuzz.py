@@ -28,6 +28,7 @@ from typing import Callable
 import cv2
 import numpy as np
 import pytest
+from support import run_massviz
 
 from massviz import cli
 
@@ -1088,12 +1089,12 @@ SUBPROCESS = ["calib-os_system_p0", "video-cut-in-half", "output-estimate-out-is
               "meta-id_escape", "replay-mask_parent"]
 
 
+@pytest.mark.slow
 def test_as_real_subprocesses(base, tmp_path):
     """A few cases as a user runs them: ``python -m massviz ...``, two at a time."""
     from concurrent.futures import ThreadPoolExecutor
 
     by_name = {c.name: c for c in CASES}
-    env = {k: v for k, v in os.environ.items() if k not in ("MASSVIZ_DEBUG", "MASSVIZ_WEIGHTS")}
     jobs = []
     for name in SUBPROCESS:
         work = tmp_path / name
@@ -1102,13 +1103,12 @@ def test_as_real_subprocesses(base, tmp_path):
         jobs.append((name, work, argv, culprit, what, outputs, snapshot(work, skip=work / "cache")))
 
     def call(job):
-        return subprocess.run([sys.executable, "-m", "massviz", *map(str, job[2])], capture_output=True, timeout=300,
-                              cwd=ROOT, env=env)
+        return run_massviz(*job[2], timeout=300)
 
     with ThreadPoolExecutor(max_workers=2) as pool:
         results = list(pool.map(call, jobs))
     for (name, work, argv, culprit, what, outputs, before), result in zip(jobs, results):
-        stderr = result.stderr.decode()
+        stderr = result.stderr
         lines = visible_lines(stderr)
         assert result.returncode == 2 and "Traceback" not in stderr and len(lines) == 1, (name, stderr)
         prefix = f"massviz {argv[0]}: error: {culprit}"

@@ -230,7 +230,7 @@ def test_no_intrinsics_skips_3d_with_one_line(tmp_path):
 
 # ----------------------------------------------------------------------------------------------------- commands
 @pytest.fixture()
-def ccm_replay(tmp_path, ccm_real, shared_dir, monkeypatch):
+def ccm_replay(tmp_path, ccm_real, weights, monkeypatch):
     """A replay JSON with the held box of ccm_real, and the shared mass-CNN weights."""
     x1, y1, x2, y2 = CCM_BOX
     mask = np.zeros((ccm_real.height, ccm_real.width), np.uint8)
@@ -239,7 +239,7 @@ def ccm_replay(tmp_path, ccm_real, shared_dir, monkeypatch):
     cv2.imwrite(str(tmp_path / "mask.png"), mask)
     (tmp_path / "dets.json").write_text(json.dumps({"detections": [
         {"frame": 1, "box": list(CCM_BOX), "score": 0.9, "class": "book", "mask": "mask.png"}]}))
-    monkeypatch.setenv("MASSVIZ_WEIGHTS", str(shared_dir / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch"))
+    monkeypatch.setenv("MASSVIZ_WEIGHTS", str(weights))
     return tmp_path / "dets.json"
 
 
@@ -247,6 +247,7 @@ def pipeline_args(replay):
     return [str(replay.parent), "--detector", "replay", "--replay", str(replay), "--no-cache", "--quiet", "--k", "1"]
 
 
+@pytest.mark.slow
 def test_cloud_and_render_commands_on_ccm_real(ccm_real, ccm_replay, tmp_path, capsys):
     args = pipeline_args(ccm_replay)
     args[0] = str(ccm_real.path)

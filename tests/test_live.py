@@ -25,6 +25,7 @@ from massviz.errors import MassvizError
 from massviz.io.recording import open_recording
 from massviz.io.trace_file import load_trace, save_trace
 from massviz.runners.live import LatestSlot
+from support import CLEARED_ENV, run_massviz as massviz
 from test_pipeline import DETECTIONS, scene
 from test_recording import write_recording
 from test_selection import ListDetector
@@ -175,6 +176,15 @@ def offline(detector, recording_path: Path):
     return run(open_recording(recording_path), detector, FastModel(), k=5)
 
 
+def summary_line(stderr: str, name: str) -> str:
+    """The one line ``NAME: ESTIMATE ...`` a session (or ``massviz log``) ends with, found by its content: other lines
+    (a flag warning after ``massviz log``'s summary, a Python warning) may come after it."""
+    lines = [line for line in stderr.splitlines() if line.startswith(f"{name}: ")]
+    assert len(lines) == 1, stderr
+    return lines[0]
+
+
+@pytest.mark.slow
 def test_live_file_in_real_time(rs, played_db3, played, depth_detector, tmp_path, capsys):
     from massviz.commands.live import run_session
     from massviz.io.realsense import open_file_stream
@@ -185,7 +195,7 @@ def test_live_file_in_real_time(rs, played_db3, played, depth_detector, tmp_path
     t0 = time.perf_counter()
     assert run_session(args, p, open_file_stream(played_db3), "played") == 0
     assert time.perf_counter() - t0 >= 1.0  # real time: the 12 frames were recorded over 1.2 s
-    last = capsys.readouterr().err.strip().splitlines()[-1]
+    last = summary_line(capsys.readouterr().err, "played")
     assert last.startswith("played: ") and last.split()[1] != "not"
     assert LIVE_ENTITIES <= rrd_entities(tmp_path / "live.rrd")
     saved = open_recording(tmp_path / "rec")
@@ -202,6 +212,7 @@ def test_live_file_in_real_time(rs, played_db3, played, depth_detector, tmp_path
     assert f"{trace.estimate:.1f} g" in last
 
 
+@pytest.mark.slow
 def test_live_software_camera_stand_in(rs, played, depth_detector, tmp_path, capsys):
     from massviz.commands.live import run_session
     from massviz.io.realsense import SoftwareCamera, open_device_stream
@@ -223,9 +234,10 @@ def test_live_software_camera_stand_in(rs, played, depth_detector, tmp_path, cap
     assert trace.estimate == offline(depth_detector, tmp_path / "cam_rec").estimate >= 0
     if saved.meta["live"]["dropped"] == 0 and saved.num_frames == len(PLAYED):
         assert trace.estimate == offline(depth_detector, played).estimate
-    assert err.strip().splitlines()[-1].startswith(f"camera-sw: {trace.estimate:.1f} g")
+    assert summary_line(err, "camera-sw").startswith(f"camera-sw: {trace.estimate:.1f} g")
 
 
+@pytest.mark.slow
 def test_slow_detector_drops_frames_counts_them_and_memory_stays_flat(rs, depth_detector, tmp_path):
     """A 640x480 stand-in camera at 60 fps and a detector taking 0.15 s: most frames are dropped, each counted,
     and resident memory does not grow with the frames that arrived (a queue would hold ~1.5 MB per frame)."""
@@ -261,26 +273,20 @@ def test_slow_detector_drops_frames_counts_them_and_memory_stays_flat(rs, depth_
 
 
 # ---------------------------------------------------------------------------------------------- command line
-def massviz(*args, env_extra=None) -> subprocess.CompletedProcess:
-    env = {k: v for k, v in os.environ.items() if k not in ("MASSVIZ_DEBUG", "MASSVIZ_WEIGHTS")}
-    env.update(env_extra or {})
-    return subprocess.run([sys.executable, "-m", "massviz", *map(str, args)], capture_output=True, text=True,
-                          timeout=600, cwd=ROOT, env=env)
-
-
-def test_cli_live_file_then_massviz_log_replays_the_session(rs, played_db3, shared_dir, tmp_path):
-    weights = shared_dir / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch"
+@pytest.mark.slow
+def test_cli_live_file_then_massviz_log_replays_the_session(weights, rs, played_db3, tmp_path):
     common = ["--detector", "depth", "--weights", weights, "--cache", tmp_path / "cache", "--quiet"]
     r = massviz("live", "--file", played_db3, "--rrd", tmp_path / "live.rrd", "--save", tmp_path / "rec", *common)
     assert r.returncode == 0, r.stderr
-    last = r.stderr.strip().splitlines()[-1]
+    last = summary_line(r.stderr, "played")
     assert last.startswith("played: ") and " g (K=" in last
     estimate = last.split()[1]
     r = massviz("log", tmp_path / "rec", "--rrd", tmp_path / "replay.rrd", *common)
     assert r.returncode == 0, r.stderr
-    assert r.stderr.strip().splitlines()[-1].startswith(f"played: {estimate} g")
+    assert summary_line(r.stderr, "played").startswith(f"played: {estimate} g")
 
 
+@pytest.mark.slow
 def test_cli_bad_sources_one_line_exit_2_nothing_written(rs, tmp_path):
     from test_realsense import _bad_files
 
@@ -333,16 +339,18 @@ def test_unknown_serial_names_the_connected_ones(monkeypatch):
         realsense.open_camera("333")
 
 
+@pytest.mark.slow
 def test_cli_without_pyrealsense2_says_what_to_install(tmp_path):
     fake = tmp_path / "fake"
     fake.mkdir()
     (fake / "pyrealsense2.py").write_text("raise ImportError('No module named pyrealsense2')\n")
     env = {"PYTHONPATH": os.pathsep.join([str(fake), str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    r = massviz("live", "--file", tmp_path / "x.db3", "--no-cache", env_extra=env)
+    r = massviz("live", "--file", tmp_path / "x.db3", "--no-cache", env=env)
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0, r.stderr
     assert "pip install 'massviz[realsense]'" in r.stderr
 
 
+@pytest.mark.slow
 def test_ctrl_c_ends_the_session_cleanly(rs, played, depth_detector, tmp_path):
     import signal
     import threading
@@ -372,31 +380,99 @@ def test_ctrl_c_ends_the_session_cleanly(rs, played, depth_detector, tmp_path):
     assert signal.getsignal(signal.SIGINT) is not None  # the previous handler is back
 
 
-def test_serve_web_serves_a_viewer_on_localhost(rs, played_db3, depth_detector, tmp_path, capsys):
-    import re
-    import signal
+def free_ports(n: int) -> list[int]:
     import socket
+
+    ports = []
+    for _ in range(n):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            ports.append(s.getsockname()[1])
+    return ports
+
+
+def listeners(ports) -> list:
+    """The processes listening on any of ``ports`` (any address): (pid, address) pairs."""
+    import psutil
+
+    return [(c.pid, c.laddr) for c in psutil.net_connections("tcp")
+            if c.status == psutil.CONN_LISTEN and c.laddr.port in ports]
+
+
+@pytest.mark.slow
+def test_serve_web_serves_a_viewer_on_localhost_and_ends_with_the_session(rs, played_db3, depth_detector, tmp_path,
+                                                                           capsys):
+    """While the session runs the web viewer answers on 127.0.0.1 only; when it ends, its server process is gone and
+    nothing listens on the ports (the server is Rerun's binary, a child of this process, not a wrapper's child)."""
+    import re
+    import threading
     import urllib.request
+
+    import psutil
 
     from massviz.commands.live import run_session
     from massviz.io.realsense import open_file_stream
 
-    ports = []
-    for _ in range(2):
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            ports.append(s.getsockname()[1])
+    ports = free_ports(2)
+    seen = {}
+
+    def watch():  # during the session: the page, the listening sockets, the server process
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and "status" not in seen:
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{ports[0]}/", timeout=2) as page:
+                    seen["status"] = page.status
+                seen["listening"] = listeners(ports)
+                seen["children"] = psutil.Process().children(recursive=True)
+                seen["servers"] = [p.name() for p in seen["children"]
+                                   if p.pid in {pid for pid, _ in seen["listening"]}]
+            except OSError:
+                time.sleep(0.05)
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
     args = session_args(file=str(played_db3), serve_web=True, web_port=ports[0], grpc_port=ports[1])
     assert run_session(args, pipeline(depth_detector, tmp_path), open_file_stream(played_db3), "played") == 0
+    watcher.join(5)
     err = capsys.readouterr().err
-    pid = int(re.search(r"kill (\d+)", err).group(1))
+    url = re.search(r"web viewer at (\S+)", err).group(1)
+    assert url.startswith(f"http://127.0.0.1:{ports[0]}/")
+    assert seen.get("status") == 200, (seen, err)
+    assert {addr.port for _, addr in seen["listening"]} == set(ports)
+    assert all(addr.ip == "127.0.0.1" for _, addr in seen["listening"]), seen["listening"]
+    assert seen["servers"] == ["rerun"], seen  # Rerun's binary itself, a child of this process
+    # the session is over: the server has ended, nothing listens, no child of ours is left, and the user is told
+    assert listeners(ports) == []
+    assert not any(p.is_running() and p.status() != psutil.STATUS_ZOMBIE for p in seen["children"])
+    assert "stopped the web viewer's server" in err and "kill" not in err
+
+
+@pytest.mark.slow
+def test_cli_serve_web_server_dies_with_a_killed_massviz(rs, played_db3, weights, tmp_path):
+    """``massviz live --serve-web`` killed mid-session (SIGKILL: no handler runs): its server still ends."""
+    import signal
+
+    import psutil
+
+    ports = free_ports(2)
+    env = {k: v for k, v in os.environ.items() if k not in CLEARED_ENV}
+    proc = subprocess.Popen([sys.executable, "-m", "massviz", "live", "--file", played_db3, "--detector", "depth",
+                             "--weights", weights, "--no-cache", "--serve-web", "--web-port", str(ports[0]),
+                             "--grpc-port", str(ports[1])],
+                            cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
-        url = re.search(r"web viewer at (\S+)", err).group(1)
-        assert url.startswith(f"http://127.0.0.1:{ports[0]}/")
-        with urllib.request.urlopen(f"http://127.0.0.1:{ports[0]}/", timeout=10) as page:
-            assert page.status == 200
-        listening = subprocess.run(["ss", "-ltn"], capture_output=True, text=True).stdout
-        for port in ports:
-            assert f"127.0.0.1:{port} " in listening and f"0.0.0.0:{port} " not in listening
+        lines = []
+        for line in proc.stderr:
+            lines.append(line)
+            if "web viewer at" in line:
+                break
+        server = [p for p in psutil.Process(proc.pid).children(recursive=True) if p.name() == "rerun"]
+        assert server and listeners(ports), lines
+        proc.send_signal(signal.SIGKILL)
+        assert proc.wait(30) == -signal.SIGKILL
+        gone, alive = psutil.wait_procs(server, timeout=15)
+        assert not alive and listeners(ports) == [], (alive, listeners(ports))
     finally:
-        os.kill(pid, signal.SIGTERM)
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait()

@@ -1,8 +1,8 @@
 """The notebooks: stored without outputs, and executed top to bottom (headless, offline) on the bundled samples.
 
 Execution uses the venv's ``python3`` kernel spec (ipykernel), cwd ``notebooks/``, the published weights by path
-(``MASSVIZ_WEIGHTS`` from the ``shared_dir`` fixture) and the session's trace cache of the samples
-(``sample_traces.py``), so the notebooks read cached traces as a user's second run does.
+(``MASSVIZ_WEIGHTS`` from the ``weights`` fixture) and the session's trace cache of the samples
+(the ``sample_cache`` fixture), so the notebooks read cached traces as a user's second run does.
 """
 from __future__ import annotations
 
@@ -14,7 +14,6 @@ from pathlib import Path
 
 import nbformat
 import pytest
-from sample_traces import WEIGHTS, sample_cache
 
 ROOT = Path(__file__).resolve().parents[1]
 NOTEBOOKS = ROOT / "notebooks"
@@ -71,13 +70,12 @@ class _Collect(logging.Handler):
 
 
 @pytest.fixture(scope="module")
-def executed(shared_dir, samples_dir, tmp_path_factory):
+def executed(weights, sample_cache):
     """Run the three notebooks once (in order, sharing one trace cache); returns {name: executed notebook}."""
     from jupyter_client.kernelspec import KernelSpecManager
     from nbclient import NotebookClient
 
-    cache = sample_cache(tmp_path_factory, shared_dir, samples_dir)
-    env = _kernel_env(shared_dir / WEIGHTS, cache)
+    env = _kernel_env(weights, sample_cache)
     spec = KernelSpecManager().get_kernel_spec("python3")
     assert Path(spec.argv[0]).resolve().parent == Path(sys.executable).resolve().parent or spec.argv[0] in (
         "python", "python3", sys.executable), f"python3 kernel spec is not the venv's python: {spec.argv}"

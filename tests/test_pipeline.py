@@ -42,18 +42,13 @@ DETECTIONS = {i: [((5, 10, 30, 40), 0.5 + 0.08 * i, None), ((40, 5, 60, 25), 0.9
 
 
 @pytest.fixture(scope="module")
-def weights(shared_dir):
-    return shared_dir / "weights" / "corsmal_visual"
-
-
-@pytest.fixture(scope="module")
 def model(weights):
-    return load_checkpoint(weights / "Encoder_pool_aug_158.torch")
+    return load_checkpoint(weights)
 
 
 @pytest.fixture(scope="module")
 def other_model(weights):
-    return load_checkpoint(weights / "Encoder_pool_aug_fold0_94.torch")
+    return load_checkpoint(weights.with_name("Encoder_pool_aug_fold0_94.torch"))
 
 
 @pytest.fixture
@@ -367,10 +362,9 @@ def test_step_takes_detections_from_a_batched_detector(rec, fast):
     assert same_selection(a, b) and a.estimate == b.estimate
 
 
-def test_builder_makes_the_pipeline_the_cli_uses(tmp_path, shared_dir):
+def test_builder_makes_the_pipeline_the_cli_uses(weights, tmp_path):
     import massviz as mv
 
-    weights = shared_dir / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch"
     p = mv.build_pipeline(mv.PipelineOptions(detector="depth", k=3, weights=str(weights), cache=str(tmp_path)))
     assert (p.detector.name, p.options.k, p.model.weights_id) == ("depth", 3, load_checkpoint(weights).weights_id)
     assert isinstance(p.cache, TraceCache) and p.cache.root == tmp_path

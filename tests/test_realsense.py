@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import csv
 import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -20,6 +19,7 @@ import pytest
 from massviz.core.types import Frame, Intrinsics
 from massviz.errors import MassvizError, RecordingError
 from massviz.io.recording import open_recording
+from support import run_massviz as massviz
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "data_samples" / "cup_handover"
@@ -206,15 +206,9 @@ def test_write_refuses_bag_and_recordings_without_intrinsics(rs, sample, tmp_pat
 
 
 # ------------------------------------------------------------------------------------------------- command line
-def massviz(*args) -> subprocess.CompletedProcess:
-    env = {k: v for k, v in os.environ.items() if k not in ("MASSVIZ_DEBUG", "MASSVIZ_WEIGHTS")}
-    return subprocess.run([sys.executable, "-m", "massviz", *map(str, args)], capture_output=True, text=True,
-                          timeout=600, cwd=ROOT, env=env)
-
-
-def test_estimate_on_db3_equals_the_sample_folder(cup_db3, shared_dir, tmp_path):
+@pytest.mark.slow
+def test_estimate_on_db3_equals_the_sample_folder(weights, cup_db3, tmp_path):
     """(every 3rd frame, to keep the test quick on 2 cores: 12 frames of each)"""
-    weights = shared_dir / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch"
     out = tmp_path / "preds.csv"
     r = massviz("estimate", SAMPLE, cup_db3, "--detector", "depth", "--weights", weights, "--exact", "--quiet",
                 "--stride", 3, "--cache", tmp_path / "cache", "--out", out)
@@ -234,6 +228,7 @@ def test_estimate_on_db3_equals_the_sample_folder(cup_db3, shared_dir, tmp_path)
             "/latency/detect"} <= rrd_entities(rrd)
 
 
+@pytest.mark.slow
 def test_cli_bad_files_exit_2_one_line_nothing_written(bad_files, tmp_path):
     for case, (path, what) in bad_files.items():
         out = tmp_path / f"{path.stem}.csv"

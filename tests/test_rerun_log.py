@@ -321,11 +321,15 @@ def test_points_option_logs_rgb_points_and_keeps_them_out_of_the_default(tmp_pat
     assert default.stat().st_size < (tmp_path / "points.rrd").stat().st_size
 
 
-def test_depth_without_png_file_is_a_depth_image():
+def test_depth_without_png_file_is_a_depth_image(tmp_path):
     rec = rr.RecordingStream("massviz-test")
-    rec.memory_recording()
+    rec.save(tmp_path / "depth.rrd")
     depth = np.full((4, 5), 800, np.uint16)
     rerun_log.log_depth(rec, depth, None)  # e.g. a recording type whose depth is not a PNG file
+    rec.disconnect()
+    logged = components(rrd_contents(tmp_path / "depth.rrd"), "/camera/depth")
+    assert {"DepthImage:buffer", "DepthImage:format", "DepthImage:meter"} <= logged
+    assert not any(c.startswith("EncodedDepthImage:") for c in logged), logged
 
 
 def test_3d_view_starts_at_the_camera_looking_into_the_scene():

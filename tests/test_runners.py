@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import pytest
+from support import end_processes, started_since
 
 from massviz.cli import main
 from massviz.runners.dataset import EXIT_SOME_FAILED, FAULT_ENV, REPORT_FORMAT
@@ -25,11 +26,6 @@ from massviz.runners.dataset import EXIT_SOME_FAILED, FAULT_ENV, REPORT_FORMAT
 SAMPLES = ("box_handover", "cup_handover", "glass_handover")
 N_SYNTHETIC = 52
 FRAMES = 2
-
-
-@pytest.fixture(scope="module")
-def weights(shared_dir) -> Path:
-    return shared_dir / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch"
 
 
 @pytest.fixture(scope="module")
@@ -45,11 +41,13 @@ def ray_address():
     else:
         ray = pytest.importorskip("ray")
     for attempt in (1, 2):  # Ray gives its raylet a hard-coded 30 s to register: a loaded machine may need two tries
+        before = {p.pid for p in started_since(set())}
         try:
             ray.init(num_cpus=2, include_dashboard=False, logging_level="WARNING")
             break
         except Exception:  # noqa: BLE001 - "The current node timed out during startup"
             ray.shutdown()
+            end_processes(started_since(before))  # a failed start leaves gcs_server, monitors, a dashboard running
             if attempt == 2:
                 raise
     try:

@@ -70,10 +70,10 @@ def rig_sizes(det, width: int, height: int):
 
 
 @pytest.fixture(scope="module")
-def mass_model(shared_dir):
+def mass_model(weights):
     from massviz.io.checkpoint import load_checkpoint
 
-    return load_checkpoint(shared_dir / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch")
+    return load_checkpoint(weights)
 
 
 @pytest.fixture(scope="module")
@@ -248,12 +248,11 @@ def test_precision_of_a_detector_without_one_is_a_clear_error():
         PipelineOptions(batch=0).check()
 
 
-def test_cli_rejects_fp16_on_a_cpu_in_one_line(samples_dir, shared_dir, tmp_path, capsys):
+def test_cli_rejects_fp16_on_a_cpu_in_one_line(weights, samples_dir, tmp_path, capsys):
     from massviz.cli import main
 
     if torch.cuda.is_available():
         pytest.skip("a CUDA GPU is present: fp16 is allowed")
-    weights = shared_dir / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch"
     code = main(["estimate", str(samples_dir / "cup_handover"), "--detector", "maskrcnn", "--precision", "fp16",
                  "--weights", str(weights), "--detector-weights", "/nonexistent.pth", "--out",
                  str(tmp_path / "never.csv"), "--no-cache"])
@@ -405,11 +404,10 @@ def test_mass_cnn_eval_forward_is_bit_identical_to_the_papers_forward(mass_model
 
 
 @pytest.mark.skipif(not bf16_supported(), reason="this CPU has no bfloat16 support")
-def test_mass_cnn_precision_changes_its_id_and_stays_close(shared_dir):
+def test_mass_cnn_precision_changes_its_id_and_stays_close(weights):
     from massviz.io.checkpoint import load_checkpoint
 
-    path = shared_dir / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch"
-    fp32, bf16 = load_checkpoint(path), load_checkpoint(path).set_precision("bf16")
+    fp32, bf16 = load_checkpoint(weights), load_checkpoint(weights).set_precision("bf16")
     assert bf16.weights_id == fp32.weights_id + "+bf16" and bf16.precision == "bf16"
     assert bf16.set_precision("bf16").weights_id == fp32.weights_id + "+bf16"  # not appended twice
     rng = np.random.default_rng(0)
@@ -419,7 +417,7 @@ def test_mass_cnn_precision_changes_its_id_and_stays_close(shared_dir):
     a, b = fp32.predict(patches, feats), bf16.predict(patches, feats)
     assert not np.array_equal(a, b)  # it did run in bf16
     np.testing.assert_allclose(b, a, rtol=0.1, atol=2.0)
-    assert load_checkpoint(path).set_precision("fp16").weights_id == fp32.weights_id  # fp16: stays fp32
+    assert load_checkpoint(weights).set_precision("fp16").weights_id == fp32.weights_id  # fp16: stays fp32
 
 
 def test_a_model_built_for_loaded_weights_skips_random_init_and_is_the_same_model(weights_file):

@@ -17,7 +17,6 @@ from massviz.training.train import (
     AUGMENT_FACTOR, FOLDS, INDEX_COLUMNS, INDEX_NAME, PatchDataset, TrainConfig, annotation_for, compute_ranges,
     fit, make_augmentation, read_index, split_recordings, train_run)
 
-WEIGHTS = "weights/corsmal_visual/Encoder_pool_aug_158.torch"
 
 
 def make_patch_set(root, n_recordings=10, per_recording=3, seed=0):
@@ -195,7 +194,8 @@ def test_annotation_mismatch_names_the_csv(shared_dir):
 
 
 # ------------------------------------------------------------------------------ extract → train → estimate, by CLI
-def test_extract_train_estimate_on_the_samples(samples_dir, shared_dir, tmp_path, capsys):
+@pytest.mark.slow
+def test_extract_train_estimate_on_the_samples(samples_dir, shared_dir, weights, tmp_path, capsys):
     import json
 
     from massviz.evaluation.metrics import read_predictions
@@ -205,7 +205,7 @@ def test_extract_train_estimate_on_the_samples(samples_dir, shared_dir, tmp_path
         pytest.skip("no bundled samples in data_samples/")
     pipeline = ["--detector", "depth", "--stride", "4", "--cache", str(tmp_path / "cache"), "--quiet"]
     patches = tmp_path / "patches"
-    assert main(["extract", str(samples_dir), "--out", str(patches), "--weights", str(shared_dir / WEIGHTS),
+    assert main(["extract", str(samples_dir), "--out", str(patches), "--weights", str(weights),
                  *pipeline]) == 0, capsys.readouterr().err
     index = read_index(patches)
     assert list(index.columns) == list(INDEX_COLUMNS)
@@ -234,12 +234,12 @@ def test_extract_train_estimate_on_the_samples(samples_dir, shared_dir, tmp_path
     assert list(table["Configuration ID"]) == [0] and np.isfinite(table["Container mass"]).all()
 
 
-def test_extract_with_an_annotation_csv_missing_a_recording(shared_dir, tmp_path, capsys):
+def test_extract_with_an_annotation_csv_missing_a_recording(shared_dir, weights, tmp_path, capsys):
     ann = shared_dir / "ccm" / "annotations" / "test_annotations_fold0.csv"  # recording 0 is in fold 1's test set
     ccm = shared_dir / "ccm_real" / "view1" / "rgb" / "000000.mp4"
     out = tmp_path / "patches"
     assert main(["extract", str(ccm), "--annotations", str(ann), "--out", str(out), "--detector", "depth",
-                 "--weights", str(shared_dir / WEIGHTS), "--no-cache", "--quiet"]) == 2
+                 "--weights", str(weights), "--no-cache", "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"{ann}: no annotation for recording 000000" in err
     assert not out.exists() and not list(tmp_path.iterdir())

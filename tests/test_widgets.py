@@ -9,15 +9,12 @@ from __future__ import annotations
 
 import csv
 import json
-import os
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from sample_traces import WEIGHTS, sample_cache
+from support import run_massviz
 
 from massviz.evaluation.metrics import score_from_estimates
 from massviz.evaluation.failures import (Exclusion, chosen_table, exclusion_of, load_exclusions, match_exclusions, track_of,
@@ -25,33 +22,20 @@ from massviz.evaluation.failures import (Exclusion, chosen_table, exclusion_of, 
 from massviz.errors import DataError
 from massviz.evaluation.sweep import annotations_from_meta
 from massviz.evaluation.tuning import kept_indices, retune, subsample
-from massviz.app import process_recordings
-from massviz.io.recording import collect_recordings
 from massviz.views.widgets import FailurePanel, Tuner, TuningPanel
 
 
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory, shared_dir, samples_dir):
-    return sample_cache(tmp_path_factory, shared_dir, samples_dir)
+def _pos(sample_traces, name):
+    return next(i for i, t in enumerate(sample_traces) if t.recording.id == name)
 
 
-@pytest.fixture(scope="module")
-def traces(cache, shared_dir, samples_dir):
-    return process_recordings(collect_recordings([samples_dir]), detector="depth", weights=str(shared_dir / WEIGHTS),
-                              cache=str(cache), quiet=True)
-
-
-def _pos(traces, name):
-    return next(i for i, t in enumerate(traces) if t.recording.id == name)
-
-
-def test_k_and_threshold_change_selection_as_reselect_says(traces):
-    tuner = Tuner(traces)
+def test_k_and_threshold_change_selection_as_reselect_says(sample_traces):
+    tuner = Tuner(sample_traces)
     panel = TuningPanel(tuner)
     before = [t.estimate for t in tuner.current]
     for kw in ({"k": 3}, {"k": 12}, {"threshold": 0.7}, {"k": 5, "threshold": 0.45}):
         panel.set(**kw)
-        for i, t in enumerate(traces):
+        for i, t in enumerate(sample_traces):
             expected = t.reselect(k=tuner.k, threshold=tuner.threshold)
             np.testing.assert_array_equal(tuner.selection(i), expected.selection)
             assert tuner.current[i].estimate == pytest.approx(expected.estimate)
@@ -62,23 +46,23 @@ def test_k_and_threshold_change_selection_as_reselect_says(traces):
     assert len(panel.patches.children) == len(tuner.selection(panel.i))
 
 
-def test_stride_keeps_every_nth_frame(traces):
-    t = traces[0]
+def test_stride_keeps_every_nth_frame(sample_traces):
+    t = sample_traces[0]
     sub = subsample(t, 4)
     assert set(sub.detections.frame % 4) == {0}
     np.testing.assert_array_equal(sub.detections.d, t.detections.d[kept_indices(t, 4)])
-    tuner = Tuner(traces, stride=4)
-    for i, tr in enumerate(traces):
+    tuner = Tuner(sample_traces, stride=4)
+    for i, tr in enumerate(sample_traces):
         expected = subsample(tr, 4).reselect(k=5, threshold=0.4)
         assert tuner.current[i].estimate == pytest.approx(expected.estimate)
         assert set(tr.detections.frame[tuner.selection(i)] % 4) <= {0}
     assert retune(t, stride=1).estimate == pytest.approx(t.reselect().estimate)
 
 
-def test_score_table_updates(traces):
-    tuner = Tuner(traces)
+def test_score_table_updates(sample_traces):
+    tuner = Tuner(sample_traces)
     panel = TuningPanel(tuner)
-    ann, classes = annotations_from_meta(traces)
+    ann, classes = annotations_from_meta(sample_traces)
     first = tuner.report
     expected = score_from_estimates({i: t.estimate for i, t in enumerate(tuner.current)}, ann, classes)
     assert first.score == pytest.approx(expected.score)
@@ -89,37 +73,38 @@ def test_score_table_updates(traces):
     assert "glass" in panel.score.value
 
 
-def test_flagging_marks_the_pitcher(traces):
-    cup = _pos(traces, "cup_handover")
-    frames = traces[cup].recording.meta["frames"]
+def test_flagging_marks_the_pitcher(sample_traces):
+    cup = _pos(sample_traces, "cup_handover")
+    frames = sample_traces[cup].recording.meta["frames"]
     assert any(not f["container_nearest"] for f in frames), "the pitcher is nearer than the cup in some frames"
-    every = chosen_table(retune(traces[cup], k=5))  # every frame, the paper's K: the lifted pitcher is chosen
+    every = chosen_table(retune(sample_traces[cup], k=5))  # every frame, the paper's K: the lifted pitcher is chosen
     assert (every["gt_overlaps"] == "pitcher").sum() >= 1
     assert every[every["gt_overlaps"] == "pitcher"]["flagged"].all()
     assert not every[every["gt_overlaps"] == "container"]["flagged"].any()
-    table = chosen_table(retune(traces[cup], k=5, stride=6))
+    table = chosen_table(retune(sample_traces[cup], k=5, stride=6))
     pitcher = table[table["gt_overlaps"] == "pitcher"]
     assert len(pitcher) >= 1 and pitcher["flagged"].all()
     assert all("pitcher" in r for r in pitcher["flag_reason"])
     assert not table[table["gt_overlaps"] == "container"]["flagged"].any()
 
 
-def test_excluding_the_pitcher_moves_the_estimate_towards_ground_truth(traces):
-    tuner = Tuner(traces, k=5, stride=6)
+def test_excluding_the_pitcher_moves_the_estimate_towards_ground_truth(sample_traces):
+    tuner = Tuner(sample_traces, k=5, stride=6)
     panel = FailurePanel(tuner)
-    cup = _pos(traces, "cup_handover")
-    truth = traces[cup].ground_truth_mass
+    cup = _pos(sample_traces, "cup_handover")
+    truth = sample_traces[cup].ground_truth_mass
     before = tuner.current[cup].estimate
     table = panel.table(cup)
     det = int(table[table["gt_overlaps"] == "pitcher"]["detection"].iloc[0])
     panel.recording.value = cup
     panel.set_mode(det, "exclude")  # one detection: exactly what reselect says
-    expected = subsample(traces[cup].reselect(exclude=[det]), 6).reselect(k=5)
+    expected = subsample(sample_traces[cup].reselect(exclude=[det]), 6).reselect(k=5)
     assert tuner.current[cup].estimate == pytest.approx(expected.estimate)
     panel.set_mode(det, "exclude track")  # the pitcher standing on the table, in every frame
-    track = track_of(traces[cup], det)
+    track = track_of(sample_traces[cup], det)
     assert len(track) >= 6
-    assert tuner.current[cup].estimate == pytest.approx(retune(traces[cup], k=5, stride=6, exclude=track).estimate)
+    assert tuner.current[cup].estimate == pytest.approx(retune(sample_traces[cup], k=5, stride=6,
+                                                              exclude=track).estimate)
     after = tuner.current[cup].estimate
     print(f"cup_handover, K=5, stride 6: estimate {before:.1f} g -> {after:.1f} g (truth {truth:.1f} g)")
     assert abs(after - truth) < abs(before - truth) - 10
@@ -128,9 +113,9 @@ def test_excluding_the_pitcher_moves_the_estimate_towards_ground_truth(traces):
     assert tuner.current[cup].estimate == pytest.approx(before)
 
 
-def test_exclusions_round_trip(traces, tmp_path):
-    tuner = Tuner(traces, k=5, stride=6)
-    cup = _pos(traces, "cup_handover")
+def test_exclusions_round_trip(sample_traces, tmp_path):
+    tuner = Tuner(sample_traces, k=5, stride=6)
+    cup = _pos(sample_traces, "cup_handover")
     det = int(chosen_table(tuner.current[cup]).query("gt_overlaps == 'pitcher'").index[0])
     det = int(tuner.selection(cup)[det])
     tuner.set_mode(cup, det, "exclude track")
@@ -139,18 +124,18 @@ def test_exclusions_round_trip(traces, tmp_path):
     assert doc["format"] == "massviz.exclusions/1"
     assert {e["recording"] for e in doc["exclusions"]} == {"cup_handover"}
     entries = load_exclusions(path)
-    indices, unmatched = match_exclusions(traces[cup], entries)
+    indices, unmatched = match_exclusions(sample_traces[cup], entries)
     np.testing.assert_array_equal(indices, tuner.excluded(cup))
     assert unmatched == []
     # another recording's trace ignores them; a box moved by a pixel still matches (IoU >= 0.9)
-    other = _pos(traces, "box_handover")
-    assert len(match_exclusions(traces[other], entries)[0]) == 0
+    other = _pos(sample_traces, "box_handover")
+    assert len(match_exclusions(sample_traces[other], entries)[0]) == 0
     e = entries[0]
     nudged = Exclusion(e.recording, e.frame, (e.box[0] + 1, e.box[1], e.box[2] + 1, e.box[3]))
-    assert match_exclusions(traces[cup], [nudged])[0].tolist() == [int(indices[0])]
+    assert match_exclusions(sample_traces[cup], [nudged])[0].tolist() == [int(indices[0])]
     missing = Exclusion("cup_handover", 10_000, (0, 0, 5, 5))
-    assert match_exclusions(traces[cup], [missing])[1] == [missing]
-    save_exclusions(tmp_path / "one.json", [exclusion_of(traces[cup], det, "pitcher")])
+    assert match_exclusions(sample_traces[cup], [missing])[1] == [missing]
+    save_exclusions(tmp_path / "one.json", [exclusion_of(sample_traces[cup], det, "pitcher")])
     assert load_exclusions(tmp_path / "one.json")[0].note == "pitcher"
 
 
@@ -162,7 +147,8 @@ def test_malformed_exclusions_are_data_errors(tmp_path, text):
         load_exclusions(tmp_path / "bad.json")
 
 
-def test_estimate_command_honours_exclude(traces, cache, shared_dir, samples_dir, tmp_path):
+@pytest.mark.slow
+def test_estimate_command_honours_exclude(sample_traces, sample_cache, weights, samples_dir, tmp_path):
     # the challenge CSV needs an integer configuration id: the sample seen through a folder of links whose meta.json
     # adds one (same frames, so the same cached trace)
     src = samples_dir / "cup_handover"
@@ -172,37 +158,36 @@ def test_estimate_command_honours_exclude(traces, cache, shared_dir, samples_dir
         (rec / name).symlink_to(src / name)
     meta = json.loads((src / "meta.json").read_text())
     (rec / "meta.json").write_text(json.dumps({**meta, "config_id": 1}))
-    cup = _pos(traces, "cup_handover")
+    cup = _pos(sample_traces, "cup_handover")
     k = 20  # with every frame the pitcher is chosen from K = 18 on
-    chosen = retune(traces[cup], k=k)
+    chosen = retune(sample_traces[cup], k=k)
     table = chosen_table(chosen)
     assert (table["gt_overlaps"] == "pitcher").any()
     det = int(chosen.selection[table.index[table["gt_overlaps"] == "pitcher"][0]])
-    tuner = Tuner(traces, k=k)
+    tuner = Tuner(sample_traces, k=k)
     tuner.set_mode(cup, det, "exclude track")
     path = tuner.export(tmp_path / "exclusions.json")
-    expected = traces[cup].reselect(k=k, exclude=match_exclusions(traces[cup], load_exclusions(path))[0]).estimate
+    exclude = match_exclusions(sample_traces[cup], load_exclusions(path))[0]
+    expected = sample_traces[cup].reselect(k=k, exclude=exclude).estimate
     assert expected == pytest.approx(tuner.current[cup].estimate)
 
     def estimate(*extra):
         out = tmp_path / f"preds{len(extra)}.csv"
-        env = {**os.environ, "MASSVIZ_WEIGHTS": str(shared_dir / WEIGHTS)}
-        subprocess.run([sys.executable, "-m", "massviz", "estimate", str(rec), "--detector", "depth", "--k", str(k),
-                        "--cache", str(cache), "--exact", "--quiet", "--out", str(out), *extra], check=True, env=env,
-                       capture_output=True, text=True)
+        run_massviz("estimate", rec, "--detector", "depth", "--k", k, "--cache", sample_cache, "--exact", "--quiet",
+                    "--out", out, *extra, check=True, env={"MASSVIZ_WEIGHTS": weights})
         with open(out, newline="") as f:
             return float(next(csv.DictReader(f))["Container mass"])
 
     plain, excluded = estimate(), estimate("--exclude", str(path))
     print(f"massviz estimate K={k}: {plain:.2f} g, with --exclude {excluded:.2f} g (reselect says {expected:.2f} g)")
-    assert plain == pytest.approx(traces[cup].reselect(k=k).estimate, abs=0.01)
+    assert plain == pytest.approx(sample_traces[cup].reselect(k=k).estimate, abs=0.01)
     assert excluded == pytest.approx(expected, abs=0.01)
     assert abs(excluded - meta["container"]["mass_g"]) < abs(plain - meta["container"]["mass_g"])
 
 
-def test_slider_latency_for_ten_recordings(traces):
+def test_slider_latency_for_ten_recordings(sample_traces):
     """Measured and printed, not asserted (see benchmarks/widgets_latency.py)."""
-    ten = [traces[i % len(traces)] for i in range(10)]
+    ten = [sample_traces[i % len(sample_traces)] for i in range(10)]
     panel = TuningPanel(Tuner(ten))
     changes = [{"k": 3}, {"k": 8}, {"threshold": 0.6}, {"threshold": 0.45}, {"stride": 2}, {"stride": 5},
                {"stride": 1}, {"k": 5, "threshold": 0.4}]
@@ -215,8 +200,8 @@ def test_slider_latency_for_ten_recordings(traces):
     assert all(s > 0 for s in seconds)
 
 
-def test_set_moves_the_sliders_and_sliders_move_the_state(traces):
-    tuner = Tuner(traces)
+def test_set_moves_the_sliders_and_sliders_move_the_state(sample_traces):
+    tuner = Tuner(sample_traces)
     panel = TuningPanel(tuner)
     panel.set(stride=6, k=3, threshold=0.5)
     assert (panel.stride.value, panel.k.value, panel.threshold.value) == (6, 3, 0.5)
@@ -229,7 +214,7 @@ def test_set_moves_the_sliders_and_sliders_move_the_state(traces):
     # tiles: ★rank numbering, flagged ones outlined in the flagged colour
     from massviz.views.palette import FLAGGED_HEX
 
-    cup = _pos(traces, "cup_handover")
+    cup = _pos(sample_traces, "cup_handover")
     panel.set(k=5, threshold=0.4)
     panel.recording.value = cup
     captions = [tile.children[1].value for tile in panel.patches.children]
@@ -238,19 +223,19 @@ def test_set_moves_the_sliders_and_sliders_move_the_state(traces):
         [p.flagged for p in tuner.current[cup].flags.patches]
 
 
-def test_tuner_estimates_without_traces_equal_the_retuned_traces(traces):
+def test_tuner_estimates_without_traces_equal_the_retuned_traces(sample_traces):
     """A slider computes every recording's estimate without making its trace (``retuned_estimate``, for 1,140
-    recordings): the same numbers, and the same score, as the re-tuned traces give."""
+    recordings): the same numbers, and the same score, as the re-tuned sample_traces give."""
     from massviz.evaluation.tuning import retune, score_traces
 
-    cup = _pos(traces, "cup_handover")
-    tuner = Tuner(traces)
+    cup = _pos(sample_traces, "cup_handover")
+    tuner = Tuner(sample_traces)
     pitcher = int(tuner.current[cup].selection[0])
     tuner.set_mode(cup, pitcher, "exclude track")
     for k, threshold, stride in [(5, 0.4, 1), (3, 0.6, 1), (8, 0.4, 3), (1, 0.9, 2)]:
         tuner.update(k=k, threshold=threshold, stride=stride)
         made = [retune(t, k=k, threshold=threshold, stride=stride, exclude=tuner.excluded(i))
-                for i, t in enumerate(traces)]
-        assert tuner.estimates() == {t.recording.id: float(m.estimate) for t, m in zip(traces, made)}
+                for i, t in enumerate(sample_traces)]
+        assert tuner.estimates() == {t.recording.id: float(m.estimate) for t, m in zip(sample_traces, made)}
         assert [t.estimate for t in tuner.current] == [m.estimate for m in made]
         assert tuner.report.score_pct == score_traces(made).score_pct

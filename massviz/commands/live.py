@@ -43,8 +43,8 @@ def register(sub) -> None:
     out.add_argument("--connect", metavar="URL", help="send to a running Rerun viewer or server, e.g. "
                      "rerun+http://127.0.0.1:9876/proxy")
     out.add_argument("--serve-web", action="store_true",
-                     help="serve a browser viewer on 127.0.0.1 (ports --web-port and --grpc-port); it keeps serving "
-                     "after the session, until you stop it (its pid is printed)")
+                     help="serve a browser viewer on 127.0.0.1 (ports --web-port and --grpc-port) while the session "
+                     "runs; its server ends with the command (an open page keeps what it received)")
     out.add_argument("--web-port", type=int, default=9090, help="--serve-web: web viewer port (default 9090)")
     out.add_argument("--grpc-port", type=int, default=9876, help="--serve-web: gRPC port (default 9876)")
     out.add_argument("--save", metavar="REC_DIR", help="write the processed frames as a massviz recording folder "
@@ -54,35 +54,57 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _serve_web(web_port: int, grpc_port: int) -> tuple[str, str, int]:
-    """A Rerun server with a web viewer bound to 127.0.0.1, as its own process: (gRPC URL, browser URL, pid)."""
-    import socket
-    import subprocess
-    import time
-    import urllib.parse
+class _WebServer:
+    """Rerun's own binary serving gRPC and a web viewer on 127.0.0.1 (``rerun --serve-web``), started by
+    ``massviz live --serve-web`` and ended with the command: ``stop()`` (SIGTERM, SIGKILL after ``grace`` s) runs when
+    the session ends, however it ends, and the server gets SIGTERM if massviz dies first (Linux
+    ``PR_SET_PDEATHSIG``). The binary itself, not ``python -m rerun``: that wrapper runs the server as a child of its
+    own, which outlived it when the wrapper was killed."""
 
-    from massviz.errors import MassvizError
+    def __init__(self, web_port: int, grpc_port: int, timeout: float = 20.0):
+        import socket
+        import subprocess
+        import time
+        import urllib.parse
 
-    for port in (web_port, grpc_port):
-        with socket.socket() as s:
-            if s.connect_ex(("127.0.0.1", port)) == 0:
-                raise MassvizError(f"port {port} on 127.0.0.1 is in use; choose others with --web-port/--grpc-port")
-    cmd = [sys.executable, "-m", "rerun", "--serve-web", "--bind", "127.0.0.1", "--port", str(grpc_port),
-           "--web-viewer-port", str(web_port)]
-    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            start_new_session=True)
-    grpc = f"rerun+http://127.0.0.1:{grpc_port}/proxy"
-    deadline = time.monotonic() + 20
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise MassvizError(f"the Rerun web viewer did not start (exit code {proc.returncode})")
-        with socket.socket() as s:
-            if s.connect_ex(("127.0.0.1", grpc_port)) == 0:
-                url = f"http://127.0.0.1:{web_port}/?url={urllib.parse.quote(grpc, safe='')}"
-                return grpc, url, proc.pid
-        time.sleep(0.2)
-    proc.terminate()
-    raise MassvizError("the Rerun web viewer did not start within 20 s")
+        from massviz.errors import MassvizError
+        from massviz.views.rerun_serve import _die_with_parent, _viewer_binary
+
+        for port in (web_port, grpc_port):
+            with socket.socket() as s:
+                if s.connect_ex(("127.0.0.1", port)) == 0:
+                    raise MassvizError(f"port {port} on 127.0.0.1 is in use; choose others with --web-port/--grpc-port")
+        cmd = [str(_viewer_binary()), "--serve-web", "--bind", "127.0.0.1", "--port", str(grpc_port),
+               "--web-viewer-port", str(web_port)]
+        self.proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                     stderr=subprocess.DEVNULL, start_new_session=True,
+                                     preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
+        self.grpc = f"rerun+http://127.0.0.1:{grpc_port}/proxy"
+        self.url = f"http://127.0.0.1:{web_port}/?url={urllib.parse.quote(self.grpc, safe='')}"
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise MassvizError(f"the Rerun web viewer did not start (exit code {self.proc.returncode})")
+            with socket.socket() as s:
+                grpc_up = s.connect_ex(("127.0.0.1", grpc_port)) == 0
+            with socket.socket() as s:
+                if grpc_up and s.connect_ex(("127.0.0.1", web_port)) == 0:
+                    return
+            time.sleep(0.2)
+        self.stop()
+        raise MassvizError(f"the Rerun web viewer did not start within {timeout:.0f} s")
+
+    def stop(self, grace: float = 5.0) -> None:
+        """End the server (idempotent): SIGTERM, then SIGKILL if it is still there after ``grace`` seconds."""
+        import subprocess
+
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(grace)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
 
 
 def run(args) -> int:
@@ -130,37 +152,39 @@ def run_session(args, pipeline, stream, name: str) -> int:
     fp = pipeline.frame_pipeline(rec_info)
     logger = None
     web = None
-    try:
-        connect = args.connect
-        if args.serve_web and args.connect:
-            raise MassvizError("give --connect or --serve-web, not both")
-        if args.serve_web:
-            connect_web, url, pid = _serve_web(args.web_port, args.grpc_port)
-            web = (url, pid)
-            connect = connect or connect_web
-            print(f"massviz live: web viewer at {url}", file=sys.stderr)
-        if args.rrd or args.spawn or connect:
-            from massviz.views.rerun_live import LiveLogger
+    try:  # the web server ends with the session, however it ends
+        try:
+            connect = args.connect
+            if args.serve_web and args.connect:
+                raise MassvizError("give --connect or --serve-web, not both")
+            if args.serve_web:
+                web = _WebServer(args.web_port, args.grpc_port)
+                connect = connect or web.grpc
+                print(f"massviz live: web viewer at {web.url}", file=sys.stderr)
+            if args.rrd or args.spawn or connect:
+                from massviz.views.rerun_live import LiveLogger
 
-            logger = LiveLogger(name=name, k=fp.selection.k, threshold=fp.selection.threshold,
-                                intrinsics=info.intrinsics, rrd=args.rrd, spawn=args.spawn, connect=connect)
-    except BaseException:
-        stream.stop()
-        raise
-    print(f"massviz live: {stream.description}; Ctrl-C ends the session", file=sys.stderr)
-    result = run_live(stream, fp, logger=logger, duration=args.duration, save=args.save, progress=not args.quiet,
-                      name=name, source=stream.description)
-    trace, stats = result.trace, result.stats
-    cached = _cache(pipeline, trace, result, args, stream)
+                logger = LiveLogger(name=name, k=fp.selection.k, threshold=fp.selection.threshold,
+                                    intrinsics=info.intrinsics, rrd=args.rrd, spawn=args.spawn, connect=connect)
+        except BaseException:
+            stream.stop()
+            raise
+        print(f"massviz live: {stream.description}; Ctrl-C ends the session", file=sys.stderr)
+        result = run_live(stream, fp, logger=logger, duration=args.duration, save=args.save, progress=not args.quiet,
+                          name=name, source=stream.description)
+        trace, stats = result.trace, result.stats
+        cached = _cache(pipeline, trace, result, args, stream)
+    finally:
+        if web is not None:
+            web.stop()
     print(f"massviz live: {stats.summary()}; stopped: {stats.stopped}", file=sys.stderr)
     for line in ([f"wrote {args.rrd}"] if args.rrd else []) + ([f"saved the frames to {result.saved} "
                                                                  f"(replay: massviz log {result.saved} --rrd X.rrd)"]
                                                                 if result.saved else []) + \
-            ([f"trace cached at {cached}"] if cached else []):
+            ([f"trace cached at {cached}"] if cached else []) + \
+            (["stopped the web viewer's server (an open page keeps what it received; --rrd keeps the recording)"]
+             if web is not None else []):
         print(f"massviz live: {line}", file=sys.stderr)
-    if web is not None:
-        print(f"massviz live: the web viewer keeps serving at {web[0]} (pid {web[1]}; stop it with kill {web[1]})",
-              file=sys.stderr)
     est = "not estimated" if trace.estimate < 0 else f"{trace.estimate:.1f} g"
     print(f"{name}: {est} (K={len(trace.selection)}, {stats.processed} frames, {stats.dropped} dropped)",
           file=sys.stderr)
