@@ -9,7 +9,6 @@ from massviz.views.rerun.entities import (CHOSEN_ID, CLASS_IDS, FLAGGED_ID, MAX_
                                           log_flags, log_frame_clouds, log_masks, log_patch, log_pinhole,
                                           log_points, log_predictions, log_running, log_summary, log_timings,
                                           scene_depth_m, summary_markdown)
-from massviz.views.rerun.output import (APPLICATION_ID, show_in_notebook,  # noqa: F401
-                                        use_local_notebook_assets)
-from massviz.views.rerun.replay import log_trace  # noqa: F401
+from massviz.views.rerun.output import APPLICATION_ID, use_local_notebook_assets  # noqa: F401
+from massviz.views.rerun.replay import log_trace, show_in_notebook  # noqa: F401
 from massviz.views.rerun.rrd_reader import rrd_contents, rrd_entities  # noqa: F401

@@ -65,8 +65,8 @@ from __future__ import annotations
 from massviz.views.rerun.blueprint import blueprint_for, default_blueprint
 from massviz.views.rerun.entities import CHOSEN_ID, CLASS_IDS, FLAGGED_ID, MAX_POINTS, POINT_STEP, RgbLogger
 from massviz.views.rerun.entities import log_clouds, log_flags, log_frame_clouds
-from massviz.views.rerun.output import APPLICATION_ID, show_in_notebook, use_local_notebook_assets
-from massviz.views.rerun.replay import log_trace
+from massviz.views.rerun.output import APPLICATION_ID, use_local_notebook_assets
+from massviz.views.rerun.replay import log_trace, show_in_notebook
 
 __all__ = ["log_trace", "log_flags", "default_blueprint", "log_clouds", "log_frame_clouds", "RgbLogger", "CLASS_IDS",
            "CHOSEN_ID", "FLAGGED_ID", "POINT_STEP", "MAX_POINTS", "blueprint_for", "show_in_notebook",

@@ -94,19 +94,13 @@ def use_local_notebook_assets() -> str:
     return os.environ.setdefault(NOTEBOOK_ASSET_ENV, "serve-local")
 
 
-def show_in_notebook(trace, recording, *, width: int = 1000, height: int = 640,
-                     **options) -> dict:
-    """Show ``trace`` in an inline Rerun viewer (rerun-notebook) in the current notebook cell, with massviz's default
-    layout, and log it there (``log_trace(..., stream=...)``; ``options`` go to it). The viewer's code is served
-    locally (``use_local_notebook_assets``), so no network is needed. Returns ``log_trace``'s stats."""
-    from massviz.views.rerun.blueprint import blueprint_for
-    from massviz.views.rerun.replay import log_trace
-
+def notebook_stream(name: str, blueprint, *, width: int = 1000, height: int = 640) -> rr.RecordingStream:
+    """A new stream shown in an inline Rerun viewer (rerun-notebook) in the current notebook cell with ``blueprint``;
+    the viewer's code is served locally (``use_local_notebook_assets``), so no network is needed."""
     use_local_notebook_assets()
-    stream = rr.RecordingStream(APPLICATION_ID, recording_id=f"notebook-{recording.id}-{uuid.uuid4().hex[:8]}")
-    stream.notebook_show(width=width, height=height,
-                         blueprint=blueprint_for(trace, recording, points=bool(options.get("points"))))
-    return log_trace(trace, recording, stream=stream, **options)
+    stream = rr.RecordingStream(APPLICATION_ID, recording_id=f"notebook-{name}-{uuid.uuid4().hex[:8]}")
+    stream.notebook_show(width=width, height=height, blueprint=blueprint)
+    return stream
 
 
-__all__ = ["APPLICATION_ID", "Output", "NOTEBOOK_ASSET_ENV", "use_local_notebook_assets", "show_in_notebook"]
+__all__ = ["APPLICATION_ID", "Output", "NOTEBOOK_ASSET_ENV", "use_local_notebook_assets", "notebook_stream"]

@@ -19,7 +19,7 @@ from massviz.views.rerun.entities import (CLOUD_VOXEL_M, MAX_POINTS, POINT_STEP,
                                           frustum_depth, log_annotation_context, log_depth, log_detections, log_events,
                                           log_flags, log_frame_clouds, log_masks, log_patch, log_pinhole, log_points,
                                           log_predictions, log_running, log_summary, log_timings)
-from massviz.views.rerun.output import Output
+from massviz.views.rerun.output import Output, notebook_stream
 
 def _check_match(trace: Trace, recording) -> None:
     w, h = trace.recording.width, trace.recording.height
@@ -138,4 +138,13 @@ def log_trace(trace: Trace, recording, *, rrd: str | Path | None = None, spawn: 
     return stats
 
 
-__all__ = ["log_trace"]
+def show_in_notebook(trace: Trace, recording, *, width: int = 1000, height: int = 640, **options) -> dict:
+    """Show ``trace`` in an inline Rerun viewer (``output.notebook_stream``) in the current notebook cell, with
+    massviz's default layout, and log it there (``log_trace(..., stream=...)``; ``options`` go to it). Returns
+    ``log_trace``'s stats."""
+    stream = notebook_stream(recording.id, blueprint_for(trace, recording, points=bool(options.get("points"))),
+                             width=width, height=height)
+    return log_trace(trace, recording, stream=stream, **options)
+
+
+__all__ = ["log_trace", "show_in_notebook"]
