@@ -74,9 +74,10 @@ class Trace:
     - ``estimate``: mean of the chosen predictions in grams; -1 when nothing was selected (not estimated).
     - ``excluded``: detection indices the user excluded (never selected).
     - ``timings``: wall time per stage in seconds; ``events``: typed ``Event`` decisions worth reading.
-    - ``measurements``: the 3D stage's measured size of each chosen detection (``massviz.core.geometry.Measurement``
-      as dicts, read them with ``geometry3d.measurements_of``); empty when not measured. ``reselect`` drops them
-      (they belong to the old selection).
+    - ``measurements``: the measure stage's size of each chosen detection (``massviz.core.geometry.Measurement``
+      as dicts, read them with ``massviz.core.geometry.measurements_of``), measured by the pipeline as detections
+      enter the running K nearest (recordings with intrinsics); views only read them. ``reselect`` keeps those of
+      the detections still chosen, re-ranked.
     - ``frame_timings``: seconds per stage for each processed frame (stage -> array aligned with ``frames``; empty
       for traces made before massviz recorded them).
     - ``flags``: ``massviz.core.flags.Flags`` of the selection (made when the trace is; see the module docstring).
@@ -201,7 +202,15 @@ class Trace:
         events = [e for e in self.events if not e.is_selection]
         events.extend(describe_selection(self.detections, selection, estimate, k))
         return dataclasses.replace(self, k=k, threshold=threshold, selection=selection, estimate=estimate,
-                                   excluded=excluded, events=events, measurements=[])
+                                   excluded=excluded, events=events,
+                                   measurements=ranked_measurements(self.measurements, selection))
+
+
+def ranked_measurements(measurements: list, selection) -> list[dict]:
+    """The measurements (``Measurement.to_dict()`` dicts) of the detections in ``selection``, in its order, with
+    ``rank`` their rank in it: what a re-selected trace keeps (a newly chosen detection has none until measured)."""
+    by_detection = {int(m["detection"]): m for m in measurements}
+    return [{**by_detection[int(i)], "rank": r} for r, i in enumerate(selection) if int(i) in by_detection]
 
 
 def describe_detection(dets: Detections, i: int) -> str:
