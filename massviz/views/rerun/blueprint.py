@@ -1,10 +1,10 @@
 """The viewer's default layout (a Rerun blueprint) for a trace or a live session."""
 from __future__ import annotations
 
+import numpy as np
 import rerun.blueprint as rrb
 
 from massviz.core.trace import Trace
-from massviz.views.rerun.entities import scene_depth_m
 
 def default_blueprint(n_patches: int, *, has_3d: bool = True, flagged=(), look_at_m: float = 1.0,
                       points: bool = False) -> rrb.Blueprint:
@@ -46,17 +46,18 @@ def default_blueprint(n_patches: int, *, has_3d: bool = True, flagged=(), look_a
     )
 
 
-def _look_at_m(recording, trace: Trace) -> float:
-    """Where the 3D view looks: the median depth of the first processed frame."""
-    if recording.intrinsics is None or len(trace.frames) == 0:
+def _look_at_m(trace: Trace) -> float:
+    """Where the 3D view looks: the nearest chosen patch's distance d (m), else 1 m (no frame is read)."""
+    if len(trace.selection) == 0:
         return 1.0
-    return scene_depth_m(recording.read_depth(int(trace.frames[0])))
+    d = float(trace.detections.d[int(trace.selection[0])])
+    return float(np.clip(d / 1000.0, 0.1, 10.0)) if np.isfinite(d) else 1.0
 
 
 def blueprint_for(trace: Trace, recording, *, points: bool = False) -> rrb.Blueprint:
     """``default_blueprint`` for this trace: its K patches, a 3D view (with intrinsics) looking at its scene."""
     return default_blueprint(len(trace.selection), has_3d=recording.intrinsics is not None,
-                             flagged=[p.rank for p in trace.flags.flagged], look_at_m=_look_at_m(recording, trace),
+                             flagged=[p.rank for p in trace.flags.flagged], look_at_m=_look_at_m(trace),
                              points=points)
 
 

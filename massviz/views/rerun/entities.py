@@ -387,43 +387,72 @@ def log_timings(rec: rr.RecordingStream, timings: dict, n_frames: int) -> None:
 
 
 # ------------------------------------------------------------------------------------------------ 3D clouds
-def log_frame_clouds(trace, frame: Frame, intr: Intrinsics, stream, *, root: str = "world/detections",
-                     voxel_m: float = 0.004) -> list[str]:
-    """Log each detection of ``frame`` (above the trace's threshold) as ``/<root>/<id>`` (Points3D, its colours;
-    chosen ones in ``CHOSEN_COLOUR``, flagged ones in ``FLAGGED_COLOUR``, with their box as ``<id>/box`` Boxes3D
-    labelled with the size the pipeline measured, ``Trace.measurements``; none when the trace has no measurement).
-    Call it with the stream's time already set to the frame. ``voxel_m`` thins the clouds (0: every point).
-    Returns the entity paths logged."""
-    from massviz.core.geometry import detection_cloud, measurements_of  # Open3D: imported when clouds are logged
+def log_detection_clouds(stream, frame: Frame, dets: Detections, ids, intr: Intrinsics, *,
+                         root: str = "world/detections", voxel_m: float = 0.004) -> dict[int, str]:
+    """Log the cleaned cloud (``massviz.core.geometry.detection_cloud``) of each detection of ``frame`` as
+    ``/<root>/<id>`` (Points3D in its RGB colours; ``dets`` the frame's detections, ``ids`` their indices in the
+    trace), with the stream's time already set to the frame. ``voxel_m`` thins the clouds (0: every point). Returns
+    {id: entity path} of the clouds logged (empty clouds are not). ``log_cloud_overlays`` adds what the selection
+    says (colours of the chosen ones, their measured boxes)."""
+    from massviz.core.geometry import detection_cloud  # Open3D: imported when clouds are logged
 
-    dets = trace.detections
-    rank_of = {int(i): r for r, i in enumerate(trace.selection)}
-    stored = {m.detection: m for m in measurements_of(trace)}
-    idx = [int(i) for i in np.flatnonzero((dets.frame == frame.index) & trace.active())]
-    paths = []
-    for i in idx:
-        pcd = detection_cloud(frame, dets, i, intr)
+    paths = {}
+    for j, i in enumerate(ids):
+        pcd = detection_cloud(frame, dets, j, intr)
         if len(pcd.points) == 0:
             continue
-        m = stored.get(i)  # measured by the pipeline (``Trace.measurements``); a view never measures
         shown = pcd.voxel_down_sample(voxel_m) if voxel_m > 0 else pcd
-        pts = np.asarray(shown.points, np.float32)
-        path = f"{root}/{i}"
-        if i in rank_of:
-            flag = trace.flags.of(i)
-            colour = FLAGGED_COLOUR if flag is not None and flag.flagged else CHOSEN_COLOUR
-            colours = np.array([rgb255(colour)], np.uint8)  # one colour for all: Rerun repeats it
-        else:
-            colours = (np.asarray(shown.colors) * 255).astype(np.uint8)
-        stream.log(path, rr.Points3D(pts, colors=colours, radii=0.002))
+        path = f"{root}/{int(i)}"
+        stream.log(path, rr.Points3D(np.asarray(shown.points, np.float32),
+                                     colors=(np.asarray(shown.colors) * 255).astype(np.uint8), radii=0.002))
+        paths[int(i)] = path
+    return paths
+
+
+def log_cloud_overlays(stream, trace: Trace, paths: dict[int, str], *, timeline: str = "frame") -> None:
+    """For each chosen detection whose cloud is at ``paths`` ({id: entity path}, ``log_detection_clouds``), at its
+    frame: the cloud recoloured (``CHOSEN_COLOUR``, flagged ones ``FLAGGED_COLOUR``) and its measured box as
+    ``<path>/box`` (Boxes3D labelled with the size) and ``<path>/measurement`` (AnyValues), from
+    ``Trace.measurements`` (what the pipeline measured; none when the trace has no measurement: a view never
+    measures)."""
+    from massviz.core.geometry import measurements_of
+
+    dets = trace.detections
+    stored = {m.detection: m for m in measurements_of(trace)}
+    for i in (int(i) for i in trace.selection):
+        path = paths.get(i)
+        if path is None:
+            continue
+        stream.set_time(timeline, sequence=int(dets.frame[i]))
+        flag = trace.flags.of(i)
+        colour = FLAGGED_COLOUR if flag is not None and flag.flagged else CHOSEN_COLOUR
+        # one colour for all points (Rerun repeats it), logged after the RGB colours at the same time: it wins
+        stream.log(path, rr.Points3D.from_fields(colors=np.array([rgb255(colour)], np.uint8)))
+        m = stored.get(i)
         if m is not None:
             label = f"★{m.rank} h {m.height_mm:.0f} w {m.width_mm:.0f} d {m.depth_mm:.0f} mm"
             stream.log(f"{path}/box", rr.Transform3D(translation=m.center, mat3x3=np.asarray(m.R)),
                        rr.Boxes3D(half_sizes=[np.asarray(m.extent) / 2], colors=[rgb255(BOX_COLOUR)], labels=[label]))
             stream.log(f"{path}/measurement", rr.AnyValues(
                 rank=m.rank, height_mm=m.height_mm, width_mm=m.width_mm, depth_mm=m.depth_mm, n_points=m.n_points))
-        paths.append(path)
-    return paths
+
+
+def frame_detections(trace: Trace, frame_index: int) -> tuple[Detections, list[int]]:
+    """The detections of one frame above the trace's threshold (what gets a cloud) and their indices in the trace."""
+    dets = trace.detections
+    ids = [int(i) for i in np.flatnonzero((dets.frame == frame_index) & trace.active())]
+    return dets[ids], ids
+
+
+def log_frame_clouds(trace, frame: Frame, intr: Intrinsics, stream, *, root: str = "world/detections",
+                     voxel_m: float = 0.004, timeline: str = "frame") -> list[str]:
+    """``log_detection_clouds`` of the trace's detections in ``frame`` (above its threshold) and their
+    ``log_cloud_overlays``; the stream's time already set to the frame. Returns the entity paths logged."""
+    dets, ids = frame_detections(trace, frame.index)
+    paths = log_detection_clouds(stream, frame, dets, ids, intr, root=root, voxel_m=voxel_m)
+    log_cloud_overlays(stream, trace, paths, timeline=timeline)
+    stream.set_time(timeline, sequence=frame.index)
+    return list(paths.values())
 
 
 def log_clouds(trace, recording, stream, *, timeline: str = "frame", root: str = "world/detections",
@@ -442,7 +471,8 @@ def log_clouds(trace, recording, stream, *, timeline: str = "frame", root: str =
         stream.set_time(timeline, sequence=frame.index)
         for p in shown:
             stream.log(p, rr.Clear(recursive=True))
-        shown = log_frame_clouds(trace, frame, recording.intrinsics, stream, root=root, voxel_m=voxel_m) \
+        shown = log_frame_clouds(trace, frame, recording.intrinsics, stream, root=root, voxel_m=voxel_m,
+                                 timeline=timeline) \
             if frame.index in with_dets else []
         n += len(shown)
     return n
