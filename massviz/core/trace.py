@@ -155,20 +155,24 @@ class Trace:
             "active": self.active(), "rank": rank,
         })
 
-    def running_estimate(self) -> np.ndarray:
-        """The estimate as it stood after each processed frame (aligned with ``frames``): the mean prediction of the
-        K nearest detections among those of the frames processed so far, with this trace's K, threshold and
-        exclusions (what ``massviz live`` shows as ``/predictions/running_estimate``); -1 while none is selected.
-        Its last value is ``estimate``."""
+    def running_selections(self) -> list[np.ndarray]:
+        """The K nearest detections as they stood after each processed frame (aligned with ``frames``; indices into
+        ``detections``, nearest first), with this trace's K, threshold and exclusions: what the running selection of
+        ``massviz.core.pipeline.FramePipeline`` held. The last one is ``selection``."""
         dets = self.detections
         nearest = NearestOrder(dets.d, dets.score, self.excluded)  # finite d, not excluded, sorted by d (ties: first)
         order = nearest.order[nearest.score > self.threshold]
         position = {int(f): j for j, f in enumerate(self.frames)}
         processed_at = np.array([position.get(int(f), len(self.frames)) for f in dets.frame[order]], dtype=np.int64)
-        out = np.full(len(self.frames), -1.0)
-        for j in range(len(self.frames)):
-            out[j] = estimate_mass(dets.pred, order[processed_at <= j][: self.k])
-        return out
+        return [order[processed_at <= j][: self.k] for j in range(len(self.frames))]
+
+    def running_estimate(self) -> np.ndarray:
+        """The estimate as it stood after each processed frame (aligned with ``frames``): the mean prediction of the
+        K nearest detections among those of the frames processed so far (``running_selections``; what ``massviz
+        live`` shows as ``/predictions/running_estimate``); -1 while none is selected. Its last value is
+        ``estimate``."""
+        return np.array([estimate_mass(self.detections.pred, sel) for sel in self.running_selections()],
+                        dtype=np.float64).reshape(-1)
 
     def settled_after(self, tolerance: float = 0.10) -> int | None:
         """How many processed frames it took the running estimate to settle: from then on it stays within

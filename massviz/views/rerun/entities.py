@@ -245,6 +245,38 @@ def log_patch(rec: rr.RecordingStream, rank: int, dets: Detections, i: int, patc
         colors=[rgb255(FLAGGED_COLOUR if flagged else CHOSEN_COLOUR)], radii=[2.0 if flagged else 1.0]))
 
 
+class PatchTiles:
+    """``/patches/<rank>`` kept equal to the current K nearest: ``update`` with the running selection (trace indices,
+    nearest first) logs every rank whose occupant changed (a new detection, or one that moved to another rank) and
+    clears ranks left empty, so that each tile shows, at every frame, the patch holding that rank then.
+
+    ``source(i)`` returns (detections, index in them, RGB patch or None, flag or None) of trace detection ``i``; a
+    detection without a patch is not shown (its rank is cleared)."""
+
+    def __init__(self, source):
+        self.source = source
+        self.occupants: list[int] = []
+
+    def update(self, rec: rr.RecordingStream, selection) -> list[int]:
+        """Log the ranks that changed at the stream's current time; returns them."""
+        new = [int(i) for i in selection]
+        changed = []
+        for r, i in enumerate(new):
+            if r < len(self.occupants) and self.occupants[r] == i:
+                continue
+            dets, j, patch, flag = self.source(i)
+            if patch is None or not patch.size:
+                rec.log(f"/patches/{r}", rr.Clear(recursive=True))
+            else:
+                log_patch(rec, r, dets, j, patch, flag)
+            changed.append(r)
+        for r in range(len(new), len(self.occupants)):
+            rec.log(f"/patches/{r}", rr.Clear(recursive=True))
+            changed.append(r)
+        self.occupants = new
+        return changed
+
+
 # --------------------------------------------------------------------------------------------------- predictions
 def log_predictions(rec: rr.RecordingStream, trace: Trace) -> None:
     """``/predictions/*``: each chosen prediction from its source frame to the last frame, the estimate at the last

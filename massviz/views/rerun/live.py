@@ -8,7 +8,8 @@ and on ``capture_time`` (seconds since the first frame, from the camera's timest
 - ``/camera/rgb`` (JPEG ``EncodedImage``), ``/camera/depth`` (``DepthImage``: the 3D view back-projects it through the
   ``/camera`` ``Pinhole``; ``/world/points`` is not logged live unless ``points=True``: an Open3D back-projection
   per frame and 2-3x the .rrd size, see benchmarks/live_latency.py), ``/camera/detections`` and ``/camera/masks``
-  (the K nearest *so far* marked ★rank), ``/patches/<rank>`` (when the K nearest change);
+  (the K nearest *so far* marked ★rank), ``/patches/<rank>`` (``PatchTiles``: every rank whose occupant changed,
+  when the K nearest change, so each tile shows the current K nearest);
 - ``/predictions/running_estimate`` (the mean of the K nearest so far) each frame;
 - ``/latency/<stage>`` (ms): ``read`` (aligning and copying the newest frame), ``detect``, ``features``,
   ``predict``, ``select``, ``log`` (this logging), ``wait`` (the frame's time in the one-frame buffer while the
@@ -32,7 +33,7 @@ from massviz.errors import MassvizError
 from massviz.views.rerun.blueprint import default_blueprint
 from massviz.views.rerun.entities import (MAX_POINTS, POINT_STEP, RUNNING_COLOUR, detection_class_ids, frustum_depth,
                                           jpeg_bytes, log_annotation_context, log_depth, log_detections, log_masks,
-                                          log_patch, log_pinhole, log_points, log_predictions, log_summary,
+                                          PatchTiles, log_pinhole, log_points, log_predictions, log_summary,
                                           log_timings, summary_markdown, text_log)
 from massviz.views.rerun.output import Output
 
@@ -59,6 +60,8 @@ class LiveLogger:
             names="running estimate (K nearest so far)", colors=RUNNING_COLOUR, widths=2), static=True)
         self._t0_ms: float | None = None
         self.frames = 0
+        self._held: dict[int, tuple] = {}  # trace index -> (detections, index, patch, flag) of the K nearest so far
+        self.tiles = PatchTiles(self._held_source)
 
     # ------------------------------------------------------------------------------------------------ per frame
     def log_step(self, res, *, latency: dict | None = None, timestamp_ms: float | None = None,
@@ -85,10 +88,10 @@ class LiveLogger:
         class_ids = detection_class_ids(dets, idx, rank_of, self.threshold)
         log_detections(rec, dets, idx, class_ids, rank_of)
         log_masks(rec, dets, idx, class_ids, frame.depth.shape[:2])
-        for i, r in rank_of.items():  # a detection of this frame entered the K nearest at rank r
-            patch = res.patches[i] if i < len(res.patches) else None
-            if patch is not None and patch.size:
-                log_patch(rec, r, dets, i, patch)
+        for i in rank_of:  # a detection of this frame entered the K nearest: keep what its tile shows
+            self._held[res.offset + i] = (dets, i, res.patches[i] if i < len(res.patches) else None, None)
+        self._held = {g: v for g, v in self._held.items() if g in rank_global}
+        self.tiles.update(rec, res.selection)  # every rank whose occupant changed (entered or moved), now
         for e in res.events:
             rec.log("/log", text_log(e.message, e.level))
         if rank_of:
@@ -107,6 +110,9 @@ class LiveLogger:
         rec.log("/latency/log", rr.Scalars(1000.0 * spent))
         self.frames += 1
         return spent
+
+    def _held_source(self, i: int) -> tuple:
+        return self._held[int(i)]
 
     def note(self, text: str, level: str = "info") -> None:
         self.rec.log("/log", text_log(text, level))

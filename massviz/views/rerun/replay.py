@@ -15,10 +15,10 @@ from massviz.errors import MassvizError
 from massviz.core.patches import crop
 from massviz.core.trace import Trace
 from massviz.views.rerun.blueprint import blueprint_for
-from massviz.views.rerun.entities import (CLOUD_VOXEL_M, MAX_POINTS, POINT_STEP, RgbLogger, detection_class_ids,
-                                          frame_detections, frustum_depth, log_annotation_context,
+from massviz.views.rerun.entities import (CLOUD_VOXEL_M, MAX_POINTS, POINT_STEP, PatchTiles, RgbLogger,
+                                          detection_class_ids, frame_detections, frustum_depth, log_annotation_context,
                                           log_cloud_overlays, log_depth, log_detection_clouds, log_detections,
-                                          log_events, log_flags, log_masks, log_patch, log_pinhole, log_points,
+                                          log_events, log_flags, log_masks, log_pinhole, log_points,
                                           log_predictions, log_running, log_summary, log_timings, text_log)
 from massviz.views.rerun.output import Output, notebook_stream
 
@@ -59,6 +59,7 @@ class TraceLogger:
         self.seconds = 0.0
         self._shown: list[str] = []
         self._trace: Trace | None = None
+        self._tile_detections: dict[int, set] = {}
         self.rec.send_recording_name(f"massviz {recording.id}")
         self.rgb.log_static(self.rec)
 
@@ -90,10 +91,10 @@ class TraceLogger:
                 dets, ids = dets[keep], [ids[j] for j in keep]
         else:
             dets, ids = frame_detections(self._trace, frame.index)
-            for i in self._trace.selection:  # a trace from the cache keeps the nearest patches; crop any other
-                i = int(i)
-                if int(self._trace.detections.frame[i]) == frame.index and self._trace.detections.patches[i] is None:
-                    self.patches[i] = crop(frame.rgb, self._trace.detections.xyxy[i])
+            trace_dets = self._trace.detections
+            for i in self._tile_detections.get(frame.index, ()):  # the trace keeps the nearest patches; crop others
+                if trace_dets.patches[i] is None:
+                    self.patches[i] = crop(frame.rgb, trace_dets.xyxy[i])
         if self.clouds:
             for path in self._shown:
                 rec.log(path, rr.Clear(recursive=True))
@@ -107,6 +108,9 @@ class TraceLogger:
         come from a run observed by ``on_frame``)."""
         _check_match(trace, self.recording)
         self._trace = trace
+        self._tile_detections = defaultdict(set)  # frame -> detections that hold a tile at some frame
+        for i in {int(i) for sel in trace.running_selections() for i in sel}:
+            self._tile_detections[int(trace.detections.frame[i])].add(i)
         if self.threshold is None:
             self.threshold = trace.threshold
         frames = [int(f) for f in trace.frames]
@@ -151,11 +155,12 @@ class TraceLogger:
             class_ids = detection_class_ids(dets, idx, rank_of, trace.threshold, flagged)
             log_detections(rec, dets, idx, class_ids, rank_of)
             log_masks(rec, dets, idx, class_ids, shape)
-        for i, r in rank_of.items():
-            patch = dets.patches[i] if dets.patches[i] is not None else self.patches.get(i)
-            if patch is not None:
-                rec.set_time("frame", sequence=int(dets.frame[i]))
-                log_patch(rec, r, dets, i, patch, flag_of.get(i))
+        # each tile shows the patch holding its rank at every frame: logged where the running selection changes
+        tiles = PatchTiles(lambda i: (dets, i, dets.patches[i] if dets.patches[i] is not None else self.patches.get(i),
+                                      flag_of.get(i)))
+        for f, selection in zip(frames, trace.running_selections()):
+            rec.set_time("frame", sequence=f)
+            tiles.update(rec, selection)
         if self.cloud_paths:
             log_cloud_overlays(rec, trace, self.cloud_paths)
         rec.reset_time()
