@@ -53,7 +53,8 @@ class LiveLogger:
         self.rrd = self.out.rrd
         self.rec = self.out.stream
         self.rec.send_recording_name(f"massviz live {name}")
-        self.rec.send_blueprint(default_blueprint(k, has_3d=intrinsics is not None),
+        size = None if intrinsics is None else (int(intrinsics.width), int(intrinsics.height))
+        self.rec.send_blueprint(default_blueprint(k, has_3d=intrinsics is not None, image_size=size),
                                 make_active=True, make_default=True)
         log_annotation_context(self.rec, k)
         self.rec.log("/predictions/running_estimate", rr.SeriesLines(
