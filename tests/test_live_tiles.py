@@ -35,9 +35,9 @@ def test_live_tiles_show_the_current_k_nearest(rs, played_db3, depth_detector, t
     saved = open_recording(tmp_path / "rec")
     trace = p.cache.load(saved, {"name": depth_detector.name, **depth_detector.settings()}, 1, 0.4)
     assert trace is not None
-    numbers = saved.meta["live"]["frame_numbers"]  # the .rrd's frame timeline: frame numbers of the file
     running = trace.running_selections()
-    assert len(numbers) == len(running) == len(trace.frames)
+    numbers = range(len(running))  # the live .rrd's frame timeline: index of the processed frame
+    assert saved.meta["live"]["processed"] == len(running) == len(trace.frames)
     k_final = len(trace.selection)
     assert k_final >= 2  # the recording has more than one patch to hold, so ranks can change
     tiles = {r: rrd_rows(tmp_path / "live.rrd", f"/patches/{r}") for r in range(trace.k)}
