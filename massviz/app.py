@@ -88,13 +88,15 @@ class Pipeline:
     model: object
     cache: object | None
 
-    def process(self, recording, *, exclude=None, progress: bool | None = None, selection: Selection | None = None):
+    def process(self, recording, *, exclude=None, progress: bool | None = None, selection: Selection | None = None,
+                on_frame=None):
         """The recording's trace, from the cache when there (:func:`process`), selected with ``selection`` (default:
-        the options' ``selection``) plus the exclusions ``exclude``."""
+        the options' ``selection``) plus the exclusions ``exclude``; ``on_frame``: the per-frame observer of
+        ``massviz.core.pipeline.run`` (not called when the trace comes from the cache)."""
         progress = not self.options.quiet if progress is None else progress
         selection = self.options.selection if selection is None else selection
         return process(recording, self.detector, self.model, selection=selection, cache=self.cache,
-                       progress=progress, exclude=exclude, batch=self.batch)
+                       progress=progress, exclude=exclude, batch=self.batch, on_frame=on_frame)
 
     @property
     def batch(self) -> int:
@@ -108,13 +110,14 @@ class Pipeline:
 
 def process(recording, detector, model, *, selection: Selection | None = None, k: int | None = None,
             stride: int | None = None, cache=None, progress: bool = False, exclude=None, batch: int = 1,
-            prefetch: int = 2, annotate=None):
+            prefetch: int = 2, annotate=None, on_frame=None):
     """``massviz.core.pipeline.run`` with the trace cache: reuse cached detections when the recording, detector settings and stride match
     and the cached threshold is <= the selection's; re-predict only when the model differs. ``cache`` is a
     ``massviz.io.cache.TraceCache`` or None (no caching). ``selection`` (or ``k=``/``stride=``), ``batch``,
     ``prefetch``: see ``run``; ``exclude`` adds to the selection's exclusions. ``annotate``: a function
     trace -> trace applied to every trace this returns, before a new one is cached; default
-    ``massviz.io.ground_truth.with_ground_truth`` (the ground truth's overlaps, for the flags)."""
+    ``massviz.io.ground_truth.with_ground_truth`` (the ground truth's overlaps, for the flags). ``on_frame``: see
+    ``run``; called only when the pipeline runs (not for a trace from the cache)."""
     from massviz.io.ground_truth import with_ground_truth
 
     annotate = annotate or with_ground_truth
@@ -144,7 +147,7 @@ def process(recording, detector, model, *, selection: Selection | None = None, k
                                             timings={**trace.timings, **timings}))
     # the cached trace holds every detection (no exclusions): they are applied to the trace returned
     trace = annotate(run(recording, detector, model, selection=selection.replace(exclude=()), progress=progress,
-                         batch=batch, prefetch=prefetch))
+                         batch=batch, prefetch=prefetch, on_frame=on_frame))
     if cache is not None:
         cache.save(trace, recording, info)
     if exclude is not None:

@@ -64,7 +64,7 @@ def test_the_graph_is_read():
     assert "massviz.core.pipeline" in MODULES and "massviz.views.rerun_log" in MODULES
     assert "massviz.core.detector" in GRAPH["massviz.core.pipeline"]
     assert "massviz.core.detector" in GRAPH["massviz.detect.base"]
-    assert "massviz.core.trace" in GRAPH["massviz.views.rerun_log"]
+    assert "massviz.core.trace" in GRAPH["massviz.views.rerun.replay"]
     assert "massviz.io.ground_truth" in GRAPH["massviz.app"]  # an import inside a function
 
 

@@ -59,7 +59,7 @@ def run(args) -> int:
     from massviz.commands._common import build, flag_warning
     from massviz.errors import MassvizError
     from massviz.io.recording import open_recording
-    from massviz.views.rerun_log import log_trace
+    from massviz.views.rerun.replay import log_run
 
     if args.rrd_dir:
         from massviz.commands._dataset_log import run_rrd_dir
@@ -74,9 +74,13 @@ def run(args) -> int:
     if args.ply:
         check_output_dir(args.ply, "--ply")
     rec = open_recording(args.recording, allow_partial=args.allow_partial)
-    trace = build(args).process(rec)
-    stats = log_trace(trace, rec, rrd=Path(args.rrd) if args.rrd else None, spawn=args.spawn,
-                      progress=not args.quiet, video=args.video, points=args.points)
+    pipeline = build(args)
+    threshold = pipeline.options.selection.threshold
+    # one pass: each frame is logged as the pipeline processes it (a trace from the cache is replayed once)
+    trace, stats = log_run(rec, lambda on_frame: pipeline.process(rec, on_frame=on_frame),
+                           rrd=Path(args.rrd) if args.rrd else None, spawn=args.spawn, progress=not args.quiet,
+                           video=args.video, points=args.points,
+                           threshold=float(pipeline.detector.threshold) if threshold is None else threshold)
     if args.ply:
         from massviz.views.open3d_view import write_ply_or_skip
 

@@ -212,6 +212,19 @@ class Measurement:
                                                 np.asarray(self.extent, float))
 
 
+def measure_detection(frame: Frame, dets: Detections, i: int, intr: Intrinsics, *, detection: int | None = None,
+                      rank: int = -1, depth_trunc: float = DEPTH_TRUNC_M, band_m: float | None = BAND_M
+                      ) -> Measurement | None:
+    """The measured size of detection ``i`` of ``dets`` (detections of ``frame``) from its cleaned cloud, as a
+    ``Measurement`` (``detection``: its index in the trace, default ``i``; ``rank`` its rank in the selection, -1
+    unknown); None when its cloud has fewer than 10 points. What the pipeline's measure stage runs on each detection
+    that enters the running K nearest (``massviz.core.pipeline.FramePipeline``)."""
+    size = measure_cloud(detection_cloud(frame, dets, i, intr, depth_trunc=depth_trunc, band_m=band_m))
+    if size is None:
+        return None
+    return Measurement.from_size(rank, i if detection is None else detection, frame.index, size)
+
+
 def ground_truth_size(meta: dict | None) -> dict | None:
     """The container's annotated size (mm) from a recording's meta (``GroundTruth.size``: height, top/bottom
     widths, ``width_mm`` the larger of the two, depth), or None when unknown."""
@@ -249,7 +262,8 @@ def measure(trace, recording, *, depth_trunc: float = DEPTH_TRUNC_M, band_m: flo
             ) -> list[Measurement]:
     """Measure every chosen detection of ``trace`` (``trace.selection``, nearest first) from its cleaned cloud.
 
-    Reads only the frames of the chosen detections. Returns [] for a recording without intrinsics (see
+    The measurements the pipeline already made (``trace.measurements``, default settings) are reused; only the frames
+    of the chosen detections without one are read. Returns [] for a recording without intrinsics (see
     ``skip_reason``) and skips detections whose cloud has fewer than 10 points.
     """
     if skip_reason(recording):
@@ -257,13 +271,16 @@ def measure(trace, recording, *, depth_trunc: float = DEPTH_TRUNC_M, band_m: flo
     intr = recording.intrinsics
     dets = trace.detections
     rank_of = {int(i): r for r, i in enumerate(trace.selection)}
-    out = []
-    groups = _by_frame(trace.selection, dets)
+    default = depth_trunc == DEPTH_TRUNC_M and band_m == BAND_M
+    out = [dataclasses.replace(m, rank=rank_of[m.detection]) for m in measurements_of(trace)
+           if default and m.detection in rank_of]
+    have = {m.detection for m in out}
+    groups = _by_frame([i for i in trace.selection if int(i) not in have], dets)
     for frame in recording.frames(indices=list(groups)):
         for i in groups[frame.index]:
-            size = measure_cloud(detection_cloud(frame, dets, i, intr, depth_trunc=depth_trunc, band_m=band_m))
-            if size is not None:
-                out.append(Measurement.from_size(rank_of[i], i, frame.index, size))
+            m = measure_detection(frame, dets, i, intr, rank=rank_of[i], depth_trunc=depth_trunc, band_m=band_m)
+            if m is not None:
+                out.append(m)
     return sorted(out, key=lambda m: m.rank)
 
 
@@ -307,5 +324,5 @@ def depth_to_points(depth: np.ndarray, intrinsics: Intrinsics, rgb: np.ndarray |
 __all__ = [
     "DEPTH_TRUNC_M", "BAND_M", "skip_reason", "require_intrinsics", "pinhole", "rgbd_cloud", "scene_cloud",
     "masked_cloud", "detection_cloud", "Size", "oriented_box", "vertical_axis", "view_aligned_box", "measure_cloud",
-    "Measurement", "ground_truth_size", "annotation_size", "compare", "measure", "with_measurements",
+    "Measurement", "measure_detection", "ground_truth_size", "annotation_size", "compare", "measure", "with_measurements",
     "measurements_of", "depth_to_points"]

@@ -40,7 +40,7 @@ from massviz.core.patches import crop
 from massviz.core.detector import Detector
 from massviz.core.prefetch import Prefetcher
 from massviz.core.selection import Selection, compute_features, estimate_mass, select_k_nearest
-from massviz.core.trace import Event, Trace, describe_detection, describe_selection
+from massviz.core.trace import Event, Trace, describe_detection, describe_selection, ranked_measurements
 from massviz.core.tracks import Tracker
 from massviz.core.types import Detections, Frame, RecordingInfo
 
@@ -111,11 +111,16 @@ class FramePipeline:
     ``selection``: the K, threshold, stride and exclusions to select with (``Selection``; ``k=``/``stride=`` are a
     shorthand for ``Selection(k, stride=stride)``). A selection without a threshold selects at the detector's own
     score cut; one below it is refused (those detections were never kept).
+
+    ``measure`` (recordings with intrinsics; off by default here, where live sessions step, on in ``run``): the
+    measure stage, ``massviz.core.geometry.measure_detection``, runs
+    on each detection as it enters the running K nearest (as its patch is kept), so the trace's ``measurements``
+    hold the measured size of every chosen detection without reading a frame again (stage time ``measure3d``).
     """
 
     def __init__(self, detector: Detector, model, *, selection: Selection | None = None, k: int | None = None,
                  stride: int | None = None, recording: RecordingInfo | None = None,
-                 keep_patches: int = KEEP_PATCHES):
+                 keep_patches: int = KEEP_PATCHES, measure: bool = False):
         selection = resolve_selection(selection, k, stride)
         self.detect_threshold = float(detector.threshold)  # the detector's own cut, recorded in the trace
         if selection.threshold is None:
@@ -143,6 +148,8 @@ class FramePipeline:
         self._sel_pred = np.zeros(0)
         self._start = time.perf_counter()
         self._tracker = Tracker(recording.fps if recording is not None else None)
+        self._intrinsics = recording.intrinsics if (measure and recording is not None) else None
+        self._measured: dict[int, object] = {}
 
     @property
     def frames_done(self) -> int:
@@ -176,6 +183,9 @@ class FramePipeline:
         t5 = time.perf_counter()
         timings = {"read": read_seconds, "detect": t2 - t1, "features": t3 - t2, "predict": t4 - t3,
                    "select": t5 - t4}
+        if self._intrinsics is not None:
+            self._measure_entrants(frame, dets, offset, selection)
+            timings["measure3d"] = time.perf_counter() - t5
         for name, seconds in timings.items():
             self._frame_timings[name].append(seconds)
             if name != "select":  # the whole recording's selection is timed in finish()
@@ -183,6 +193,15 @@ class FramePipeline:
         self.events.extend(events)
         return FrameResult(frame=frame, detections=dets, patches=patches, offset=offset, selection=selection,
                            running_estimate=running, timings=timings, events=events)
+
+    def _measure_entrants(self, frame: Frame, dets: Detections, offset: int, selection: np.ndarray) -> None:
+        """The measure stage: the size of each detection of this frame that entered the running K nearest."""
+        from massviz.core.geometry import measure_detection  # Open3D: imported on the first measurement
+
+        for g in selection[selection >= offset]:
+            m = measure_detection(frame, dets, int(g) - offset, self._intrinsics, detection=int(g))
+            if m is not None:
+                self._measured[int(g)] = m.to_dict()
 
     def _update_selection(self, dets: Detections, offset: int) -> tuple[np.ndarray, float]:
         local = self._exclude[(self._exclude >= offset) & (self._exclude < offset + len(dets))] - offset
@@ -207,13 +226,15 @@ class FramePipeline:
         timings["select"] = time.perf_counter() - t5
         timings["total"] = time.perf_counter() - self._start
         events = [*self.events, *describe_selection(detections, selection, estimate, self.k)]
+        measurements = ranked_measurements(list(self._measured.values()), selection)
         info = self.recording if self.recording is not None else RecordingInfo(id="live")
         return Trace(recording=info, detector={"name": self.detector.name, **self.detector.settings()},
                      detect_threshold=self.detect_threshold, threshold=self.selection.threshold,
                      k=self.k, stride=self.stride, frames=np.asarray(self._frames, dtype=np.int32),
                      detections=detections, selection=selection, estimate=estimate, excluded=excluded,
                      weights_id=getattr(self.model, "weights_id", ""), timings=timings, events=events,
-                     frame_timings={n: np.asarray(v) for n, v in self._frame_timings.items()})
+                     frame_timings={n: np.asarray(v) for n, v in self._frame_timings.items()},
+                     measurements=measurements)
 
 
 def detect_in_batches(frames, detector: Detector, batch: int = 1):
@@ -251,16 +272,21 @@ def detect_in_batches(frames, detector: Detector, batch: int = 1):
 
 def run(recording, detector: Detector, model, *, selection: Selection | None = None, k: int | None = None,
         stride: int | None = None, keep_patches: int = KEEP_PATCHES, progress: bool = False, batch: int = 1,
-        prefetch: int = 2) -> Trace:
+        prefetch: int = 2, on_frame=None, measure: bool = True) -> Trace:
     """Run the pipeline over ``recording`` (a loop over ``FramePipeline.step``) and select as ``selection`` says
     (``k=``/``stride=``: shorthand, see ``FramePipeline``).
 
     ``batch``: frames per detector call (``detect_in_batches``); ``prefetch``: frames read ahead in a background
     thread (``massviz.core.prefetch.Prefetcher``, at least ``batch``; 0 reads in this thread). Neither changes the
     result; the ``read`` timing is then the time spent waiting for frames.
+
+    ``on_frame(frame, result)``: a read-only observer called after each frame's step with the ``Frame`` (its arrays
+    and, when the format has them, the bytes the reader read) and the ``FrameResult``, e.g. a sink logging each frame
+    as it is processed so that no frame is read twice (``massviz log``). It must not change either; its time is not
+    charged to any stage. ``measure``: the measure stage (``FramePipeline``).
     """
     fp = FramePipeline(detector, model, selection=resolve_selection(selection, k, stride), recording=recording.info(),
-                       keep_patches=keep_patches)
+                       keep_patches=keep_patches, measure=measure)
     stride = fp.stride
     total = math.ceil(recording.num_frames / stride)
     bar = tqdm(total=total, desc=f"{recording.id}", unit="frame", file=sys.stderr, disable=not progress,
@@ -270,7 +296,9 @@ def run(recording, detector: Detector, model, *, selection: Selection | None = N
         frames = Prefetcher(frames, size=max(int(prefetch), int(batch)))
     try:  # the bar is cleared before any error is reported, so the error line stands alone
         for frame, dets, read_s, detect_s in detect_in_batches(frames, detector, batch):
-            fp.step(frame, detections=dets, read_seconds=read_s, detect_seconds=detect_s)
+            result = fp.step(frame, detections=dets, read_seconds=read_s, detect_seconds=detect_s)
+            if on_frame is not None:
+                on_frame(frame, result)
             bar.update(1)
     finally:
         bar.close()

@@ -74,9 +74,10 @@ class Trace:
     - ``estimate``: mean of the chosen predictions in grams; -1 when nothing was selected (not estimated).
     - ``excluded``: detection indices the user excluded (never selected).
     - ``timings``: wall time per stage in seconds; ``events``: typed ``Event`` decisions worth reading.
-    - ``measurements``: the 3D stage's measured size of each chosen detection (``massviz.core.geometry.Measurement``
-      as dicts, read them with ``geometry3d.measurements_of``); empty when not measured. ``reselect`` drops them
-      (they belong to the old selection).
+    - ``measurements``: the measure stage's size of each chosen detection (``massviz.core.geometry.Measurement``
+      as dicts, read them with ``massviz.core.geometry.measurements_of``), measured by the pipeline as detections
+      enter the running K nearest (recordings with intrinsics); views only read them. ``reselect`` keeps those of
+      the detections still chosen, re-ranked.
     - ``frame_timings``: seconds per stage for each processed frame (stage -> array aligned with ``frames``; empty
       for traces made before massviz recorded them).
     - ``flags``: ``massviz.core.flags.Flags`` of the selection (made when the trace is; see the module docstring).
@@ -154,20 +155,24 @@ class Trace:
             "active": self.active(), "rank": rank,
         })
 
-    def running_estimate(self) -> np.ndarray:
-        """The estimate as it stood after each processed frame (aligned with ``frames``): the mean prediction of the
-        K nearest detections among those of the frames processed so far, with this trace's K, threshold and
-        exclusions (what ``massviz live`` shows as ``/predictions/running_estimate``); -1 while none is selected.
-        Its last value is ``estimate``."""
+    def running_selections(self) -> list[np.ndarray]:
+        """The K nearest detections as they stood after each processed frame (aligned with ``frames``; indices into
+        ``detections``, nearest first), with this trace's K, threshold and exclusions: what the running selection of
+        ``massviz.core.pipeline.FramePipeline`` held. The last one is ``selection``."""
         dets = self.detections
         nearest = NearestOrder(dets.d, dets.score, self.excluded)  # finite d, not excluded, sorted by d (ties: first)
         order = nearest.order[nearest.score > self.threshold]
         position = {int(f): j for j, f in enumerate(self.frames)}
         processed_at = np.array([position.get(int(f), len(self.frames)) for f in dets.frame[order]], dtype=np.int64)
-        out = np.full(len(self.frames), -1.0)
-        for j in range(len(self.frames)):
-            out[j] = estimate_mass(dets.pred, order[processed_at <= j][: self.k])
-        return out
+        return [order[processed_at <= j][: self.k] for j in range(len(self.frames))]
+
+    def running_estimate(self) -> np.ndarray:
+        """The estimate as it stood after each processed frame (aligned with ``frames``): the mean prediction of the
+        K nearest detections among those of the frames processed so far (``running_selections``; what ``massviz
+        live`` shows as ``/predictions/running_estimate``); -1 while none is selected. Its last value is
+        ``estimate``."""
+        return np.array([estimate_mass(self.detections.pred, sel) for sel in self.running_selections()],
+                        dtype=np.float64).reshape(-1)
 
     def settled_after(self, tolerance: float = 0.10) -> int | None:
         """How many processed frames it took the running estimate to settle: from then on it stays within
@@ -201,7 +206,15 @@ class Trace:
         events = [e for e in self.events if not e.is_selection]
         events.extend(describe_selection(self.detections, selection, estimate, k))
         return dataclasses.replace(self, k=k, threshold=threshold, selection=selection, estimate=estimate,
-                                   excluded=excluded, events=events, measurements=[])
+                                   excluded=excluded, events=events,
+                                   measurements=ranked_measurements(self.measurements, selection))
+
+
+def ranked_measurements(measurements: list, selection) -> list[dict]:
+    """The measurements (``Measurement.to_dict()`` dicts) of the detections in ``selection``, in its order, with
+    ``rank`` their rank in it: what a re-selected trace keeps (a newly chosen detection has none until measured)."""
+    by_detection = {int(m["detection"]): m for m in measurements}
+    return [{**by_detection[int(i)], "rank": r} for r, i in enumerate(selection) if int(i) in by_detection]
 
 
 def describe_detection(dets: Detections, i: int) -> str:

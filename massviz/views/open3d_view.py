@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from massviz._open3d import o3d
 
-from massviz.core.geometry import (DEPTH_TRUNC_M, _by_frame, detection_cloud, measure_cloud, measurements_of,
+from massviz.core.geometry import (DEPTH_TRUNC_M, _by_frame, detection_cloud, measurements_of,
                                    require_intrinsics, rgbd_cloud, scene_cloud, skip_reason)
 from massviz.core.types import Intrinsics
 from massviz.errors import MassvizError
@@ -114,11 +114,9 @@ def frame_geometries(trace, recording, frame_index: int | None = None, *, depth_
         flagged = flag is not None and flag.flagged
         pcd.paint_uniform_color(FLAGGED_COLOUR if flagged else CHOSEN_COLOUR)
         geoms.append((f"chosen_{i}", pcd))
-        m = stored.get(i)
-        size = measure_cloud(pcd) if m is None else None
-        obb = m.obb() if m is not None else (size.obb() if size is not None else None)
-        if obb is not None:
-            geoms.append((f"box_{i}", box_lineset(obb, FLAGGED_COLOUR if flagged else BOX_COLOUR)))
+        m = stored.get(i)  # measured by the pipeline (``Trace.measurements``): a view never measures
+        if m is not None:
+            geoms.append((f"box_{i}", box_lineset(m.obb(), FLAGGED_COLOUR if flagged else BOX_COLOUR)))
     return frame.index, geoms
 
 

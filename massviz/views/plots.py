@@ -14,6 +14,7 @@ from matplotlib.patches import Rectangle
 from massviz.evaluation.metrics import ScoreReport
 from massviz.core.trace import Trace
 from massviz.core.types import Frame, Intrinsics, class_name
+from massviz.views.labels import short_reason
 from massviz.views.palette import (CHOSEN_COLOUR, CHOSEN_HEX, FLAGGED_HEX, OTHER_HEX, WITHOUT_FLAGGED_COLOUR,
                                     hex_colour)
 
@@ -119,7 +120,7 @@ def patches_figure(trace: Trace, indices: Sequence[int] | None = None, flags: di
     not keep it (default: a grey tile)."""
     dets = trace.detections
     if flags is None:
-        flags = {p.detection: _short_reason(p) for p in trace.flags.flagged}
+        flags = {p.detection: short_reason(p) for p in trace.flags.flagged}
     idx = [int(i) for i in (trace.selection if indices is None else indices)]
     rank_of = {int(i): r for r, i in enumerate(trace.selection)}
     n = max(len(idx), 1)
@@ -144,12 +145,6 @@ def patches_figure(trace: Trace, indices: Sequence[int] | None = None, flags: di
         fig.text(0.5, 0.5, "no patch chosen", ha="center")
     fig.tight_layout()
     return fig
-
-
-def _short_reason(flag) -> str:
-    if flag.ground_truth is not None:
-        return f"not the container: {flag.ground_truth}"
-    return "cues: " + ", ".join(k.replace("_", " ") for k in flag.cue_kinds)
 
 
 def flags_text(trace: Trace) -> str:

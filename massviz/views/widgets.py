@@ -159,25 +159,15 @@ class _LazyTraces(Sequence):
 
 # ------------------------------------------------------------------------------------------------------- views
 class PatchImages:
-    """PNG bytes of detection patches, cached; patches the trace did not keep are cropped from the recording."""
+    """PNG bytes of detection patches, cached, taken from the trace (it keeps the RGB patches of its ``KEEP_PATCHES``
+    nearest detections, more than any K a slider offers); a patch the trace did not keep is a grey tile: the panel
+    never reads the recording (a video decode or a RealSense replay up to that frame, per patch)."""
 
     def __init__(self):
         self._png: dict[tuple[int, int], bytes] = {}
-        self._recordings: dict[int, object] = {}
 
     def patch(self, trace: Trace, i: int) -> np.ndarray | None:
-        p = trace.detections.patches[i]
-        if p is not None:
-            return p
-        try:
-            from massviz.core.patches import crop
-            from massviz.io.recording import open_recording
-
-            rec = self._recordings.get(id(trace)) or open_recording(trace.recording.path)
-            self._recordings[id(trace)] = rec
-            return crop(rec.read_frame(int(trace.detections.frame[i])).rgb, trace.detections.xyxy[i])
-        except Exception:  # noqa: BLE001 - recording moved or unreadable: a grey tile
-            return None
+        return trace.detections.patches[i]
 
     def png(self, trace: Trace, i: int, height: int = 96) -> bytes:
         key = (id(trace), int(i))

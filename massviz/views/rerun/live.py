@@ -1,0 +1,153 @@
+"""Log a live session to Rerun frame by frame, as ``massviz live`` computes it (the entity tree of ``massviz.views.rerun``).
+
+``LiveLogger.log_step`` is called once per processed frame with that frame's step result (``FrameResult`` of
+``massviz.core.pipeline``: the frame, its detections with d/a/b/pred, the K nearest so far and the running
+estimate, the stage timings) and logs it at once on the ``frame`` timeline (sequence = index of the processed frame)
+and on ``capture_time`` (seconds since the first frame, from the camera's timestamps):
+
+- ``/camera/rgb`` (JPEG ``EncodedImage``), ``/camera/depth`` (``DepthImage``: the 3D view back-projects it through the
+  ``/camera`` ``Pinhole``; ``/world/points`` is not logged live unless ``points=True``: an Open3D back-projection
+  per frame and 2-3x the .rrd size, see benchmarks/live_latency.py), ``/camera/detections`` and ``/camera/masks``
+  (the K nearest *so far* marked ★rank), ``/patches/<rank>`` (``PatchTiles``: every rank whose occupant changed,
+  when the K nearest change, so each tile shows the current K nearest);
+- ``/predictions/running_estimate`` (the mean of the K nearest so far) each frame;
+- ``/latency/<stage>`` (ms): ``read`` (aligning and copying the newest frame), ``detect``, ``features``,
+  ``predict``, ``select``, ``log`` (this logging), ``wait`` (the frame's time in the one-frame buffer while the
+  previous one was processed), ``total`` (arrival to logged) and ``overhead`` (read + features + select + log:
+  massviz's own work beyond detect and predict);
+- ``/log``: skipped detections, changes of the K nearest, dropped frames.
+
+``close(trace, ...)`` logs what only the end knows: ``/predictions/patch_<rank>``, ``/predictions/estimate`` (as
+``massviz log`` does), ``/summary`` and ``/timings``. This module reads results only; it runs no stage.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import rerun as rr
+
+from massviz.core.trace import Trace, describe_detection
+from massviz.core.types import Intrinsics
+from massviz.errors import MassvizError
+from massviz.views.rerun.blueprint import default_blueprint
+from massviz.views.rerun.entities import (MAX_POINTS, POINT_STEP, RUNNING_COLOUR, detection_class_ids, frustum_depth,
+                                          jpeg_bytes, log_annotation_context, log_depth, log_detections, log_masks,
+                                          PatchTiles, log_pinhole, log_points, log_predictions, log_summary,
+                                          log_timings, summary_markdown, text_log)
+from massviz.views.rerun.output import Output
+
+
+class LiveLogger:
+    """Rerun output of a live session: ``rrd`` (file, written atomically at ``close``), ``spawn`` (a native
+    viewer), ``connect`` (a running viewer or server's gRPC URL) — any combination — or ``stream`` (a caller's)."""
+
+    def __init__(self, *, name: str, k: int, threshold: float, intrinsics: Intrinsics | None,
+                 rrd: str | Path | None = None, spawn: bool = False, connect: str | None = None,
+                 stream: rr.RecordingStream | None = None, jpeg_quality: int = 85, points: bool = False):
+        if stream is None and rrd is None and not spawn and not connect:
+            raise ValueError("nothing to log to: give rrd, spawn, connect or stream")
+        self.k, self.threshold, self.intrinsics, self.quality = k, threshold, intrinsics, int(jpeg_quality)
+        self.points = points and intrinsics is not None  # /world/points as massviz log does (costly; off by default)
+        self.out = Output(rrd=rrd, spawn=spawn, connect=connect, stream=stream)
+        self.rrd = self.out.rrd
+        self.rec = self.out.stream
+        self.rec.send_recording_name(f"massviz live {name}")
+        size = None if intrinsics is None else (int(intrinsics.width), int(intrinsics.height))
+        self.rec.send_blueprint(default_blueprint(k, has_3d=intrinsics is not None, image_size=size),
+                                make_active=True, make_default=True)
+        log_annotation_context(self.rec, k)
+        self.rec.log("/predictions/running_estimate", rr.SeriesLines(
+            names="running estimate (K nearest so far)", colors=RUNNING_COLOUR, widths=2), static=True)
+        self._t0_ms: float | None = None
+        self.frames = 0
+        self._held: dict[int, tuple] = {}  # trace index -> (detections, index, patch, flag) of the K nearest so far
+        self.tiles = PatchTiles(self._held_source)
+
+    # ------------------------------------------------------------------------------------------------ per frame
+    def log_step(self, res, *, latency: dict | None = None, timestamp_ms: float | None = None,
+                 notes: list[tuple[str, str]] = ()) -> float:
+        """Log one processed frame (``res``: a ``FrameResult``); ``latency``: extra per-frame seconds
+        (e.g. ``total``, ``overhead``); ``notes``: (level, text) for ``/log``. Returns the seconds logging took."""
+        t0 = time.perf_counter()
+        rec, frame, dets = self.rec, res.frame, res.detections
+        rec.set_time("frame", sequence=frame.index)
+        if timestamp_ms is not None:
+            self._t0_ms = timestamp_ms if self._t0_ms is None else self._t0_ms
+            rec.set_time("capture_time", duration=(timestamp_ms - self._t0_ms) / 1000.0)
+        if self.frames == 0 and self.intrinsics is not None:
+            log_pinhole(rec, self.intrinsics, frustum_depth(frame.depth))
+        rec.log("/camera/rgb", rr.EncodedImage(contents=jpeg_bytes(frame.rgb, self.quality, f"frame {frame.index}"),
+                                               media_type="image/jpeg"))
+        log_depth(rec, frame.depth)
+        if self.points:
+            log_points(rec, frame.depth, frame.rgb, self.intrinsics, POINT_STEP, MAX_POINTS)
+        n = len(dets)
+        rank_global = {int(g): r for r, g in enumerate(res.selection)}
+        rank_of = {i: rank_global[res.offset + i] for i in range(n) if res.offset + i in rank_global}
+        idx = list(range(n))
+        class_ids = detection_class_ids(dets, idx, rank_of, self.threshold)
+        log_detections(rec, dets, idx, class_ids, rank_of)
+        log_masks(rec, dets, idx, class_ids, frame.depth.shape[:2])
+        for i in rank_of:  # a detection of this frame entered the K nearest: keep what its tile shows
+            self._held[res.offset + i] = (dets, i, res.patches[i] if i < len(res.patches) else None, None)
+        self._held = {g: v for g, v in self._held.items() if g in rank_global}
+        self.tiles.update(rec, res.selection)  # every rank whose occupant changed (entered or moved), now
+        for e in res.events:
+            rec.log("/log", text_log(e.message, e.level))
+        if rank_of:
+            text = "; ".join(f"★{r} {describe_detection(dets, i)}"
+                             for i, r in sorted(rank_of.items(), key=lambda x: x[1]))
+            rec.log("/log", text_log(f"new among the K={self.k} nearest so far: {text}", "debug"))
+        for level, text in notes:
+            rec.log("/log", text_log(text, level))
+        if res.running_estimate >= 0:
+            rec.log("/predictions/running_estimate", rr.Scalars(float(res.running_estimate)))
+        spent = time.perf_counter() - t0  # (what follows is a few scalars)
+        for stage, seconds in {**res.timings, **(latency or {})}.items():
+            # overhead and total include this logging, which only now is known
+            rec.log(f"/latency/{stage}", rr.Scalars(1000.0 * (seconds + (spent if stage in ("overhead", "total")
+                                                                          else 0.0))))
+        rec.log("/latency/log", rr.Scalars(1000.0 * spent))
+        self.frames += 1
+        return spent
+
+    def _held_source(self, i: int) -> tuple:
+        return self._held[int(i)]
+
+    def note(self, text: str, level: str = "info") -> None:
+        self.rec.log("/log", text_log(text, level))
+
+    # ------------------------------------------------------------------------------------------------------ end
+    def close(self, trace: Trace | None, *, timings: dict | None = None, summary: str = "") -> None:
+        """Log the end of the session (``trace`` None: an aborted session) and finish the outputs: the .rrd is
+        renamed into place only here, so an aborted session leaves no half-written file."""
+        try:
+            if trace is not None:
+                self.rec.reset_time()
+                log_predictions(self.rec, trace)
+                if summary:
+                    self.rec.log("/summary", rr.TextDocument(_summary_doc(trace, summary),
+                                                             media_type=rr.MediaType.MARKDOWN), static=True)
+                else:
+                    log_summary(self.rec, trace)
+                log_timings(self.rec, {**trace.timings, **(timings or {})}, len(trace.frames))
+            self.out.flush("the live session")
+        except BaseException as err:
+            self._finish(err)
+            raise
+        self._finish(None if trace is not None else MassvizError("session aborted"))
+
+    def abort(self, err: BaseException) -> None:
+        """End without finishing: nothing is left at the .rrd path."""
+        self._finish(err)
+
+    def _finish(self, err: BaseException | None) -> None:
+        self.out.close(err)
+
+
+def _summary_doc(trace: Trace, live: str) -> str:
+    return summary_markdown(trace) + "\n## Live session\n\n" + live + "\n"
+
+
+__all__ = ["LiveLogger"]

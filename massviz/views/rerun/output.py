@@ -1,0 +1,106 @@
+"""Where a recording stream goes: an .rrd file (written atomically), a spawned viewer, a running viewer or server
+(gRPC URL), a caller's stream, or the inline viewer of a notebook. One set-up (``open_stream``) for ``massviz log``
+(``replay``) and ``massviz live`` (``live``)."""
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import uuid
+from pathlib import Path
+
+import rerun as rr
+
+from massviz.errors import MassvizError
+from massviz.io.atomic import atomic_path
+
+APPLICATION_ID = "massviz"
+
+
+class Output:
+    """A new ``RecordingStream`` of application ``massviz`` (never the global one) pointed at ``rrd`` (a file,
+    written to a temporary name and renamed into place by ``close`` only when logging succeeded: nothing is left at
+    ``rrd`` otherwise), ``spawn`` (a native viewer, spawned or connected on the default port), ``connect`` (a gRPC
+    URL), any combination; or ``stream``: a caller's stream, whose sinks are left as they are and which is not
+    disconnected."""
+
+    def __init__(self, *, rrd: str | Path | None = None, spawn: bool = False, connect: str | None = None,
+                 stream: rr.RecordingStream | None = None, recording_id: str | None = None):
+        if stream is not None and (rrd is not None or spawn or connect):
+            raise ValueError("give either stream or rrd/spawn/connect: a caller's stream keeps its own sinks")
+        if stream is None and rrd is None and not spawn and not connect:
+            raise ValueError("nothing to log to: give rrd, spawn=True, connect or stream")
+        self.rrd = None if rrd is None else Path(rrd)
+        self.spawn = spawn
+        self._stack = contextlib.ExitStack()
+        self._tmp: Path | None = None
+        self.own = stream is None
+        if stream is not None:
+            self.stream = stream
+            return
+        self.stream = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id or str(uuid.uuid4()))
+        sinks = []
+        if self.rrd is not None:
+            self._tmp = self._stack.enter_context(atomic_path(self.rrd))
+            sinks.append(rr.FileSink(os.fspath(self._tmp)))
+        if spawn:
+            rr.spawn(connect=False)
+            sinks.append(rr.GrpcSink())
+        if connect:
+            sinks.append(rr.GrpcSink(connect))
+        self.stream.set_sinks(*sinks)
+
+    def flush(self, what: str = "the recording") -> None:
+        """Deliver what was logged; an unreachable viewer (the gRPC sink reports it here) is one clear line."""
+        try:
+            self.stream.flush()
+        except RuntimeError as err:
+            where = "the spawned Rerun viewer" if self.spawn else "Rerun"
+            raise MassvizError(f"could not deliver {what} to {where} ({err}); without a display, log to a file "
+                               "(--rrd FILE.rrd) and open it elsewhere with 'rerun FILE.rrd'") from None
+
+    def close(self, err: BaseException | None = None) -> None:
+        """Disconnect an own stream; with ``err`` None rename the .rrd into place (a ``MassvizError`` when Rerun wrote
+        nothing), else leave nothing at its path (the caller re-raises ``err``)."""
+        if self.own:
+            self.stream.disconnect()
+        if err is None and self._tmp is not None and (not self._tmp.is_file() or self._tmp.stat().st_size == 0):
+            empty = MassvizError("Rerun wrote nothing (is logging disabled with RERUN=off?)", self.rrd)
+            self._abandon(empty)
+            raise empty
+        if err is None:
+            self._stack.close()
+        else:
+            self._abandon(err)
+
+    def _abandon(self, err: BaseException) -> None:
+        with contextlib.suppress(BaseException):
+            self._stack.__exit__(type(err), err, err.__traceback__)
+
+
+#: how rerun-notebook loads the inline viewer's code (its ``widget.js`` + wasm); read once, when it is imported.
+NOTEBOOK_ASSET_ENV = "RERUN_NOTEBOOK_ASSET"
+
+
+def use_local_notebook_assets() -> str:
+    """Make the inline (notebook) Rerun viewer load its code from this machine, so it works offline.
+
+    rerun-notebook's default fetches the viewer from ``app.rerun.io``; massviz sets ``RERUN_NOTEBOOK_ASSET=serve-local``
+    instead (a small asset server inside the kernel, on localhost) unless the variable is already set — set it
+    yourself to Rerun's hosted ``widget.js`` URL or to ``inline`` when the browser is not on the kernel's machine.
+    Must run before ``rerun_notebook`` is first imported; returns the setting in effect."""
+    if "rerun_notebook" in sys.modules and NOTEBOOK_ASSET_ENV not in os.environ:
+        return "hosted (rerun_notebook was imported before massviz could choose local assets)"
+    return os.environ.setdefault(NOTEBOOK_ASSET_ENV, "serve-local")
+
+
+def notebook_stream(name: str, blueprint, *, width: int = 1000, height: int = 640) -> rr.RecordingStream:
+    """A new stream shown in an inline Rerun viewer (rerun-notebook) in the current notebook cell with ``blueprint``;
+    the viewer's code is served locally (``use_local_notebook_assets``), so no network is needed."""
+    use_local_notebook_assets()
+    stream = rr.RecordingStream(APPLICATION_ID, recording_id=f"notebook-{name}-{uuid.uuid4().hex[:8]}")
+    stream.notebook_show(width=width, height=height, blueprint=blueprint)
+    return stream
+
+
+__all__ = ["APPLICATION_ID", "Output", "NOTEBOOK_ASSET_ENV", "use_local_notebook_assets", "notebook_stream"]
