@@ -80,7 +80,8 @@ def run(args) -> int:
     trace, stats = log_run(rec, lambda on_frame: pipeline.process(rec, on_frame=on_frame),
                            rrd=Path(args.rrd) if args.rrd else None, spawn=args.spawn, progress=not args.quiet,
                            video=args.video, points=args.points,
-                           threshold=float(pipeline.detector.threshold) if threshold is None else threshold)
+                           threshold=float(pipeline.detector.threshold) if threshold is None else threshold,
+                           k=pipeline.options.selection.k)
     if args.ply:
         from massviz.views.open3d_view import write_ply_or_skip
 

@@ -14,7 +14,7 @@ from tqdm.auto import tqdm
 from massviz.errors import MassvizError
 from massviz.core.patches import crop
 from massviz.core.trace import Trace
-from massviz.views.rerun.blueprint import blueprint_for
+from massviz.views.rerun.blueprint import blueprint_for, default_blueprint
 from massviz.views.rerun.entities import (CLOUD_VOXEL_M, MAX_POINTS, POINT_STEP, PatchTiles, RgbLogger,
                                           detection_class_ids, frame_detections, frustum_depth, log_annotation_context,
                                           log_cloud_overlays, log_depth, log_detection_clouds, log_detections,
@@ -45,8 +45,10 @@ class TraceLogger:
 
     def __init__(self, recording, stream: rr.RecordingStream, *, video: str = "auto", points: bool = False,
                  step: int = POINT_STEP, max_points: int = MAX_POINTS, clouds: bool = True,
-                 threshold: float | None = None):
+                 threshold: float | None = None, blueprint=None):
         self.recording, self.rec = recording, stream
+        if blueprint is not None:  # a layout first, as a viewer expects it (``finish`` sends the trace's own)
+            stream.send_blueprint(blueprint, make_active=True, make_default=True)
         self.intr = recording.intrinsics
         self.rgb = RgbLogger(recording, video)
         self.points, self.step, self.max_points = points and self.intr is not None, step, max_points
@@ -123,8 +125,9 @@ class TraceLogger:
             bar.close()
 
     # ------------------------------------------------------------------------------------------------------ end
-    def finish(self, trace: Trace, *, points: bool = False) -> dict:
-        """Log what needs the whole trace (no frame is read) and the layout; returns the stats of ``log_trace``."""
+    def finish(self, trace: Trace, *, points: bool = False, layout: bool = True) -> dict:
+        """Log what needs the whole trace (no frame is read) and, with ``layout``, its layout (``blueprint_for``);
+        returns the stats of ``log_trace``."""
         t0 = time.perf_counter()
         rec, dets = self.rec, trace.detections
         frames = [int(f) for f in trace.frames]
@@ -135,7 +138,9 @@ class TraceLogger:
         by_frame: dict[int, list[int]] = defaultdict(list)
         for i, f in enumerate(dets.frame):
             by_frame[int(f)].append(i)
-        rec.send_blueprint(blueprint_for(trace, self.recording, points=points), make_active=True, make_default=True)
+        if layout:
+            rec.send_blueprint(blueprint_for(trace, self.recording, points=points), make_active=True,
+                               make_default=True)
         log_annotation_context(rec, trace.k)
         log_summary(rec, trace)
         notes = []
@@ -198,9 +203,9 @@ def log_trace(trace: Trace, recording, *, rrd: str | Path | None = None, spawn: 
     out = Output(rrd=rrd, spawn=spawn, stream=stream)
     try:
         logger = TraceLogger(recording, out.stream, video=video, points=points, step=step, max_points=max_points,
-                             clouds=clouds)
+                             clouds=clouds, blueprint=blueprint_for(trace, recording, points=points))
         logger.replay(trace, progress=progress)
-        stats = logger.finish(trace, points=points)
+        stats = logger.finish(trace, layout=False)
         log_timings(out.stream, {**trace.timings, "log": time.perf_counter() - t0}, stats["frames"])
         out.flush()
     except BaseException as err:
@@ -213,18 +218,21 @@ def log_trace(trace: Trace, recording, *, rrd: str | Path | None = None, spawn: 
 
 
 def log_run(recording, process, *, rrd: str | Path | None = None, spawn: bool = False, progress: bool = False,
-            video: str = "auto", points: bool = False, clouds: bool = True, threshold: float | None = None
-            ) -> tuple[Trace, dict]:
+            video: str = "auto", points: bool = False, clouds: bool = True, threshold: float | None = None,
+            k: int = 5) -> tuple[Trace, dict]:
     """Run the pipeline and log it in one pass (``massviz log``): ``process(on_frame)`` runs the pipeline on
     ``recording`` with ``on_frame`` as its per-frame observer and returns the trace (e.g.
     ``lambda on_frame: pipeline.process(recording, on_frame=on_frame)``). Each frame is logged as it is processed, so
     no frame is read twice; a trace that comes from the cache (``on_frame`` never called) is replayed from the
-    recording once. Outputs and options as ``log_trace`` (``threshold``: the selection's score threshold). Returns
-    (trace, stats)."""
+    recording once. Outputs and options as ``log_trace`` (``threshold``: the selection's score threshold, ``k`` its
+    K: a first layout is sent before the frames, the final one at the end). Returns (trace, stats)."""
     t0 = time.perf_counter()
     out = Output(rrd=rrd, spawn=spawn)
     try:
-        logger = TraceLogger(recording, out.stream, video=video, points=points, clouds=clouds, threshold=threshold)
+        layout = default_blueprint(k, has_3d=recording.intrinsics is not None, image_size=(recording.width,
+                                                                                             recording.height))
+        logger = TraceLogger(recording, out.stream, video=video, points=points, clouds=clouds, threshold=threshold,
+                             blueprint=layout)
         trace = process(logger.on_frame)
         if not logger.frames:
             logger.replay(trace, progress=progress)
