@@ -108,6 +108,7 @@ def test_a_class_change_and_frames_of_one_side(recording, traces):
     assert c.class_changes.tolist() == [1] and c.frames_only_b == [3] and c.settings == []
 
 
+@pytest.mark.slow
 def test_cli_on_two_saved_traces_table_json_and_two_recording_rrd(traces, tmp_path, capsys):
     from rerun.chunk import RrdReader
 

@@ -44,6 +44,7 @@ def results(request, samples_dir):
     return request.param, rows
 
 
+@pytest.mark.slow
 def test_container_found_where_it_is_nearest(results):
     name, rows = results
     ious = np.array([c for nearest, c, _, _ in rows if nearest])
@@ -53,6 +54,7 @@ def test_container_found_where_it_is_nearest(results):
     assert len(ious) >= 10 and good >= 0.9
 
 
+@pytest.mark.slow
 def test_pitcher_and_container_returned_where_pitcher_is_nearer(results):
     name, rows = results
     pitcher_frames = [(c, p) for nearest, c, p, _ in rows if not nearest]
@@ -65,6 +67,7 @@ def test_pitcher_and_container_returned_where_pitcher_is_nearer(results):
     assert (container >= 0.5).mean() >= 0.8
 
 
+@pytest.mark.slow
 def test_detections_are_well_formed(results):
     _, rows = results
     for _, _, _, dets in rows:

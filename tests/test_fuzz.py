@@ -934,6 +934,7 @@ def test_enough_cases():
 
 
 # ============================================================================================ accepted hostile inputs
+@pytest.mark.slow
 def test_partial_video_is_reported_and_allowed_on_request(base, tmp_path):
     """A video cut in half (index at the front): an error naming both counts by default; with --allow-partial the
     decoded frames are processed and the counts are on stderr and among the trace's events (Rerun's /log)."""
@@ -1020,6 +1021,7 @@ def _estimate_value(argv) -> str:
     return Path(argv[argv.index("--out") + 1]).read_text().splitlines()[1].split(",")[2]
 
 
+@pytest.mark.slow
 def test_same_size_edit_with_mtime_restored_is_not_served_from_the_cache(base, tmp_path):
     """The cache key is the files' content: an edit that keeps the size and sets the modification time back (what
     ``touch -d`` or a careless copy does) is seen, the detections are recomputed."""
@@ -1045,6 +1047,7 @@ def test_same_size_edit_with_mtime_restored_is_not_served_from_the_cache(base, t
     assert cached == second
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("damage", ["garbage", "truncated", "patch-not-png", "directory"])
 def test_undecodable_cache_entry_is_dropped_and_recomputed(base, tmp_path, damage):
     rec = copy_sample(tmp_path / "rec")

@@ -19,6 +19,8 @@ from massviz.detect.maskrcnn import MASK_THRESHOLD, MaskRCNNDetector, build_mode
 from massviz.errors import WeightsError
 from massviz.core.types import COCO_KEEP, Frame
 
+pytestmark = pytest.mark.slow  # Mask R-CNN (random weights) on CPU frames
+
 THRESHOLD = 0.4
 CUP, PERSON = COCO_KEEP["cup"], 1
 IMAGE_H, IMAGE_W = 120, 160

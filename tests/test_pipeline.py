@@ -83,6 +83,7 @@ def same_selection(a: Trace, b: Trace) -> bool:
 
 
 # ------------------------------------------------------------------------------------------------------------ run
+@pytest.mark.slow
 def test_run_builds_the_trace(rec, model):
     trace = run(rec, ListDetector(DETECTIONS), model, k=3)
     rows, preds, est = expected(model, 0.4, 3)
@@ -222,6 +223,7 @@ def test_cache_reuses_detections(rec, fast, tmp_path):
     assert low.calls == N
 
 
+@pytest.mark.slow
 def test_cache_another_model_repredicts_without_detecting(rec, model, other_model, tmp_path):
     cache = TraceCache(tmp_path / "cache")
     det = ListDetector(DETECTIONS, threshold=0.4)

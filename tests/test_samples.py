@@ -93,6 +93,7 @@ def test_instances_named(rec):
     assert {int(i): v["name"] for i, v in meta["instances"].items()} == INSTANCES
 
 
+@pytest.mark.slow
 def test_regenerating_reproduces_the_committed_bytes(samples_dir, tmp_path):
     name = "cup_handover"
     start = time.perf_counter()

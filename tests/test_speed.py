@@ -100,6 +100,7 @@ def assert_traces_equal(a, b):
     assert a.detector == b.detector
 
 
+@pytest.mark.slow
 def test_the_plain_run_is_worth_comparing(plain):
     _, trace = plain
     dets = trace.detections
@@ -111,6 +112,7 @@ def test_the_plain_run_is_worth_comparing(plain):
     assert trace.detector["precision"] == "fp32"
 
 
+@pytest.mark.slow
 def test_background_read_run_equals_the_plain_run_exactly(plain, recording, mass_model):
     det, reference = plain
     assert_traces_equal(run(recording, det, mass_model, stride=STRIDE, batch=1, prefetch=2), reference)
@@ -132,6 +134,7 @@ def assert_equal_up_to_float_rounding(trace, reference):
     assert s["chosen_changed"] == [] and abs(s["estimate_delta_g"]) <= 0.5
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("batch,prefetch", [(3, 2)], ids=["batch3+prefetch"])
 def test_batched_runs_equal_the_plain_run(plain, recording, mass_model, batch, prefetch):
     """One forward for several frames of one size: torchvision pads them all to the same size as one frame alone,
@@ -150,6 +153,7 @@ def test_batched_runs_equal_the_plain_run(plain, recording, mass_model, batch, p
     assert trace.timings["detect"] > 0
 
 
+@pytest.mark.slow
 def test_fast_runtime_equals_torchvision_up_to_float_rounding(weights_file, recording):
     """BatchNorm folding + channels_last change the order of the arithmetic only."""
     frame = recording.read_frame(9)
@@ -164,6 +168,7 @@ def test_fast_runtime_equals_torchvision_up_to_float_rounding(weights_file, reco
     assert np.abs(fast.xyxy[:n][same] - exact.xyxy[:n][same]).max() <= 1
 
 
+@pytest.mark.slow
 def test_runtime_leaves_the_torchvision_model_untouched(weights_file, plain):
     det, _ = plain  # it ran: its fast copy exists
     before = torch.load(weights_file, weights_only=True)
@@ -174,6 +179,7 @@ def test_runtime_leaves_the_torchvision_model_untouched(weights_file, plain):
     assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in det.runtime.backbone.modules())
 
 
+@pytest.mark.slow
 def test_fold_batchnorm_keeps_the_function():
     from torchvision.models import resnet18
 
@@ -212,6 +218,7 @@ def test_mask_crops_equal_torchvision_full_image_paste():
     assert paste_mask_crops(masks[:0], boxes[:0], h, w) == []
 
 
+@pytest.mark.slow
 def test_precision_is_recorded_and_keys_the_cache(weights_file, recording, tmp_path):
     from massviz.io.cache import TraceCache
 
@@ -227,6 +234,7 @@ def test_precision_is_recorded_and_keys_the_cache(weights_file, recording, tmp_p
         MaskRCNNDetector(weights=weights_file, device="cpu", precision="fp16")
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not bf16_supported(), reason="this CPU has no bfloat16 support")
 def test_bf16_run_is_recorded_in_its_trace(weights_file, recording, mass_model, plain):
     det = detector(weights_file, recording, precision="bf16")
@@ -297,6 +305,7 @@ def test_prefetcher_reads_at_most_its_size_ahead_and_closes_the_source():
 
 
 # ------------------------------------------------------------------------------------------------------- CUDA
+@pytest.mark.slow
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")
 def test_cuda_batched_fp16_runs_and_batched_fp32_equals_single(weights_file, recording):
     frames = [recording.read_frame(i) for i in (0, 9, 18)]
@@ -366,6 +375,7 @@ def test_channels_last_multiscale_pool_equals_torchvision_on_every_level():
     torch.testing.assert_close(fast(x, boxes, shapes), expected, rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_fast_runtime_pools_with_the_gather_and_still_matches_torchvision(weights_file, recording):
     from massviz.detect.roialign import ChannelsLastMultiScaleRoIAlign
 
@@ -375,6 +385,7 @@ def test_fast_runtime_pools_with_the_gather_and_still_matches_torchvision(weight
     assert not isinstance(det.model.roi_heads.box_roi_pool, ChannelsLastMultiScaleRoIAlign)  # torchvision's own
 
 
+@pytest.mark.slow
 def test_mass_cnn_eval_forward_is_bit_identical_to_the_papers_forward(mass_model):
     """ReLU/BatchNorm moved after the max-pool (monotone per channel, negated convolutions for the norms with a
     negative weight) gives the very same numbers, in both memory formats."""
@@ -403,6 +414,7 @@ def test_mass_cnn_eval_forward_is_bit_identical_to_the_papers_forward(mass_model
         random.forward_eval(images, features)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not bf16_supported(), reason="this CPU has no bfloat16 support")
 def test_mass_cnn_precision_changes_its_id_and_stays_close(weights):
     from massviz.io.checkpoint import load_checkpoint
@@ -420,6 +432,7 @@ def test_mass_cnn_precision_changes_its_id_and_stays_close(weights):
     assert load_checkpoint(weights).set_precision("fp16").weights_id == fp32.weights_id  # fp16: stays fp32
 
 
+@pytest.mark.slow
 def test_a_model_built_for_loaded_weights_skips_random_init_and_is_the_same_model(weights_file):
     from massviz.detect.maskrcnn import _construct, build_model
 

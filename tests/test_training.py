@@ -109,6 +109,7 @@ def test_augmentation_keeps_shape_and_range_and_multiplies_the_set(patch_set):
 
 
 # ------------------------------------------------------------------------------------------------------------ loop
+@pytest.mark.slow
 def test_overfits_a_handful_of_patches(patch_set):
     index = read_index(patch_set).iloc[:4]
     ranges = compute_ranges(index)
@@ -120,6 +121,7 @@ def test_overfits_a_handful_of_patches(patch_set):
     assert max(losses[-3:]) < losses[0] / 10, losses
 
 
+@pytest.mark.slow
 def test_same_seed_gives_the_same_checkpoint(tmp_path):
     patch_set = make_patch_set(tmp_path / "patches", n_recordings=5, per_recording=2)
     config = TrainConfig(split="random", epochs=1, batch_size=8, augment_factor=2, seed=7)
@@ -133,6 +135,7 @@ def test_same_seed_gives_the_same_checkpoint(tmp_path):
     assert not all(torch.equal(sa[k], sc[k]) for k in sa)
 
 
+@pytest.mark.slow
 def test_run_writes_metrics_rrd_split_and_a_loadable_checkpoint(patch_set, tmp_path):
     result = train_run(patch_set, tmp_path / "run", TrainConfig(split="fold2", epochs=2, batch_size=8,
                                                                augment_factor=1))
