@@ -288,14 +288,18 @@ class NanoDetDetector:
         return self.detect_batch([frame])[0]
 
     def detect_batch(self, frames: list[Frame]) -> list[Detections]:
-        """Detections of each frame; all frames in one forward (letterboxing makes any sizes one input size)."""
+        """Detections of each frame (equal to ``detect`` frame by frame). The Zoo's graph is fixed to batch 1
+        (its heads reshape to one image), so the frames are letterboxed in one call and run one forward each."""
         if not frames:
             return []
         self.load()
-        self._net.setInput(preprocess([f.rgb for f in frames]))
-        score_maps, box_maps = check_outputs(self._net.forward(self._names), len(frames), self._path)
-        return [self._detections(f, [s[i] for s in score_maps], [b[i] for b in box_maps])
-                for i, f in enumerate(frames)]
+        blob = preprocess([f.rgb for f in frames])
+        out = []
+        for i, f in enumerate(frames):
+            self._net.setInput(blob[i:i + 1])
+            score_maps, box_maps = check_outputs(self._net.forward(self._names), 1, self._path)
+            out.append(self._detections(f, [s[0] for s in score_maps], [b[0] for b in box_maps]))
+        return out
 
     def _detections(self, frame: Frame, score_maps, box_maps) -> Detections:
         boxes, scores, classes = decode(score_maps, box_maps, self.threshold, nms_iou=self.nms_iou)
