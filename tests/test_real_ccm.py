@@ -148,3 +148,89 @@ def test_batched_nanodet_equals_frame_by_frame(real, nanodet):
         np.testing.assert_array_equal(one.xyxy, b.xyxy)
         np.testing.assert_allclose(one.score, b.score, rtol=1e-4)
         assert all((one.mask(i) == b.mask(i)).all() for i in range(len(one)))
+
+
+# ------------------------------------------------------------------------------------------ the honest offline path
+def _touches_border(box, w=1280, h=720) -> bool:
+    x1, y1, x2, y2 = (int(v) for v in box)
+    return x1 <= 1 or y1 <= 1 or x2 >= w - 1 or y2 >= h - 1
+
+
+def test_depth_detector_on_view1_chooses_the_box_never_the_gripper_or_the_sliver(real, tmp_path):
+    from massviz.io.recording import open_recording
+
+    trace = _pipeline(real, "depth", tmp_path).process(open_recording(real["view1"] / "rgb" / "000000.mp4"),
+                                                       progress=False)
+    dets = trace.detections
+    rejected = [e.message for e in trace.events if e.message.startswith("not a container candidate: ")]
+    assert any("border-cut object" in m for m in rejected)  # the gripper and the sliver were seen and refused
+    if trace.estimate < 0:
+        assert any("only border-cut" in e.message for e in trace.events if e.kind == "not_estimated")
+        return
+    for i in trace.selection:
+        x1, y1, x2, y2 = dets.xyxy[i]
+        cx, cy = (x1 + x2) / 2, (y1 + y2) / 2
+        assert not _touches_border(dets.xyxy[i])
+        assert 640 <= cx <= 850 and 250 <= cy <= 440, dets.xyxy[i]  # the pasta box, held at about 1.2 m
+        assert 1100 <= dets.d[i] <= 1300, dets.d[i]
+
+
+def test_view1_first_frame_alone_is_not_estimated_with_the_reason(real, tmp_path):
+    from massviz.io.recording import open_recording
+
+    view = tmp_path / "view1"
+    (view / "rgb").mkdir(parents=True)
+    cap = cv2.VideoCapture(str(real["view1"] / "rgb" / "000000.mp4"))
+    ok, bgr = cap.read()
+    assert ok
+    writer = cv2.VideoWriter(str(view / "rgb" / "000000.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 30, (1280, 720))
+    writer.write(bgr)
+    writer.release()
+    _link(real["view1"] / "depth" / "000000" / "0000.png", view / "depth" / "000000" / "0000.png")
+    trace = _pipeline(real, "depth", tmp_path / "cache").process(open_recording(view / "rgb" / "000000.mp4"),
+                                                                 progress=False)
+    assert trace.estimate == -1 and len(trace.selection) == 0
+    reason = [e.message for e in trace.events if e.kind == "not_estimated"]
+    assert len(reason) == 1 and reason[0].startswith("only border-cut / implausibly sized objects: ")
+    assert "border-cut object (frame 0)" in reason[0]
+
+
+def test_depth_detector_on_618_no_longer_chooses_the_table_corner(real, folder_618, tmp_path):
+    from massviz.io.recording import open_recording
+
+    trace = _pipeline(real, "depth", tmp_path).process(open_recording(folder_618), progress=False)
+    dets = trace.detections
+    assert len(trace.selection) and not any(_touches_border(dets.xyxy[i]) for i in trace.selection)
+    assert all(dets.xyxy[i][3] < 640 for i in trace.selection)  # the corner spans rows 650-720
+    # the nearest chosen patches are the held cup (frames 71 and 61: 0.52 m and 0.67 m) and the flags keep them
+    first = trace.selection[0]
+    assert int(dets.frame[first]) == 7 and 500 <= dets.d[first] <= 540
+    kept = [p.detection for p in trace.flags.patches if not p.flagged]
+    assert first in kept
+
+
+def test_border_cue_doubts_a_patch_on_its_own_and_no_doubted_rest_is_offered(real, folder_618, tmp_path):
+    import dataclasses
+
+    from massviz.core.flags import analyse
+    from massviz.io.recording import open_recording
+
+    trace = _pipeline(real, "nanodet", tmp_path).process(open_recording(folder_618), progress=False)
+    sel = [int(i) for i in trace.selection]
+    xyxy = trace.detections.xyxy.copy()
+    xyxy[sel[0], 3] = 720  # the nearest chosen box now reaches the bottom border
+    cut = dataclasses.replace(trace, detections=dataclasses.replace(trace.detections, xyxy=xyxy))
+    flags = analyse(cut)
+    first = flags.of(sel[0])
+    assert first.flagged and "border" in first.cue_kinds and "bottom" in first.reason
+    assert all(not p.flagged for p in flags.patches[1:])
+    assert flags.estimate_without == pytest.approx(float(np.mean(trace.detections.pred[sel[1:]])))
+    # another chosen patch off the container's track (alone: severity low, not flagged, but doubted): the flags no
+    # longer offer a number made of the doubted rest
+    track = trace.detections.track.copy()
+    track[sel[-1]] = track.max() + 1
+    doubted = dataclasses.replace(cut, detections=dataclasses.replace(cut.detections, track=track))
+    flags = analyse(doubted)
+    assert flags.of(sel[-1]).severity == "low" and not flags.of(sel[-1]).flagged
+    assert flags.estimate_without == -1
+    assert "doubted too" in flags.warning() and " g [" not in flags.warning()
