@@ -278,9 +278,8 @@ class NanoDetDetector:
         """Every setting that changes the output except ``threshold``: the model by content, NMS and mask settings."""
         from massviz.io.filehash import file_digest
 
-        if self._digest is None:
-            path = self.weights if self.weights is not None else (self._path or cached_model())
-            self._digest = file_digest(path) if path is not None and Path(path).is_file() else NANODET_SHA256
+        if self._digest is None:  # the model by content (the file is resolved, and checked, first)
+            self._digest = file_digest(self.load()._path)
         return {"weights": f"nanodet:{self._digest}", "classes": sorted(COCO80_KEEP.values()),
                 "nms_iou": self.nms_iou, "input": INPUT_SIZE, "mask": dict(self.mask), "version": 1}
 
