@@ -234,3 +234,22 @@ def test_border_cue_doubts_a_patch_on_its_own_and_no_doubted_rest_is_offered(rea
     assert flags.of(sel[-1]).severity == "low" and not flags.of(sel[-1]).flagged
     assert flags.estimate_without == -1
     assert "doubted too" in flags.warning() and " g [" not in flags.warning()
+
+
+def test_cli_says_why_a_recording_is_not_estimated(real, tmp_path, capsys):
+    from massviz.cli import main
+
+    view = tmp_path / "view1"
+    (view / "rgb").mkdir(parents=True)
+    ok, bgr = cv2.VideoCapture(str(real["view1"] / "rgb" / "000000.mp4")).read()
+    writer = cv2.VideoWriter(str(view / "rgb" / "000000.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 30, (1280, 720))
+    writer.write(bgr)
+    writer.release()
+    _link(real["view1"] / "depth" / "000000" / "0000.png", view / "depth" / "000000" / "0000.png")
+    out = tmp_path / "o.csv"
+    code = main(["estimate", str(view / "rgb" / "000000.mp4"), "--detector", "depth", "--weights",
+                 str(real["weights"]), "--no-cache", "--quiet", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 0 and out.is_file()
+    assert "massviz estimate: warning: 000000: not estimated: only border-cut / implausibly sized objects: " in err
+    assert out.read_text().splitlines()[1].split(",")[2] == "-1"

@@ -79,8 +79,13 @@ def build(args, threshold: float | None = None):
 def flag_warning(command: str, trace) -> str | None:
     """The one line a command prints (stderr) for a recording whose chosen patches are flagged (``trace.flags``),
     e.g. "massviz log: warning: cup_handover: 3 of 5 chosen patches look like another object (frames 8–10, track 1):
-    without them 8.3 g [ground truth: the pitcher]"; None when nothing is flagged."""
+    without them 8.3 g [ground truth: the pitcher]"; for a recording not estimated, why ("not estimated: only
+    border-cut / implausibly sized objects: ..."); None when nothing is flagged and it was estimated."""
     line = trace.flags.warning()
+    if line is None and trace.estimate < 0:  # not estimated: say why (e.g. only border-cut objects were seen)
+        line = next((e.message for e in trace.events if e.kind == "not_estimated"), None)
+        line = (f"not estimated: {line.replace(': mass not estimated (-1)', '')}"
+                if line is not None and line.startswith("only border-cut") else None)
     return None if line is None else f"massviz {command}: warning: {trace.recording.id}: {line}"
 
 
