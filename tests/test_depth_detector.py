@@ -41,6 +41,7 @@ def results(request, samples_dir):
         frame, gt = _frame(rec, f["index"])
         dets = det.detect(frame)
         rows.append((f["container_nearest"], _best_iou(dets, gt == CONTAINER), _best_iou(dets, gt == PITCHER), dets))
+        assert det.pop_notes(f["index"]) == [], (request.param, f["index"])  # nothing border-cut or implausible here
     return request.param, rows
 
 
