@@ -199,3 +199,11 @@ def test_settings_key_the_model_by_content(shared_dir, tmp_path):
     copy.write_bytes(relu_onnx())
     with pytest.raises(WeightsError, match="not OpenCV Zoo's NanoDet"):  # never a cache key for a file it cannot run
         N.NanoDetDetector(weights=copy).settings()
+
+
+def test_reduced_precision_is_refused_with_one_line(tmp_path, capsys, shared_dir):
+    model = shared_dir / "detectors" / "nanodet" / N.NANODET_NAME
+    weights = shared_dir / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch"
+    code, err, out = _estimate(tmp_path, capsys, "--detector-weights", str(model), "--weights", str(weights),
+                               "--precision", "bf16")
+    assert code == 2 and len(err) == 1 and "nanodet detector runs in fp32 only" in err[0] and not out.exists()
