@@ -41,6 +41,7 @@ def results(request, samples_dir):
         frame, gt = _frame(rec, f["index"])
         dets = det.detect(frame)
         rows.append((f["container_nearest"], _best_iou(dets, gt == CONTAINER), _best_iou(dets, gt == PITCHER), dets))
+        assert det.pop_notes(f["index"]) == [], (request.param, f["index"])  # nothing border-cut or implausible here
     return request.param, rows
 
 
@@ -129,11 +130,36 @@ def test_deterministic(samples_dir):
 
 
 def test_real_ccm_frame(shared_dir):
-    """Frame 20 of a real CCM recording: the robot gripper (bottom right) is nearer than the held box."""
+    """Frame 20 of a real CCM recording: the robot gripper (bottom right, cut by the image border) is nearer than the
+    held box, and a sliver touches the top-right border; neither is a container candidate: the box is found."""
     root = shared_dir / "ccm_real"
     depth = cv2.imread(str(root / "view1" / "depth" / "000000" / "0001.png"), cv2.IMREAD_UNCHANGED)
     rgb = cv2.cvtColor(cv2.imread(str(root / "frame_20_rgb.png")), cv2.COLOR_BGR2RGB)
-    dets = DepthDetector().detect(Frame(20, rgb, depth))
+    det = DepthDetector()
+    dets = det.detect(Frame(20, rgb, depth))
     assert 1 <= len(dets) <= 2
     centres = (dets.xyxy[:, :2] + dets.xyxy[:, 2:]) / 2
-    assert np.any((centres[:, 0] > 0.75 * 1280) & (centres[:, 1] > 0.6 * 720)), "expected the gripper, bottom right"
+    assert not np.any((centres[:, 0] > 0.75 * 1280) & (centres[:, 1] > 0.6 * 720)), "the gripper, bottom right"
+    assert not np.any((dets.xyxy[:, 0] <= 1) | (dets.xyxy[:, 1] <= 1) | (dets.xyxy[:, 2] >= 1279)
+                      | (dets.xyxy[:, 3] >= 719))
+    box = np.flatnonzero((centres[:, 0] > 640) & (centres[:, 0] < 850) & (centres[:, 1] > 250) & (centres[:, 1] < 440))
+    assert len(box) == 1 and dets.score[box[0]] > 0.4, dets.xyxy  # the pasta box, held at 1.2 m
+    notes = det.pop_notes(20)
+    assert any(n.startswith("border-cut object (box [1256, 0, 1280,") for n in notes), notes  # the sliver
+    assert any("part of a border-cut object" in n for n in notes), notes  # the gripper's top, inside the view
+    assert det.pop_notes(20) == []
+
+
+def test_border_cut_and_implausibly_sized_objects_are_not_candidates():
+    depth = np.full((120, 160), 1500, np.uint16)
+    depth[40:80, 60:90] = 600  # a free object
+    depth[90:120, 0:30] = 500  # nearer, cut by the bottom-left corner
+    det = DepthDetector(threshold=0.0)
+    dets = det.detect(Frame(0, np.zeros((120, 160, 3), np.uint8), depth))
+    assert dets.xyxy.tolist() == [[60, 40, 90, 80]]
+    assert det.pop_notes(0) == ["border-cut object (box [0, 90, 30, 120] at 500 mm)"]
+    big = np.full((120, 160), 2500, np.uint16)  # the room, beyond the working range
+    big[20:100, 40:115] = 1900  # 75 × 80 px at 1.9 m with fx = 0.72 × 160: 1237 × 1319 mm
+    det = DepthDetector(threshold=0.0)
+    assert len(det.detect(Frame(1, np.zeros((120, 160, 3), np.uint8), big))) == 0
+    assert det.pop_notes(1) == ["implausibly sized object, 1237×1319 mm (box [40, 20, 115, 100] at 1900 mm)"]

@@ -143,16 +143,19 @@ def test_bad_detector_weights_name_the_file(tmp_path):
     assert str(wrong) in str(info.value)
 
 
-def test_auto_falls_back_to_depth_offline(monkeypatch, capsys):
-    import massviz.detect as D
-
-    monkeypatch.setattr(D, "maskrcnn_weights_reachable", lambda *a, **k: False)
+def test_auto_falls_back_to_depth_offline(monkeypatch, capsys, tmp_path):
+    """auto's choice from local files only (tests/test_detector_auto.py has the rest): nothing cached -> depth, said
+    on stderr even with quiet; Mask R-CNN weights cached -> maskrcnn."""
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    monkeypatch.setenv("MASSVIZ_CACHE_DIR", str(tmp_path / "cache"))
     det = make_detector("auto", 0.4)
     assert det.name == "depth" and det.threshold == 0.4
     err = capsys.readouterr().err
-    assert len(err.strip().splitlines()) == 1 and "depth detector" in err
+    assert len(err.strip().splitlines()) == 1 and "using depth" in err
     make_detector("auto", 0.4, quiet=True)
-    assert capsys.readouterr().err == ""
-    monkeypatch.setattr(D, "maskrcnn_weights_reachable", lambda *a, **k: True)
+    assert "using depth" in capsys.readouterr().err  # --quiet never hides a fallback
+    ckpt = tmp_path / "torch" / "hub" / "checkpoints"
+    ckpt.mkdir(parents=True)
+    (ckpt / "maskrcnn_resnet50_fpn_coco-bf2d0c1e.pth").write_bytes(b"x")
     assert make_detector("auto", 0.5).name == "maskrcnn"
-    assert capsys.readouterr().err == ""
+    assert "using maskrcnn" in capsys.readouterr().err

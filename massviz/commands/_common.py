@@ -7,9 +7,16 @@ from massviz.core.types import PRECISIONS
 
 PIPELINE_HELP = """
 detectors (--detector):
-  auto      maskrcnn when its COCO weights are cached or downloadable, else depth (default)
-  maskrcnn  the paper's torchvision Mask R-CNN (cup, book, wine glass, bottle; score > threshold)
-  depth     no weights: the nearest object(s) in the depth map; works offline
+  auto      maskrcnn when its weights are given or cached, else nanodet when its model is given or cached, else
+            depth; never touches the network, always says which it chose and why (default)
+  maskrcnn  paper fidelity: the paper's torchvision Mask R-CNN (cup, book, wine glass, bottle; score > threshold);
+            ~3-4 s a 1280x720 frame on a 2-core CPU
+  nanodet   CPU / live / offline: OpenCV Zoo's NanoDet through cv2.dnn (the same classes and threshold; 3.8 MB
+            model, downloaded once, sha256-pinned); ~0.1 s a frame. Boxes only: the mask is the nearest coherent
+            depth surface in the box, so d is that surface's mean depth (the paper's d averages Mask R-CNN's
+            silhouette, wherever the sensor measured through or beside it)
+  depth     no weights at all: the nearest free-standing object(s) in the depth map (no class; objects cut by the
+            image border are not candidates); works offline
   replay    detections saved earlier (--replay trace.npz or a detections JSON file)
 
 mass-CNN weights: --weights PATH, else $MASSVIZ_WEIGHTS, else the paper's published checkpoint is downloaded once
@@ -31,8 +38,8 @@ def add_dataset_args(p: argparse.ArgumentParser, metavar: str = "REC") -> None:
 def add_pipeline_args(p: argparse.ArgumentParser, selection: bool = True) -> None:
     """The pipeline options; ``selection=False`` leaves --threshold and --k to the command (e.g. sweeps)."""
     g = p.add_argument_group("pipeline")
-    g.add_argument("--detector", default="auto", choices=["auto", "maskrcnn", "depth", "replay"],
-                   help="which detector finds the containers (default: auto)")
+    g.add_argument("--detector", default="auto", choices=["auto", "maskrcnn", "nanodet", "depth", "replay"],
+                   help="which detector finds the containers (default: auto; see 'detectors' below)")
     if selection:
         g.add_argument("--threshold", type=float, default=0.4, metavar="T",
                        help="keep detections with score > T (default: 0.4, the paper's)")
@@ -42,10 +49,12 @@ def add_pipeline_args(p: argparse.ArgumentParser, selection: bool = True) -> Non
     g.add_argument("--weights", metavar="PATH",
                    help="mass-CNN checkpoint (default: $MASSVIZ_WEIGHTS or the published one, downloaded once)")
     g.add_argument("--detector-weights", metavar="PATH",
-                   help="offline copy of torchvision's Mask R-CNN COCO state_dict")
+                   help="offline copy of the detector's weights: torchvision's Mask R-CNN COCO state_dict, or "
+                   "(.onnx) OpenCV Zoo's object_detection_nanodet_2022nov.onnx for nanodet")
     g.add_argument("--replay", metavar="PATH", help="with --detector replay: a saved trace (.npz) or detections JSON")
     g.add_argument("--batch", type=int, metavar="N",
-                   help="frames per Mask R-CNN forward (default: 1 on a CPU, 4 on CUDA); results are identical")
+                   help="frames per detector forward (Mask R-CNN, NanoDet; default: 1 on a CPU, 4 on CUDA for Mask "
+                   "R-CNN); results are identical")
     g.add_argument("--precision", choices=PRECISIONS, default="fp32",
                    help="Mask R-CNN arithmetic: fp32 (default, the paper's), bf16 (CPUs with bfloat16 support, "
                    "CUDA; the mass CNN runs in bf16 too) or fp16 (CUDA; the mass CNN stays fp32). Reduced "
@@ -53,7 +62,8 @@ def add_pipeline_args(p: argparse.ArgumentParser, selection: bool = True) -> Non
                    "the trace and its cache key")
     g.add_argument("--cache", metavar="DIR", help="trace cache directory (default: $MASSVIZ_CACHE_DIR or user cache)")
     g.add_argument("--no-cache", action="store_true", help="neither read nor write the trace cache")
-    g.add_argument("--quiet", action="store_true", help="no progress bars")
+    g.add_argument("--quiet", action="store_true",
+                   help="no progress bars (warnings, fallbacks and auto's detector choice are still printed)")
     g.add_argument("--allow-partial", action="store_true",
                    help="process a video cut short (fewer frames decode than its header declares) as far as it "
                    "decodes, with a warning on stderr and in Rerun's /log (default: that is an error)")
@@ -71,8 +81,13 @@ def build(args, threshold: float | None = None):
 def flag_warning(command: str, trace) -> str | None:
     """The one line a command prints (stderr) for a recording whose chosen patches are flagged (``trace.flags``),
     e.g. "massviz log: warning: cup_handover: 3 of 5 chosen patches look like another object (frames 8–10, track 1):
-    without them 8.3 g [ground truth: the pitcher]"; None when nothing is flagged."""
+    without them 8.3 g [ground truth: the pitcher]"; for a recording not estimated, why ("not estimated: only
+    border-cut / implausibly sized objects: ..."); None when nothing is flagged and it was estimated."""
     line = trace.flags.warning()
+    if line is None and trace.estimate < 0:  # not estimated: say why (e.g. only border-cut objects were seen)
+        line = next((e.message for e in trace.events if e.kind == "not_estimated"), None)
+        line = (f"not estimated: {line.replace(': mass not estimated (-1)', '')}"
+                if line is not None and line.startswith("only border-cut") else None)
     return None if line is None else f"massviz {command}: warning: {trace.recording.id}: {line}"
 
 

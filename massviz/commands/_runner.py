@@ -37,7 +37,8 @@ def add_engine_args(p: argparse.ArgumentParser) -> None:
                    help="with --engine ray: number of worker actors (default: one per GPU when the cluster has "
                    "GPUs, else one per CPU)")
     g.add_argument("--threads", type=int, metavar="N",
-                   help="torch threads per worker (default: local = torch's default, ray = CPUs / workers). Mask "
+                   help="torch and OpenCV (NanoDet) threads per worker (default: local = their default, ray = CPUs / "
+                   "workers). Mask "
                    "R-CNN's floats depend on the thread count: equal --threads give identical outputs on both engines")
     g.add_argument("--on-error", choices=ON_ERROR,
                    help="a recording that fails (unreadable, corrupt mid-way): stop = stop the run (exit 2, nothing "

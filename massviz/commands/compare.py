@@ -38,7 +38,7 @@ def register(sub) -> None:
                    help="how an mp4 input is logged with --rrd (see 'massviz log --help')")
     add_pipeline_args(p)
     gb = p.add_argument_group("side B (override the pipeline options for B)")
-    gb.add_argument("--b-detector", choices=["auto", "maskrcnn", "depth", "replay"], metavar="NAME",
+    gb.add_argument("--b-detector", choices=["auto", "maskrcnn", "nanodet", "depth", "replay"], metavar="NAME",
                     help="B's detector")
     gb.add_argument("--b-threshold", type=float, metavar="T", help="B's detection threshold")
     gb.add_argument("--b-precision", choices=PRECISIONS, help="B's Mask R-CNN precision")

@@ -20,11 +20,20 @@ processed frames (at least :data:`END_MIN_FRAMES`). For each chosen patch:
   still (box centre within :data:`STATIC_PX` px, d within :data:`STATIC_MM` mm) in at least
   :data:`STATIC_FRACTION` of the processed frames (nothing standing still is being handed over);
 * ``class``: its class differs from the container track's most common class (never with the class-agnostic depth
-  detector).
+  detector);
+* ``border``: its box touches the image border (within :data:`BORDER_PX` px): the object is cut by it, so neither its
+  patch nor its box ratios a, b describe the whole object (the table's front corner, a gripper entering the view);
+* ``implausible``: its metric size (as for ``size``; needs intrinsics) is larger than :data:`MAX_CONTAINER_MM` in
+  width or height: not a hand-held container.
 
-Without ground truth a patch is **flagged** when it is off the container's track *and* at least one other cue agrees;
-severity ``high`` with two or more agreeing cues, ``medium`` with one; ``low`` (not flagged) off the track alone
-(a container track broken by an occlusion must not be flagged for that only).
+Without ground truth a patch is **flagged** when it is border-cut or implausibly sized (whatever its track), or when
+it is off the container's track *and* at least one other cue agrees; severity ``high`` with two or more cues besides
+the track, ``medium`` with one; ``low`` (not flagged) off the track alone (a container track broken by an occlusion
+must not be flagged for that only).
+
+The flags never offer an estimate from patches they doubt themselves: ``estimate_without`` (the mean of the patches
+not flagged) is -1 unless every one of those is undoubted (severity ``none``), and ``warning()`` then says so
+instead of offering a number.
 
 **Ground truth** (recordings whose ``meta.json`` has ``instance_masks`` and ``instances``, e.g. the samples): a patch
 is flagged exactly when its mask overlaps the container's instance mask with IoU < :data:`GT_MIN_IOU` (severity
@@ -48,7 +57,13 @@ import numpy as np
 from massviz.core.tracks import metric_size, track_members
 from massviz.core.types import OBJECT_CLASS_ID, class_name
 
-CUE_KINDS = ("track", "size", "depth_jump", "time", "class")
+CUE_KINDS = ("track", "size", "depth_jump", "time", "class", "border", "implausible")
+#: cues that doubt a patch on their own, whatever its track.
+ABSOLUTE_CUES = ("border", "implausible")
+#: a box within this many pixels of the image border is cut by it.
+BORDER_PX = 1
+#: no hand-held container is wider or taller than this (mm); CCM's largest are about 250 mm.
+MAX_CONTAINER_MM = 450.0
 SEVERITIES = ("none", "low", "medium", "high")
 #: a chosen patch whose mask has IoU below this with the ground-truth container mask is not the container.
 GT_MIN_IOU = 0.5
@@ -177,8 +192,18 @@ class Flags:
         where = "; ".join(f"{_frames_text(fr)}, track {t}" for t, fr in by_track.items())
         verb = "looks" if n == 1 else "look"
         noun = "patch" if k == 1 else "patches"
-        without = (f"without {'it' if n == 1 else 'them'} {self.estimate_without:.1f} g" if self.estimate_without >= 0
-                   else "no patch left without them")
+        rest = [p for p in self.patches if not p.flagged]
+        if self.estimate_without >= 0:
+            without = f"without {'it' if n == 1 else 'them'} {self.estimate_without:.1f} g"
+        elif not rest:
+            absolute = sorted({c.kind for p in bad for c in p.cues if c.kind in ABSOLUTE_CUES})
+            without = ("no plausible container: only " + " / ".join(
+                {"border": "border-cut", "implausible": "implausibly sized"}[k] for k in absolute) + " objects"
+                       if absolute and all(set(p.cue_kinds) & set(ABSOLUTE_CUES) for p in bad)
+                       else "no patch left without them")
+        else:
+            without = (f"the other {len(rest)} {'is' if len(rest) == 1 else 'are'} doubted too (off the container's "
+                       "track): no estimate without them")
         gt = sorted({p.ground_truth for p in bad if p.ground_truth is not None})
         basis = ("ground truth: " + " and ".join(f"the {g}" for g in gt) if gt else
                  "cues: " + ", ".join(sorted({c.kind.replace('_', ' ') for p in bad for c in p.cues})))
@@ -335,6 +360,18 @@ def _cues(trace, i: int, ref: int, ref_size, ref_class, n_frames: int) -> list[C
         if span >= STATIC_FRACTION and move <= STATIC_PX and dd <= STATIC_MM:
             cues.append(Cue("time", f"its track stood still in {span:.0%} of the frames (moved {move:.0f} px, "
                                     f"{dd:.0f} mm): nothing standing still is handed over"))
+    width, height = int(trace.recording.width or 0), int(trace.recording.height or 0)
+    x1, y1, x2, y2 = (int(v) for v in dets.xyxy[i])
+    if width > 0 and height > 0 and (x1 <= BORDER_PX or y1 <= BORDER_PX or x2 >= width - BORDER_PX
+                                     or y2 >= height - BORDER_PX):
+        sides = [name for name, cut in (("left", x1 <= BORDER_PX), ("top", y1 <= BORDER_PX),
+                                        ("right", x2 >= width - BORDER_PX), ("bottom", y2 >= height - BORDER_PX)) if cut]
+        cues.append(Cue("border", f"cut by the image's {' and '.join(sides)} border (box {[x1, y1, x2, y2]})"))
+    if trace.recording.intrinsics is not None and np.isfinite(dets.d[i]):
+        w, h = _mm(trace, i)
+        if max(w, h) > MAX_CONTAINER_MM:
+            cues.append(Cue("implausible", f"{w:.0f}×{h:.0f} mm: larger than any hand-held container "
+                                           f"({MAX_CONTAINER_MM:.0f} mm)"))
     if ref_class is not None and t != ref and int(dets.class_id[i]) != ref_class:
         cues.append(Cue("class", f"a {class_name(dets.class_id[i])}; the container's track is mostly a "
                                  f"{class_name(ref_class)}"))
@@ -381,17 +418,20 @@ def analyse(trace, *, ground_truth: bool = True) -> Flags:
         else:
             support = [c for c in cues if c.kind != "track"]
             off = any(c.kind == "track" for c in cues)
-            flagged = off and bool(support)
+            flagged = (off and bool(support)) or any(c.kind in ABSOLUTE_CUES for c in cues)
             severity = ("high" if len(support) >= 2 else "medium") if flagged else ("low" if off else "none")
         patches.append(PatchFlag(detection=i, rank=rank, frame=int(dets.frame[i]), track=int(dets.track[i]),
                                  flagged=flagged, severity=severity, cues=tuple(cues),
                                  ground_truth=None if gt is None else gt["overlaps"],
                                  gt_iou=None if gt is None else round(gt["iou_container"], 4)))
-    keep = [p.detection for p in patches if not p.flagged and np.isfinite(dets.pred[p.detection])]
-    without = float(np.mean(dets.pred[keep])) if keep else -1.0
+    rest = [p for p in patches if not p.flagged]
+    keep = [p.detection for p in rest if np.isfinite(dets.pred[p.detection])]
+    # never offer an estimate from patches the flags doubt themselves (severity "low": off the container's track)
+    without = float(np.mean(dets.pred[keep])) if keep and all(p.severity == "none" for p in rest) else -1.0
     return Flags(patches=tuple(patches), container_track=ref, estimate_without=without,
                  estimate=float(trace.estimate), key=key)
 
 
 __all__ = ["Cue", "PatchFlag", "Flags", "analyse", "selection_key", "container_track", "ground_truth_source",
-           "has_ground_truth", "mask_overlap", "ground_truth_overlap", "CUE_KINDS", "SEVERITIES", "GT_MIN_IOU"]
+           "has_ground_truth", "mask_overlap", "ground_truth_overlap", "CUE_KINDS", "SEVERITIES", "GT_MIN_IOU",
+           "ABSOLUTE_CUES", "BORDER_PX", "MAX_CONTAINER_MM"]

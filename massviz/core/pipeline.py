@@ -169,7 +169,9 @@ class FramePipeline:
         t3 = time.perf_counter()
         dets.pred, patches = predict_detections(self.model, frame.rgb, dets)
         t4 = time.perf_counter()
-        events = []
+        pop_notes = getattr(self.detector, "pop_notes", None)  # e.g. the depth detector's rejected objects
+        events = [Event(frame.index, f"not a container candidate: {note}", "skipped", "info")
+                  for note in (pop_notes(frame.index) if pop_notes is not None else ())]
         for i in range(len(dets)):
             if not np.isfinite(dets.d[i]):
                 events.append(Event(frame.index, f"skipped {describe_detection(dets, i)}: its mask has no depth",
@@ -225,7 +227,7 @@ class FramePipeline:
         timings = dict(self.timings)
         timings["select"] = time.perf_counter() - t5
         timings["total"] = time.perf_counter() - self._start
-        events = [*self.events, *describe_selection(detections, selection, estimate, self.k)]
+        events = [*self.events, *describe_selection(detections, selection, estimate, self.k, self.events)]
         measurements = ranked_measurements(list(self._measured.values()), selection)
         info = self.recording if self.recording is not None else RecordingInfo(id="live")
         return Trace(recording=info, detector={"name": self.detector.name, **self.detector.settings()},

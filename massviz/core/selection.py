@@ -119,6 +119,34 @@ def select_k_nearest(d: np.ndarray, score: np.ndarray, k: int, threshold: float,
     return NearestOrder(d, score, exclude).select(k, threshold)
 
 
+#: the prefix of the events that name an object a detector did not take as a container (``FramePipeline``).
+REJECTED_PREFIX = "not a container candidate: "
+
+
+def not_estimated_reason(dets: Detections, events=()) -> str:
+    """Why nothing was selected, in one line: "only border-cut / implausibly sized objects: 14 border-cut objects
+    (frames 0–7), ...: mass not estimated (-1)" when the detector rejected objects (``events`` of kind ``skipped``
+    starting with :data:`REJECTED_PREFIX`) and kept no usable one; else "no detection with depth ..."."""
+    import re
+    from collections import defaultdict
+
+    rejected = defaultdict(list)
+    for e in events:
+        if e.kind == "skipped" and e.message.startswith(REJECTED_PREFIX):
+            what = re.sub(r"[,(].*", "", e.message[len(REJECTED_PREFIX):]).strip()
+            rejected[what].append(int(e.frame))
+    if not rejected:
+        return "no detection with depth: mass not estimated (-1)"
+    parts = []
+    for what, frames in rejected.items():
+        fr = sorted(set(frames))
+        span = f"frame {fr[0]}" if len(fr) == 1 else f"frames {fr[0]}–{fr[-1]}"
+        parts.append(f"{len(frames)} × {what} ({span})")
+    usable = int(np.isfinite(np.asarray(dets.d, dtype=np.float64)).sum()) if len(dets) else 0
+    rest = f"; {usable} other detection(s) with depth not chosen (score <= threshold or excluded)" if usable else ""
+    return f"only border-cut / implausibly sized objects: {', '.join(parts)}{rest}: mass not estimated (-1)"
+
+
 def estimate_mass(pred: np.ndarray, selection: np.ndarray) -> float:
     """Mean of the selected predictions (grams); -1 when nothing is selected (not estimated)."""
     if len(selection) == 0:

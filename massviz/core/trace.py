@@ -25,7 +25,7 @@ import numpy as np
 
 from massviz.errors import MassvizError
 from massviz.core.flags import Flags, analyse
-from massviz.core.selection import NearestOrder, Selection, estimate_mass, select_k_nearest
+from massviz.core.selection import NearestOrder, Selection, estimate_mass, not_estimated_reason, select_k_nearest
 from massviz.core.tracks import assign_tracks
 from massviz.core.types import Detections, GroundTruth, RecordingInfo, class_name
 
@@ -204,7 +204,7 @@ class Trace:
         selection = select_k_nearest(self.detections.d, self.detections.score, k, threshold, excluded)
         estimate = estimate_mass(self.detections.pred, selection)
         events = [e for e in self.events if not e.is_selection]
-        events.extend(describe_selection(self.detections, selection, estimate, k))
+        events.extend(describe_selection(self.detections, selection, estimate, k, events))
         return dataclasses.replace(self, k=k, threshold=threshold, selection=selection, estimate=estimate,
                                    excluded=excluded, events=events,
                                    measurements=ranked_measurements(self.measurements, selection))
@@ -223,13 +223,14 @@ def describe_detection(dets: Detections, i: int) -> str:
             f"d={dets.d[i]:.0f}mm pred={dets.pred[i]:.1f}g")
 
 
-def describe_selection(dets: Detections, selection: np.ndarray, estimate: float, k: int) -> list[Event]:
-    """The selection stage's decisions: one ``chosen`` event per patch, then ``estimate`` or ``not_estimated``."""
+def describe_selection(dets: Detections, selection: np.ndarray, estimate: float, k: int, events=()) -> list[Event]:
+    """The selection stage's decisions: one ``chosen`` event per patch, then ``estimate`` or ``not_estimated`` (its
+    reason from ``massviz.core.selection.not_estimated_reason``, given the recording's other ``events``)."""
     out = [Event(int(dets.frame[i]), f"chose patch {r} (of K={k}): {describe_detection(dets, i)}", "chosen",
                  "info", int(i)) for r, i in enumerate(selection)]
     last = int(dets.frame.max()) if len(dets) else 0
     if len(selection):
         out.append(Event(last, f"estimate {estimate:.1f} g = mean of {len(selection)} patch predictions", "estimate"))
     else:
-        out.append(Event(last, "no detection with depth: mass not estimated (-1)", "not_estimated", "warn"))
+        out.append(Event(last, not_estimated_reason(dets, events), "not_estimated", "warn"))
     return out

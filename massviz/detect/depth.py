@@ -20,6 +20,16 @@ takes that assumption literally and segments the nearest things in the depth map
    hull (the inside of a glass). A pixel that measured something farther is never added (a handle stays open).
 4. The blob is removed and the search repeats, up to ``max_objects`` blobs, nearest first. A pitcher nearer than the
    container is returned together with the container; the K-nearest selection downstream decides.
+5. **Not container candidates** (removed like the others, but never returned; the search goes on behind them):
+   a blob **cut by the image border** (pixels within ``border_px`` of it: the table's front corner, a robot gripper
+   entering the view, a sliver at the image edge; what is cut cannot be measured whole), a blob **attached to a
+   border-cut one** (within ``attach_px`` of it and within ``slab_mm`` of its depth: the visible top of that gripper),
+   and a blob of **implausible size** for a hand-held container (wider or taller than ``max_size_mm``, e.g. a cup
+   merged with the arms and the table edge behind it). Metric size needs a focal length the detector is not given; it
+   assumes fx = fy = ``fx_fraction`` × image width (0.72: the CCM cameras, 923 px at 1280, and the RealSense D4xx
+   colour camera's ~69° field of view), which is exact enough for a 450 mm bound. Each rejected blob is noted per
+   frame (``notes``; the pipeline puts them in the trace's events, and when nothing else is left the recording is
+   *not estimated* with them as the reason).
 
 A hand holding the container is at the container's depth and touches it: it becomes part of the container's blob
 (the slab cuts the arm off a few centimetres behind it). Depth alone cannot tell them apart.
@@ -63,13 +73,26 @@ class DepthDetector:
     plane_min_span: float = 0.5
     ransac_iterations: int = 300
     seed: int = 0
+    border_px: int = 2
+    attach_px: int = 3
+    max_size_mm: float = 450.0
+    fx_fraction: float = 0.72
     name: str = "depth"
+
+    def __post_init__(self) -> None:
+        #: frame index -> why blobs of that frame were not candidates (``pop_notes``); not a setting.
+        self._notes: dict[int, list[str]] = {}
 
     def settings(self) -> dict:
         """Every setting that changes the output except ``threshold`` (it keys the detection cache)."""
         out = asdict(self)
         del out["threshold"]
+        out.pop("_notes", None)
         return out
+
+    def pop_notes(self, index: int) -> list[str]:
+        """Why blobs of frame ``index`` were not container candidates (one line each), once."""
+        return self._notes.pop(int(index), [])
 
     def detect(self, frame: Frame) -> Detections:
         """Of the ``max_objects`` nearest blobs of ``frame.depth``, those with score > ``threshold``, nearest first."""
@@ -81,8 +104,13 @@ class DepthDetector:
         min_px = max(1, int(self.min_area * h * w))
         k = 2 * int(round(self.close_size * w / 2)) + 1  # odd: a closing with an even kernel shifts the mask
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
-        found = []
-        for _ in range(4 * self.max_objects + 4):  # each round takes a blob or discards fragments
+        found, cut, notes = [], np.zeros((h, w), dtype=bool), []
+        edge = np.zeros((h, w), dtype=bool)
+        b = max(1, int(self.border_px))
+        edge[:b], edge[-b:], edge[:, :b], edge[:, -b:] = True, True, True, True
+        near_kernel = np.ones((2 * self.attach_px + 1, 2 * self.attach_px + 1), np.uint8)
+        fx = self.fx_fraction * w
+        for _ in range(6 * self.max_objects + 6):  # each round takes a blob, rejects one or discards fragments
             if len(found) == self.max_objects or remaining.sum() < min_px:
                 break
             blob, fragments = nearest_blob(z, depth == 0, remaining, kernel, min_px, self.slab_mm)
@@ -90,7 +118,29 @@ class DepthDetector:
             if blob is None:  # only fragments in this layer: look farther
                 continue
             remaining &= ~blob
+            zb = float(np.median(z[blob & ~(depth == 0)])) if (blob & ~(depth == 0)).any() else 0.0
+            ys, xs = np.nonzero(blob)
+            where = f"box {[int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1]} at {zb:.0f} mm"
+            size = (np.ptp(xs) + 1) * zb / fx, (np.ptp(ys) + 1) * zb / fx
+            if (blob & edge).any():
+                cut |= blob
+                notes.append(f"border-cut object ({where})")
+                continue
+            touching = cv2.dilate(blob.astype(np.uint8), near_kernel) > 0
+            attached = touching & cut
+            if attached.any() and abs(float(np.median(z[attached & (depth > 0)])) - zb) <= self.slab_mm \
+                    if (attached & (depth > 0)).any() else False:
+                cut |= blob
+                notes.append(f"part of a border-cut object ({where})")
+                continue
+            if max(size) > self.max_size_mm:
+                notes.append(f"implausibly sized object, {size[0]:.0f}×{size[1]:.0f} mm ({where})")
+                continue
             found.append((blob, separation(blob, z, depth == 0, self.jump_mm)))
+        if notes:
+            if len(self._notes) > 256:  # nobody collects them: keep the newest frames only
+                self._notes.pop(next(iter(self._notes)))
+            self._notes[int(frame.index)] = notes
         # The threshold only filters (it is not part of the cache key): the blobs do not depend on it.
         return _detections(frame.index, [(blob, score) for blob, score in found if score > self.threshold])
 

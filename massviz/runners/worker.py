@@ -67,9 +67,11 @@ class RecordingWorker:
         from massviz.app import build_pipeline
 
         if threads:
+            import cv2
             import torch
 
             torch.set_num_threads(int(threads))
+            cv2.setNumThreads(int(threads))  # NanoDet runs in cv2.dnn
         self.pipeline = pipeline if pipeline is not None else build_pipeline(options)
         self.collect = collect
         self.name = worker_name()

@@ -1,0 +1,86 @@
+"""``--detector auto`` decides from local files only (issue 20 / 24): Mask R-CNN weights given or cached, else the
+NanoDet model given or cached, else depth; no connection is ever attempted, it returns at once, and it always says
+which detector it chose and why, ``--quiet`` or not."""
+from __future__ import annotations
+
+import socket
+import time
+from pathlib import Path
+
+import pytest
+
+from massviz.detect import MASKRCNN_COCO_FILE, choose_auto, make_detector
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def no_network(monkeypatch, tmp_path):
+    """Empty caches, and every socket connection recorded and refused."""
+    attempts = []
+
+    def refuse(self, address, *a, **k):
+        attempts.append(address)
+        raise OSError("network disabled by the test")
+
+    monkeypatch.setattr(socket.socket, "connect", refuse)
+    monkeypatch.setattr(socket.socket, "connect_ex", refuse)
+    monkeypatch.setattr(socket, "create_connection", lambda address, *a, **k: refuse(None, address))
+    monkeypatch.setattr(socket, "getaddrinfo", lambda host, *a, **k: refuse(None, host))
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    monkeypatch.setenv("MASSVIZ_CACHE_DIR", str(tmp_path / "cache"))
+    return attempts
+
+
+def test_auto_offline_returns_at_once_without_connecting(no_network, capsys):
+    t0 = time.perf_counter()
+    det = make_detector("auto", 0.4, quiet=True)
+    elapsed = time.perf_counter() - t0
+    assert det.name == "depth"
+    assert elapsed < 1.0, elapsed
+    assert no_network == []  # no connection was even attempted
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("massviz: --detector auto: using depth: ") and "is cached" in err[0]
+
+
+def test_auto_prefers_maskrcnn_then_nanodet_then_depth(no_network, tmp_path, shared_dir, capsys):
+    onnx = shared_dir / "detectors" / "nanodet" / "object_detection_nanodet_2022nov.onnx"
+    assert choose_auto()[0] == "depth"
+    cache = tmp_path / "cache" / "weights"
+    cache.mkdir(parents=True)
+    (cache / onnx.name).write_bytes(onnx.read_bytes())
+    name, why = choose_auto()
+    assert name == "nanodet" and str(cache / onnx.name) in why
+    det = make_detector("auto", 0.45, quiet=True)
+    assert det.name == "nanodet" and det.threshold == 0.45
+    assert "using nanodet" in capsys.readouterr().err
+    ckpt = tmp_path / "torch" / "hub" / "checkpoints"
+    ckpt.mkdir(parents=True)
+    (ckpt / MASKRCNN_COCO_FILE).write_bytes(b"x")
+    assert choose_auto()[0] == "maskrcnn"
+    # given weights decide by kind, whatever is cached
+    assert choose_auto(onnx)[0] == "nanodet"
+    assert choose_auto(tmp_path / "maskrcnn_state.pth")[0] == "maskrcnn"
+    assert no_network == []
+
+
+def test_maskrcnn_cache_file_name_is_torchvisions():
+    from torchvision.models.detection import MaskRCNN_ResNet50_FPN_Weights
+
+    assert MaskRCNN_ResNet50_FPN_Weights.COCO_V1.url.rsplit("/", 1)[1] == MASKRCNN_COCO_FILE
+
+
+def test_cli_quiet_still_says_which_detector_auto_chose(tmp_path, shared_dir):
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "TORCH_HOME": str(tmp_path / "torch"),
+           "MASSVIZ_CACHE_DIR": str(tmp_path / "cache")}
+    weights = shared_dir / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch"
+    out = tmp_path / "o.csv"
+    r = subprocess.run([sys.executable, "-m", "massviz", "estimate", str(ROOT / "data_samples" / "cup_handover"),
+                        "--out", str(out), "--quiet", "--no-cache", "--stride", "20", "--weights", str(weights)],
+                       capture_output=True, text=True, env=env, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert "massviz: --detector auto: using depth: " in r.stderr
