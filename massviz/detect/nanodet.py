@@ -234,8 +234,7 @@ def resolve_model(path: str | Path | None, *, progress: bool = True) -> Path:
     cached = weights.cache_dir() / NANODET_NAME
     if cached.is_file() and weights.sha256_file(cached) == NANODET_SHA256:
         return cached
-    return weights.download(NANODET_NAME, base_url=NANODET_URL_BASE, expected_sha256=NANODET_SHA256,
-                            progress=progress)
+    return weights.download(NANODET_URL_BASE + NANODET_NAME, cached, NANODET_SHA256, progress=progress)
 
 
 def cached_model() -> Path | None:
