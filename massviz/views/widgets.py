@@ -317,7 +317,8 @@ class FailurePanel(TuningPanel):
         self.ranking_html = W.HTML()
         self.rows = W.VBox()
         self.path = W.Text(value=str(export_path), description="export to")
-        self.export_button = W.Button(description="export exclusions", icon="download")
+        self.export_button = W.Button(description="export exclusions", icon="download",
+                                      layout=W.Layout(width="auto"))  # its whole label, not "export exclusi…"
         self.export_status = W.HTML()
         self.export_button.on_click(lambda _: self.export())
         self.toggles: dict[int, object] = {}
@@ -343,7 +344,7 @@ class FailurePanel(TuningPanel):
             table["detection"] = original_selection(self.tuner.traces[i], cur, self.tuner.stride)
         excluded = list(self.tuner.modes[i])
         none = dataclasses.replace(self.tuner.traces[i], selection=np.zeros(0, dtype=np.int64))
-        extra = chosen_table(none, extra=excluded).assign(why="excluded by you")
+        extra = chosen_table(none, extra=excluded).assign(why="not chosen while excluded")
         out = pd.concat([table, extra], ignore_index=True) if len(extra) else table
         out["mode"] = [self.tuner.modes[i].get(int(d), "keep") for d in out["detection"]]
         return out
