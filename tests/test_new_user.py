@@ -97,3 +97,94 @@ def test_notebook_01_names_the_palette_colours():
     assert "yellow" not in text
     cloud = text[text.index("## The depth as a point cloud"):]
     assert "magenta" in cloud.split("##")[1] and "red" in cloud.split("##")[1]
+
+
+# ------------------------------------------------------------------------------- item 9: the command line's messages
+def massviz_cli(*args, cwd: Path = ROOT, env_extra: dict | None = None, timeout: float = 900):
+    env = {k: v for k, v in os.environ.items() if k not in ("MASSVIZ_DEBUG", "RAY_ADDRESS")}
+    env.update({"PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
+                "PYTHONWARNINGS": "ignore", **(env_extra or {})})
+    return subprocess.run([sys.executable, "-m", "massviz", *map(str, args)], capture_output=True, text=True,
+                          timeout=timeout, cwd=cwd, env=env)
+
+
+def error_lines(stderr: str) -> list[str]:
+    return [line for line in stderr.splitlines() if "error" in line.lower()]
+
+
+def test_cloud_without_intrinsics_exits_2_and_writes_nothing(samples_dir, tmp_path):
+    import shutil
+
+    rec = tmp_path / "no_intrinsics"
+    shutil.copytree(samples_dir / "cup_handover", rec)
+    (rec / "intrinsics.json").unlink()
+    out = tmp_path / "clouds"
+    run = massviz_cli("cloud", rec, "--detector", "depth", "--out", out, "--no-cache", "--quiet")
+    assert run.returncode == 2, (run.returncode, run.stderr)
+    lines = run.stderr.strip().splitlines()
+    assert len(lines) == 1 and "intrinsics" in lines[0] and "no_intrinsics" in lines[0], lines
+    assert "Traceback" not in run.stderr and not out.exists()
+
+
+def test_score_per_container_table_has_no_nan(tmp_path):
+    ann, pred = tmp_path / "ann.csv", tmp_path / "pred.csv"
+    ann.write_text("id,container id,container mass\n0,1,10\n1,1,12\n2,5,30\n3,9,100\n")
+    pred.write_text("Configuration ID,Container mass\n0,11\n1,-1\n2,-1\n3,-1\n")  # containers 5, 9: none estimated
+    run = massviz_cli("score", pred, "--annotations", ann)
+    assert run.returncode == 0, run.stderr
+    assert "per container:" in run.stdout and "nan" not in run.stdout.lower(), run.stdout
+    rows = run.stdout.split("per container:")[1].strip().splitlines()[1:]
+    assert len(rows) == 3 and rows[1].split()[-1] == "-" and rows[0].split()[-1] == "0.100", rows
+
+
+@pytest.mark.slow
+def test_ray_error_names_massviz_option(samples_dir, tmp_path, shared_dir):
+    pytest.importorskip("ray")
+    (tmp_path / "raytmp").mkdir()  # no Ray cluster recorded there: "auto" finds none, whatever else runs here
+    run = massviz_cli("estimate", samples_dir, "--detector", "depth", "--engine", "ray", "--ray-address", "auto",
+                      "--out", tmp_path / "x.csv", "--quiet", "--no-cache", cwd=tmp_path,
+                      env_extra={"RAY_TMPDIR": str(tmp_path / "raytmp"),
+                                 "MASSVIZ_WEIGHTS": str(shared_dir / WEIGHTS)})
+    assert run.returncode == 2, run.stderr
+    [line] = error_lines(run.stderr)
+    assert "--ray-address" in line and "`--address`" not in line and "RAY_ADDRESS" not in line, line
+    assert not (tmp_path / "x.csv").exists()
+
+
+@pytest.mark.slow
+def test_extract_error_names_the_real_file(tmp_path, shared_dir):
+    from test_fuzz import make_ccm
+
+    video = make_ccm(tmp_path / "ccm")
+    out = tmp_path / "patches"
+    run = massviz_cli("extract", video, "--detector", "depth", "--out", out, "--no-cache", "--quiet",
+                      env_extra={"MASSVIZ_WEIGHTS": str(shared_dir / WEIGHTS)})
+    assert run.returncode == 2, run.stderr
+    [line] = error_lines(run.stderr)
+    assert str(video) in line and "000000.mp4/" not in line and "--annotations" in line, line
+    assert not out.exists()
+
+
+@pytest.mark.slow
+def test_live_summary_says_how_many_of_k(samples_dir, shared_dir, tmp_path):
+    from test_realsense import need_realsense
+
+    need_realsense()
+    from test_recording import write_recording
+
+    from massviz.io.realsense import write_realsense
+    from massviz.io.recording import open_recording
+
+    sample = open_recording(samples_dir / "cup_handover")
+    frames = list(sample.frames(indices=[30, 31, 32]))
+    short = write_recording(tmp_path / "short", [f.rgb for f in frames], [f.depth for f in frames],
+                            intrinsics=sample.intrinsics.to_dict(), meta={"id": "short", "fps": 10})
+    db3 = write_realsense(open_recording(short), tmp_path / "short.db3")
+    run = massviz_cli("live", "--file", db3, "--detector", "depth", "--k", 50, "--no-cache", "--quiet",
+                      "--rrd", tmp_path / "live.rrd", env_extra={"MASSVIZ_WEIGHTS": str(shared_dir / WEIGHTS)})
+    assert run.returncode == 0, run.stderr
+    last = run.stderr.strip().splitlines()[-1]
+    import re
+
+    m = re.search(r"\((\d+) of K=50, ", last)  # 3 frames cannot give 50 detections
+    assert m and 1 <= int(m.group(1)) < 50, last
