@@ -188,3 +188,73 @@ def test_live_summary_says_how_many_of_k(samples_dir, shared_dir, tmp_path):
 
     m = re.search(r"\((\d+) of K=50, ", last)  # 3 frames cannot give 50 detections
     assert m and 1 <= int(m.group(1)) < 50, last
+
+
+# ----------------------------------------------------------------------------- item 10: a CPU-only install
+FAKE_PYTHON = """#!/usr/bin/env bash
+echo "python $*" >> "$FAKE_LOG"
+case "$*" in *"import torch"*) echo "${FAKE_CUDA:-}" ;; esac
+exit 0
+"""
+
+
+def run_setup(tmp_path: Path, torch_kind: str | None, cuda: str = "") -> tuple[subprocess.CompletedProcess, list[str]]:
+    """scripts/setup.sh demo in a copy of the repository whose .venv, dpkg and massviz are stand-ins that log what
+    they were asked (nothing is installed)."""
+    repo = tmp_path / "repo"
+    (repo / "scripts").mkdir(parents=True)
+    (repo / "scripts" / "setup.sh").write_text((ROOT / "scripts" / "setup.sh").read_text())
+    (repo / "pyproject.toml").write_text((ROOT / "pyproject.toml").read_text())
+    bins = {repo / ".venv" / "bin" / "python": FAKE_PYTHON,
+            repo / ".venv" / "bin" / "massviz": '#!/usr/bin/env bash\necho "massviz $*" >> "$FAKE_LOG"\n',
+            tmp_path / "fakebin" / "dpkg": "#!/usr/bin/env bash\nexit 0\n"}
+    for path, text in bins.items():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+        path.chmod(0o755)
+    log = tmp_path / "calls.log"
+    log.write_text("")
+    env = {k: v for k, v in os.environ.items() if k != "MASSVIZ_TORCH"}
+    env.update(FAKE_LOG=str(log), FAKE_CUDA=cuda, PYTHON=sys.executable,
+               PATH=os.pathsep.join([str(tmp_path / "fakebin"), env.get("PATH", "")]))
+    if torch_kind is not None:
+        env["MASSVIZ_TORCH"] = torch_kind
+    run = subprocess.run(["bash", "scripts/setup.sh", "demo"], cwd=repo, env=env, capture_output=True, text=True,
+                         timeout=120)
+    return run, log.read_text().splitlines()
+
+
+def test_setup_cpu_torch_comes_from_the_cpu_index_first(tmp_path):
+    run, calls = run_setup(tmp_path, "cpu")
+    assert run.returncode == 0, run.stderr
+    pip = [c for c in calls if " pip install " in c]
+    assert "--index-url https://download.pytorch.org/whl/cpu torch==2.14.1 torchvision==0.29.1" in pip[0], pip
+    assert "-e .[test,notebooks]" in pip[1] and "--index-url" not in pip[1], pip
+    assert "warning" not in run.stderr
+
+
+def test_setup_default_is_what_ci_uses(tmp_path):
+    run, calls = run_setup(tmp_path, None)
+    assert run.returncode == 0, run.stderr
+    pip = [c for c in calls if " pip install " in c]
+    assert len(pip) == 1 and "-e .[test,notebooks]" in pip[0] and "--index-url" not in pip[0], pip
+
+
+def test_setup_cpu_says_when_it_got_a_cuda_torch(tmp_path):
+    run, _ = run_setup(tmp_path, "cpu", cuda="13.0")
+    assert run.returncode == 0 and "built for CUDA 13.0" in run.stderr, run.stderr
+
+
+def test_setup_bad_torch_choice_is_one_line_before_any_work(tmp_path):
+    run, calls = run_setup(tmp_path, "rocm")
+    assert run.returncode == 2 and run.stderr.strip().count("\n") == 0 and "MASSVIZ_TORCH" in run.stderr
+    assert calls == []
+
+
+def test_readme_setup_stays_two_commands_and_documents_cpu():
+    text = (ROOT / "README.md").read_text()
+    section = text.split("## Set-up", 1)[1].split("\n## ", 1)[0]
+    block = section.split("```bash\n", 1)[1].split("```", 1)[0]
+    assert [line.split("#")[0].strip() for line in block.strip().splitlines()] == [
+        "bash scripts/setup.sh demo", "bash scripts/setup.sh test"]
+    assert "MASSVIZ_TORCH=cpu" in section
