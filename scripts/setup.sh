@@ -5,10 +5,17 @@
 # Installs Debian's libraries Open3D needs (libusb-1.0-0; offscreen rendering: libvulkan1 mesa-vulkan-drivers
 # libegl1 libgl1; the test job also Chromium for the browser tests), creates .venv with Python >= 3.11 and installs
 # massviz with its pinned torch/torchvision.
+# MASSVIZ_TORCH=cpu: torch/torchvision from PyTorch's CPU-only wheel index (no NVIDIA libraries, no triton: about
+# 4 GB less); default (unset): the wheels pip resolves from PyPI, with CUDA, what CI uses.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 job="${1:-}"
-case "$job" in demo|test) ;; *) echo "usage: bash scripts/setup.sh demo|test" >&2; exit 2 ;; esac
+case "$job" in demo|test) ;; *) echo "usage: [MASSVIZ_TORCH=cpu] bash scripts/setup.sh demo|test" >&2; exit 2 ;; esac
+torch_wheels="${MASSVIZ_TORCH:-}"
+case "$torch_wheels" in ""|cpu) ;;
+  *) echo "setup: MASSVIZ_TORCH must be 'cpu' or unset (PyPI's CUDA wheels), got '$torch_wheels'" >&2; exit 2 ;;
+esac
+cpu_index="https://download.pytorch.org/whl/cpu"
 
 apt_pkgs=(libusb-1.0-0 libvulkan1 mesa-vulkan-drivers libegl1 libgl1)
 # the browser tests (tests/test_browser.py) drive Debian's Chromium through playwright (no browser download)
@@ -25,7 +32,19 @@ fi
 py="${PYTHON:-python3}"
 "$py" -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "massviz needs Python >= 3.11")'
 [ -x .venv/bin/python ] || "$py" -m venv .venv
-echo "setup: installing massviz into .venv (torch==2.14.1, torchvision==0.29.1 pinned in pyproject.toml)" >&2
+# the torch/torchvision pins of pyproject.toml
+pins=($(grep -oE '"(torch|torchvision)==[^"]+"' pyproject.toml | tr -d '"'))
+if [ "$torch_wheels" = cpu ]; then
+  echo "setup: installing ${pins[*]} CPU-only wheels from $cpu_index" >&2
+  .venv/bin/python -m pip install -q --disable-pip-version-check --index-url "$cpu_index" "${pins[@]}"
+  # pip may still have taken a CUDA wheel from another index of its configuration (e.g. a local mirror)
+  cuda=$(.venv/bin/python -c 'import torch; print(torch.version.cuda or "")')
+  if [ -n "$cuda" ]; then
+    echo "setup: warning: MASSVIZ_TORCH=cpu, but the torch installed is built for CUDA $cuda ($cpu_index was not" \
+      "reachable or pip's configuration preferred another index); massviz still works, on the CPU" >&2
+  fi
+fi
+echo "setup: installing massviz into .venv (${pins[*]} pinned in pyproject.toml)" >&2
 .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test,notebooks]" 2>&1 \
   | { grep -v -e "^WARNING: Location" -e "is ignored: it is neither" || true; }
 

@@ -271,9 +271,9 @@ def test_cloud_without_intrinsics_says_so(tmp_path, ccm_replay, capsys):
     (tmp_path / "d.json").write_text(json.dumps({"detections": [{"frame": 0, "box": [22, 14, 42, 34]}]}))
     args = pipeline_args(tmp_path / "d.json")
     args[0] = str(rec)
-    assert main(["cloud", *args, "--out", str(tmp_path / "c")]) == 0
-    err = capsys.readouterr().err
-    assert "no camera intrinsics" in err and "no clouds written" in err
+    assert main(["cloud", *args, "--out", str(tmp_path / "c")]) == 2  # issue 22: an error, not exit 0
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "no camera intrinsics" in err and "nothing written" in err
     assert not (tmp_path / "c").exists()
 
 

@@ -154,3 +154,65 @@ def test_notebook_outputs_are_not_cluttered(executed, name):
     for line in CLUTTER:
         assert line not in outputs, f"{name}: {line!r} in the outputs"
         assert not any(line in m for m in CLIENT_LOG.get(name, [])), f"{name}: {line!r} logged while running"
+
+
+# ------------------------------------------------------------------------- notebook 03's panel after Run All (#22)
+def _widget_states(book) -> dict:
+    return book.metadata.get("widgets", {}).get("application/vnd.jupyter.widget-state+json", {}).get("state", {})
+
+
+def _displayed_widget(book, source_start: str) -> str:
+    """Model id of the widget the code cell starting with ``source_start`` displayed."""
+    for cell in book.cells:
+        if cell.cell_type == "code" and cell.source.startswith(source_start):
+            for out in cell.outputs:
+                view = out.get("data", {}).get("application/vnd.jupyter.widget-view+json")
+                if view:
+                    return view["model_id"]
+    raise AssertionError(f"no cell starting with {source_start!r} displayed a widget")
+
+
+def _descendants(states: dict, model_id: str) -> list[dict]:
+    """The widget ``model_id`` and every widget under it (children), depth first, as their state dicts."""
+    out, todo = [], [model_id]
+    while todo:
+        mid = todo.pop(0)
+        state = states[mid]["state"]
+        out.append(state)
+        todo[:0] = [c.removeprefix("IPY_MODEL_") for c in state.get("children", [])]
+    return out
+
+
+def test_notebook_03_panel_after_run_all_is_as_displayed(executed):
+    """Issue 22, item 3: a later cell must not change the interactive panel cell 9 displayed: after Run All it
+    still shows the worst recording with every patch on "keep", the lifted pitcher flagged (not "excluded" and
+    "not flagged" in green) and the estimate with the pitcher (57.4 g)."""
+    book = executed["03_failure_cases.ipynb"]
+    states = _widget_states(book)
+    assert states, "the executed notebook stored no widget state"
+    widgets = _descendants(states, _displayed_widget(book, "panel = FailurePanel"))
+    toggles = [w for w in widgets if w["_model_name"] == "ToggleButtonsModel"]
+    html_text = [w.get("value", "") for w in widgets if w["_model_name"] == "HTMLModel"]
+    assert len(toggles) == 5, f"expected the 5 chosen patches' toggles, got {len(toggles)}"
+    modes = [w["_options_labels"][w["index"]] for w in toggles]
+    assert modes == ["keep"] * 5, f"the displayed panel was changed by a later cell: modes {modes}"
+    assert not any("excluded by you" in t for t in html_text)
+    assert any("estimate <b>57.4 g</b>" in t for t in html_text), [t for t in html_text if "estimate" in t]
+    rows = [t for t in html_text if "frame " in t and " · track " in t and "pred " in t]
+    pitcher = [t for t in rows if "pitcher" in t]
+    assert len(pitcher) == 3 and all("⚑ flagged" in t for t in pitcher), pitcher
+    assert not any("pitcher" in t and "not flagged" in t for t in rows)
+
+
+def test_notebook_03_prints_the_real_exclusions_path(executed):
+    """Issue 22, item 3: the re-estimate command names the file the notebook wrote (not a bare file name)."""
+    import re
+
+    from massviz.evaluation.failures import load_exclusions
+
+    text = _outputs_text(executed["03_failure_cases.ipynb"])
+    m = re.search(r"--exclude (\S+) --out", text)
+    assert m, text[-2000:]
+    path = Path(m.group(1))
+    assert path.is_absolute() and path.is_file(), f"printed {path}, which is not the written file"
+    assert len(load_exclusions(path)) > 0

@@ -18,7 +18,7 @@ def register(sub) -> None:
         "the chosen ones, and measurements.csv / measurements.json: height, width and depth (mm) of each chosen "
         "detection from its cloud, with its oriented box, compared with the container's annotation when known "
         "(the recording's meta.json, or --annotations). Points are metres in the camera frame: x right, y down, "
-        "z forward (OpenCV/RDF). A recording without intrinsics gets one line saying so and no 3D output.",
+        "z forward (OpenCV/RDF). A recording without intrinsics is an error (one line, exit code 2, nothing written).",
         epilog="examples:\n  massviz cloud data_samples/box_handover --detector depth --out box_3d\n"
         "  massviz cloud /data/CCM/test/view3/rgb/000012.mp4 --annotations ann.csv --out ccm12\n" + PIPELINE_HELP)
     add_3d_args(p)
@@ -54,17 +54,24 @@ def run(args) -> int:
 
     from massviz.io.atomic import atomic_path
     from massviz.commands._3d import measured_trace
-    from massviz.core.geometry import annotation_size, ground_truth_size, measurements_of, skip_reason
+    from massviz.core.geometry import annotation_size, ground_truth_size, measurements_of
     from massviz.views.open3d_view import write_ply
 
     from massviz.io.atomic import check_output_dir
 
+    from massviz.core.geometry import skip_reason
+    from massviz.errors import MassvizError
+    from massviz.io.recording import open_recording
+
     out = check_output_dir(args.out, "--out")
+    # clouds need the camera intrinsics: without them, one error line naming the recording (exit 2) before any
+    # work, nothing written
+    reason = skip_reason(open_recording(args.recording, allow_partial=args.allow_partial))
+    if reason:
+        what = reason.split(": ", 1)[-1].split(", so no 3D")[0]  # "no camera intrinsics (where they would be)"
+        raise MassvizError(f"{what}: massviz cloud needs them, nothing written", args.recording)
     rec, trace = measured_trace(args)
     est = "not estimated" if trace.estimate < 0 else f"{trace.estimate:.1f} g"
-    if skip_reason(rec):
-        print(f"{rec.id}: {est}; no clouds written", file=sys.stderr)
-        return 0
     gt = ground_truth_size(rec.meta)
     if args.annotations:
         from massviz.evaluation.metrics import read_annotations

@@ -186,8 +186,9 @@ def run_session(args, pipeline, stream, name: str) -> int:
              if web is not None else []):
         print(f"massviz live: {line}", file=sys.stderr)
     est = "not estimated" if trace.estimate < 0 else f"{trace.estimate:.1f} g"
-    print(f"{name}: {est} (K={len(trace.selection)}, {stats.processed} frames, {stats.dropped} dropped)",
-          file=sys.stderr)
+    n, k = len(trace.selection), int(trace.k)
+    chosen = f"K={k}" if n >= k else f"{n} of K={k}"  # fewer detections than K: say how many were chosen
+    print(f"{name}: {est} ({chosen}, {stats.processed} frames, {stats.dropped} dropped)", file=sys.stderr)
     return 0
 
 

@@ -328,7 +328,8 @@ class ScoreReport:
         names = {"score_pct": "score %", "mean_eps": "mean ε"}
         formatters = {"score %": "{:.2f}".format, "mean ε": lambda v: "-" if math.isnan(v) else f"{v:.3f}"}
         for title, table in (("per class", self.per_class), ("per container", self.per_container)):
-            text = table.reset_index().rename(columns=names).to_string(index=False, formatters=formatters, col_space=8)
+            text = table.reset_index().rename(columns=names).to_string(index=False, formatters=formatters, col_space=8,
+                                                                       na_rep="-")  # pandas skips formatters on NaN
             lines += ["", f"{title}:", text]
         return "\n".join(lines)
 

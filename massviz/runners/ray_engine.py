@@ -23,6 +23,7 @@ actor never waits a round trip for its next recording). ``_dispatch`` is the ~40
 from __future__ import annotations
 
 import os
+import re
 import sys
 import time
 from collections import deque
@@ -69,8 +70,14 @@ def connect(address: str | None, log=None):
                 if log is not None:
                     log(f"massviz: Ray did not start in time ({first}); trying once more")
                 continue
-            where = "start a local Ray instance" if address is None else f"join the Ray cluster at {address}"
-            raise MassvizError(f"cannot {where}: {first}") from None
+            if address is None:
+                raise MassvizError(f"cannot start a local Ray instance: {first}") from None
+            # Ray's own advice names Ray's options (its `--address` flag, RAY_ADDRESS), not massviz's --ray-address
+            first = re.sub(r"\.?\s*Please specify[^.]*`?--address`?[^.]*\.?", "", first)
+            first = first.replace("--address", "--ray-address")
+            raise MassvizError(f"cannot join the Ray cluster at {address}: {first.rstrip('.')}. Pass --ray-address "
+                               "HOST:PORT of a running cluster (`ray start --head` starts one), or leave "
+                               "--ray-address out to start a local Ray instance") from None
     if log is not None:
         res = ray.cluster_resources()
         what = "started a local Ray instance" if address is None else f"joined the Ray cluster at {address}"

@@ -106,8 +106,13 @@ def annotation_for(recording, table: pd.DataFrame | None, path: str | Path | Non
     if table is None:
         gt = GroundTruth.from_meta(recording.meta)
         if gt is None or gt.mass_g is None:
-            raise DataError("no container.mass_g in meta.json (pass --annotations ANN.csv for CCM recordings)",
-                            Path(recording.path) / "meta.json")
+            where = Path(recording.path)
+            if where.is_dir():  # a massviz recording folder: its meta.json
+                raise DataError("no container.mass_g in meta.json (pass --annotations ANN.csv for CCM recordings)",
+                                where / "meta.json")
+            # a CCM video (or another single file): there is no meta.json to name, the mass comes from --annotations
+            raise DataError("no container mass for this recording: pass --annotations ANN.csv (the CCM annotation "
+                            "file)", where)
         dims = tuple((col, math.nan if getattr(gt, key) is None else float(getattr(gt, key)))
                      for col, (_, key) in DIMENSIONS.items())
         return Annotation(gt.mass_g, gt.container_id, dims)

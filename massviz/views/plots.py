@@ -15,8 +15,8 @@ from massviz.evaluation.metrics import ScoreReport
 from massviz.core.trace import Trace
 from massviz.core.types import Frame, Intrinsics, class_name
 from massviz.views.labels import short_reason
-from massviz.views.palette import (CHOSEN_COLOUR, CHOSEN_HEX, FLAGGED_HEX, OTHER_HEX, WITHOUT_FLAGGED_COLOUR,
-                                    hex_colour)
+from massviz.views.palette import (CHOSEN_COLOUR, CHOSEN_HEX, FLAGGED_COLOUR, FLAGGED_HEX, OTHER_HEX,
+                                    WITHOUT_FLAGGED_COLOUR, hex_colour)
 
 #: colour of chosen patches (rank shown) and of the other detections.
 CHOSEN, OTHER, FLAGGED = CHOSEN_HEX, OTHER_HEX, FLAGGED_HEX  # massviz.views.palette: the same in every view
@@ -83,31 +83,37 @@ def depth_figure(frame: Frame, width: float = 7.0) -> Figure:
 
 def point_cloud_figure(trace: Trace, frame: Frame, intrinsics: Intrinsics, step: int = 3,
                        max_depth_m: float = 1.8, width: float = 7.0) -> Figure:
-    """The frame's depth back-projected to 3D (metres, camera frame; RGB colours), chosen patches' masks in yellow,
-    points farther than ``max_depth_m`` (the room's wall) left out. A matplotlib 3D scatter, seen from above left."""
+    """The frame's depth back-projected to 3D (metres, camera frame; RGB colours), the masks of the frame's chosen
+    patches in the palette's chosen colour (a flagged one, ``trace.flags``, in its flagged colour), points farther
+    than ``max_depth_m`` (the room's wall) left out. A matplotlib 3D scatter, seen from above left."""
+    from matplotlib.ticker import MaxNLocator
+
     from massviz.core.geometry import depth_to_points
 
     points, colours = depth_to_points(frame.depth, intrinsics, frame.rgb, step)
     sub = frame.depth[::step, ::step] > 0
-    chosen = np.zeros(frame.depth.shape, bool)
-    for i in trace.selection:
-        if int(trace.detections.frame[i]) == frame.index:
-            chosen |= trace.detections.full_mask(int(i), frame.height, frame.width)
-    highlight = chosen[::step, ::step][sub]
+    flagged = {int(p.detection) for p in trace.flags.flagged}
     cols = colours.astype(np.float32) / 255.0
-    cols[highlight] = CHOSEN_COLOUR
+    for i in trace.selection:  # flagged last, so that a flagged patch overlapping a chosen one stays red
+        if int(trace.detections.frame[i]) == frame.index and int(i) not in flagged:
+            cols[trace.detections.full_mask(int(i), frame.height, frame.width)[::step, ::step][sub]] = CHOSEN_COLOUR
+    for i in trace.selection:
+        if int(trace.detections.frame[i]) == frame.index and int(i) in flagged:
+            cols[trace.detections.full_mask(int(i), frame.height, frame.width)[::step, ::step][sub]] = FLAGGED_COLOUR
     near = points[:, 2] <= max_depth_m
     points, cols = points[near], cols[near]
     fig = Figure(figsize=(width, width * 0.75))
     ax = fig.add_subplot(projection="3d")
     # camera frame is x right, y down, z forward: plot x, z (depth), -y (up)
     ax.scatter(points[:, 0], points[:, 2], -points[:, 1], c=cols, s=1.0, depthshade=False)
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("z: distance from camera (m)")
-    ax.set_zlabel("up (m)")
+    for axis in (ax.xaxis, ax.yaxis, ax.zaxis):  # few ticks: the tilted axes' labels must not run into each other
+        axis.set_major_locator(MaxNLocator(4))
+    ax.set_xlabel("x (m)", labelpad=6)
+    ax.set_ylabel("distance (m)", labelpad=10)
+    ax.set_zlabel("up (m)", labelpad=6)
     ax.view_init(elev=12, azim=-65)
-    ax.set_title(f"frame {frame.index}: depth as a point cloud ({len(points)} points; chosen patch in magenta)",
-                 fontsize=9)
+    ax.set_title(f"frame {frame.index}: depth as a point cloud ({len(points)} points; chosen patch in magenta, "
+                 f"flagged in red)", fontsize=9)
     fig.tight_layout()
     return fig
 

@@ -307,7 +307,8 @@ class FailurePanel(TuningPanel):
         self.ranking_html = W.HTML()
         self.rows = W.VBox()
         self.path = W.Text(value=str(export_path), description="export to")
-        self.export_button = W.Button(description="export exclusions", icon="download")
+        self.export_button = W.Button(description="export exclusions", icon="download",
+                                      layout=W.Layout(width="auto"))  # its whole label, not "export exclusi…"
         self.export_status = W.HTML()
         self.export_button.on_click(lambda _: self.export())
         self.toggles: dict[int, object] = {}
@@ -333,7 +334,7 @@ class FailurePanel(TuningPanel):
             table["detection"] = original_selection(self.tuner.traces[i], cur, self.tuner.stride)
         excluded = list(self.tuner.modes[i])
         none = dataclasses.replace(self.tuner.traces[i], selection=np.zeros(0, dtype=np.int64))
-        extra = chosen_table(none, extra=excluded).assign(why="excluded by you")
+        extra = chosen_table(none, extra=excluded).assign(why="not chosen while excluded")
         out = pd.concat([table, extra], ignore_index=True) if len(extra) else table
         out["mode"] = [self.tuner.modes[i].get(int(d), "keep") for d in out["detection"]]
         return out
@@ -344,9 +345,12 @@ class FailurePanel(TuningPanel):
         self.refresh()
 
     def export(self, path: str | Path | None = None) -> Path:
-        out = self.tuner.export(path or self.path.value)
+        """Write the exclusions file; returns its absolute path (the one the status line and
+        ``massviz estimate --exclude`` need, wherever the kernel's working folder is)."""
+        out = Path(self.tuner.export(path or self.path.value)).resolve()
         n = len(self.tuner.exclusions())
-        self.export_status.value = f"wrote {n} exclusions to <code>{html.escape(str(out))}</code>"
+        self.export_status.value = (f"wrote {n} exclusions to <code>{html.escape(str(out))}</code> "
+                                    f"(<code>massviz estimate --exclude {html.escape(str(out))}</code>)")
         return out
 
     def refresh(self) -> None:
@@ -363,14 +367,23 @@ class FailurePanel(TuningPanel):
         rows = []
         self.toggles = {}
         for r in table.itertuples():
-            flag = (f"<span style='color:{FLAGGED_HEX}'>⚑ flagged ({r.severity}): {html.escape(r.flag_reason)}</span>"
-                    if r.flagged else "<span style='color:#080'>not flagged</span>")
+            if r.rank < 0:  # excluded by the user: listed with its toggle so that "keep" undoes it
+                n_track = len(track_of(tuner.traces[i], int(r.detection))) if r.mode == "exclude track" else 1
+                what = f"with its whole track {r.track} ({n_track} detections)" if r.mode == "exclude track" else \
+                    "this detection only"
+                flag = (f"<span class='massviz-excluded' style='color:#666'>⊘ excluded by you ({what}); "
+                        f"set keep to restore it</span>")
+            elif r.flagged:
+                flag = f"<span style='color:{FLAGGED_HEX}'>⚑ flagged ({r.severity}): {html.escape(r.flag_reason)}</span>"
+            else:
+                flag = "<span style='color:#080'>not flagged</span>"
             cues = f"<br><small>cues: {html.escape(r.cues)}</small>" if r.cues and not r.flagged else ""
             rank = f"★{r.rank}" if r.rank >= 0 else "excluded"
             text = (f"<b>{rank}</b> · frame {r.frame} · track {r.track} · d={r.d_mm:.0f} mm · score {r.score:.2f} · "
                     f"a={r.a:.2f} b={r.b:.2f} · pred {r.pred_g:.1f} g"
                     f"<br><small>{html.escape(r.why)}</small><br>{flag}{cues}")
-            toggle = W.ToggleButtons(options=list(MODES), value=r.mode, style={"button_width": "90px"})
+            # buttons as wide as their labels ("exclude track" must not be cut to "exclude …")
+            toggle = W.ToggleButtons(options=list(MODES), value=r.mode, style={"button_width": "auto"})
             toggle.observe(lambda ch, d=int(r.detection): self.set_mode(d, ch["new"]), names="value")
             self.toggles[int(r.detection)] = toggle
             img = W.Image(value=self.images.png(tuner.traces[i], int(r.detection)), format="png",
