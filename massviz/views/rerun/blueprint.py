@@ -40,7 +40,8 @@ def default_blueprint(n_patches: int, *, has_3d: bool = True, flagged=(), look_a
     default ``look_at_m`` metres along the optical axis), with the camera frustum in view; it shows the detection
     clouds and the depth back-projected by Rerun through the ``Pinhole`` (or ``/world/points`` instead when
     ``points``). The RGB image is not in it. ``flagged``: ranks of flagged patches (tile "★r ⚑ flagged", other tiles
-    "★r"). The predictions plot has no legend over it (the series are named in the view's title and on hover)."""
+    "★r"). The predictions plot has no legend over it (series are named on hover; colours: patches magenta, flagged red,
+    estimate white, without flagged cyan, ground truth green, running blue)."""
     flagged = {int(r) for r in flagged}
     bounds = {}
     if image_size is not None:
@@ -64,8 +65,7 @@ def default_blueprint(n_patches: int, *, has_3d: bool = True, flagged=(), look_a
                     rrb.TextDocumentView(name="Timings", origin="/timings"),
                     rrb.TimeSeriesView(name="Latency per frame (ms)", origin="/latency"))
     predictions = rrb.TimeSeriesView(
-        name="Predictions (g) · patches magenta, ⚑ red · estimate white · without ⚑ cyan · ground truth green · "
-             "running blue",
+        name="Predictions (g)",
         origin="/predictions", plot_legend=rrb.PlotLegend(visible=False))
     return rrb.Blueprint(
         rrb.Horizontal(
