@@ -175,7 +175,8 @@ MAX_FRAME_FILES = 200_000
 
 def frame_files(folder: Path, suffixes=IMAGE_SUFFIXES, what: str = "frames") -> list[Path]:
     """The frame files of ``folder`` (by suffix), sorted by name, checked: every entry is a regular file (a
-    directory or a dangling symlink among the frames is an error naming it), and numbered names (``NNNNNN.png``)
+    directory or a dangling symlink among the frames is an error naming it) of at most ``MAX_FRAME_FILE_BYTES``
+    (a sparse 2 TiB file is refused from its size, before the cache would hash it), and numbered names (``NNNNNN.png``)
     step evenly (a gap in the numbering is an error naming the frame after it, not a silently shorter or shifted
     recording). Lists the folder once (``os.scandir``)."""
 
@@ -194,12 +195,16 @@ def frame_files(folder: Path, suffixes=IMAGE_SUFFIXES, what: str = "frames") -> 
     for e in entries:
         try:
             regular = e.is_file()  # follows symlinks: False for a dangling link or a directory
+            size = e.stat().st_size if regular else 0
         except OSError:
-            regular = False
+            regular, size = False, 0
         if not regular:
             kind = ("a dangling symlink" if e.is_symlink() and not os.path.exists(e.path)
                     else "a directory" if e.is_dir() else "not a regular file")
             raise RecordingError(f"{kind} among the {what}: every frame must be a file", Path(e.path))
+        if size > MAX_FRAME_FILE_BYTES:  # before anything reads or hashes it (the cache's content key would)
+            raise RecordingError(f"frame file is {size} bytes (at most {MAX_FRAME_FILE_BYTES}); not read",
+                                 Path(e.path))
     files = [Path(e.path) for e in entries]
     _check_numbering(files, what)
     return files
