@@ -77,7 +77,7 @@ def open_ccm(video: Path, allow_partial: bool = False) -> CCMRecording:
     width, height, n_rgb, fps, declared, notes = video_frames(video, allow_partial)
     depth_files = frame_files(depth_dir, (".png",), what="depth frames")
     check_counts(depth_dir, len(depth_files), n_rgb)
-    read_depth_png(depth_files[0], width, height)
+    read_depth_png(depth_files[0], width, height, keep=True)
     calib = view / "calib" / f"{video.stem}.pickle"
     intr = intrinsics_ccm(calib, width, height) if calib.is_file() else None
     return CCMRecording(path=video, kind=KIND, id=video.stem, depth_files=depth_files, width=width, height=height,

@@ -7,6 +7,7 @@ import hashlib
 import json
 import math
 import os
+from collections import OrderedDict
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -112,9 +113,31 @@ def media_type(path: Path) -> str:
 MAX_FRAME_FILE_BYTES = 256 << 20
 
 
-def read_bytes(path: Path, what: str) -> bytes:
+#: frame files read when a recording was opened (its first frame, checked up front), kept until the frame loop reads
+#: them, so that each frame file is opened once; bounded (a dataset opens every recording before the work starts:
+#: the first frames of the last few opened are kept, the others are read again).
+_KEPT: "OrderedDict[str, tuple[int, int, bytes]]" = OrderedDict()
+_KEEP_AT_MOST = 4
+
+
+def _kept(path: Path) -> bytes | None:
+    entry = _KEPT.pop(str(path), None)
+    if entry is None:
+        return None
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return entry[2] if (st.st_size, st.st_mtime_ns) == entry[:2] else None
+
+
+def read_bytes(path: Path, what: str, *, keep: bool = False) -> bytes:
     """A frame file's bytes, read once (its header checked, decoded from memory, and kept for sinks that log them as
-    they are). The size is checked before reading (a sparse 2 TiB file is refused at once)."""
+    they are). The size is checked before reading (a sparse 2 TiB file is refused at once). ``keep``: the file is
+    read to check a recording when it is opened; its bytes are kept (bounded) for the frame loop's read."""
+    data = _kept(path)
+    if data is not None:
+        return data
     try:
         with open(path, "rb") as fh:
             size = os.fstat(fh.fileno()).st_size
@@ -128,6 +151,11 @@ def read_bytes(path: Path, what: str) -> bytes:
     if len(data) > MAX_FRAME_FILE_BYTES:
         raise RecordingError(f"{what} is larger than {MAX_FRAME_FILE_BYTES} bytes; not read", path)
     check_image_size(path, RecordingError, what, data=data)
+    if keep:
+        st = os.stat(path)
+        _KEPT[str(path)] = (st.st_size, st.st_mtime_ns, data)
+        while len(_KEPT) > _KEEP_AT_MOST:
+            _KEPT.popitem(last=False)
     return data
 
 
@@ -135,12 +163,13 @@ def _decode(data: bytes, flags: int):
     return cv2.imdecode(np.frombuffer(data, np.uint8), flags) if data else None
 
 
-def read_rgb(path: Path, width: int | None = None, height: int | None = None, *, with_bytes: bool = False):
+def read_rgb(path: Path, width: int | None = None, height: int | None = None, *, with_bytes: bool = False,
+             keep: bool = False):
     """RGB of one frame file (H×W×3 uint8); ``with_bytes``: (rgb, the file's bytes), the file read once.
 
     EXIF orientation is ignored (``cv2.IMREAD_IGNORE_ORIENTATION``): a frame is used as its pixels are stored, so
     it stays aligned with its depth map."""
-    data = read_bytes(path, "RGB image")
+    data = read_bytes(path, "RGB image", keep=keep)
     bgr = _decode(data, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if bgr is None:
         raise RecordingError("cannot read image (missing, empty or not an image)", path)
@@ -150,9 +179,9 @@ def read_rgb(path: Path, width: int | None = None, height: int | None = None, *,
     return (rgb, data) if with_bytes else rgb
 
 
-def read_depth_png(path: Path, width: int, height: int, *, with_bytes: bool = False):
+def read_depth_png(path: Path, width: int, height: int, *, with_bytes: bool = False, keep: bool = False):
     """Depth of one 16-bit PNG (H×W uint16 mm), checked; ``with_bytes``: (depth, the file's bytes), read once."""
-    data = read_bytes(path, "depth image")
+    data = read_bytes(path, "depth image", keep=keep)
     depth = _decode(data, cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
     if depth is None:
         raise RecordingError("cannot read depth image (missing, empty or not a PNG)", path)

@@ -142,7 +142,7 @@ def open_folder(folder: Path, allow_partial: bool = False) -> FrameFilesRecordin
         rgb_files = frame_files(rgb_dir, what="RGB frames")
         if not rgb_files:
             raise RecordingError("no RGB frames (*.png, *.jpg) in the rgb folder", rgb_dir)
-        first = read_rgb(rgb_files[0])
+        first = read_rgb(rgb_files[0], keep=True)
         height, width = first.shape[:2]
         n_rgb, fps = len(rgb_files), 30.0
         video = None
@@ -155,7 +155,7 @@ def open_folder(folder: Path, allow_partial: bool = False) -> FrameFilesRecordin
         raise RecordingError("missing depth folder (depth/*.png, 16-bit mm)", folder)
     depth_files = frame_files(depth_dir, (".png",), what="depth frames")
     check_counts(depth_dir, len(depth_files), n_rgb)
-    read_depth_png(depth_files[0], width, height)
+    read_depth_png(depth_files[0], width, height, keep=True)
     meta = check_meta(load_json(folder / "meta.json"), folder / "meta.json", folder) \
         if (folder / "meta.json").is_file() else {}
     fps = float(meta.get("fps", fps))
