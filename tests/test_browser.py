@@ -168,10 +168,12 @@ def offline_page(browser, viewport: dict):
 
 
 @pytest.fixture(scope="module")
-def cup(sample_traces):
+def cup(sample_traces, samples_dir):
     """(recording, trace) of the demo sample, from the session's trace cache."""
+    from massviz.io.recording import open_recording
+
     trace = next(t for t in sample_traces if t.recording.id == "cup_handover")
-    return trace.recording, trace
+    return open_recording(samples_dir / "cup_handover"), trace
 
 
 @pytest.fixture(scope="module")
