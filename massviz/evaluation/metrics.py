@@ -217,10 +217,9 @@ def default_class_of(container_id: int) -> str:
 def parse_class_map(spec: str) -> dict[int, str]:
     """Container→class mapping from ``"1=cup,2=cup,..."`` or from a JSON file ``{"1": "cup", ...}``."""
     if spec.strip().endswith(".json") or Path(spec).is_file():
-        try:
-            raw = json.loads(Path(spec).read_text())
-        except (OSError, ValueError) as err:
-            raise DataError(f"cannot read the class mapping: {err}", spec) from None
+        from massviz.io.untrusted import load_json
+
+        raw = load_json(spec, "class mapping", DataError)
         if not isinstance(raw, dict):
             raise DataError('class mapping must be a JSON object {"1": "cup", ...}', spec)
         pairs = [(str(k), str(v)) for k, v in raw.items()]

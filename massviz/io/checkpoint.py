@@ -3,7 +3,6 @@ a ``massviz.core.model.MassNet`` with its normalisation ranges, :func:`save_chec
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import torch
@@ -67,10 +66,9 @@ def _read_sidecar(path: Path) -> Ranges:
         hint = (" (it is named like a published checkpoint but its sha256 differs)" if path.name in PUBLISHED else "")
         raise WeightsError(f"checkpoint carries no normalisation ranges and its ranges file {sidecar} is missing"
                            f"{hint}", path)
-    try:
-        data = json.loads(sidecar.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise WeightsError(f"cannot read ranges file ({e})", sidecar) from e
+    from massviz.io.untrusted import load_json
+
+    data = load_json(sidecar, "ranges file", WeightsError)
     return Ranges.from_dict(data, sidecar)
 
 

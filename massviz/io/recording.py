@@ -35,7 +35,6 @@ show in Rerun's ``/log``).
 from __future__ import annotations
 
 import hashlib
-import json
 import math
 import sys
 from dataclasses import dataclass, field
@@ -46,7 +45,7 @@ import cv2
 import numpy as np
 
 from massviz.errors import RecordingError
-from massviz.io.untrusted import MAX_IMAGE_SIDE, MAX_INDEX, check_image_size, load_calibration_pickle, number, text_id
+from massviz.io.untrusted import MAX_IMAGE_SIDE, MAX_INDEX, check_image_size, load_calibration_pickle, load_json, number, text_id
 from massviz.core.types import Frame, Intrinsics, RecordingInfo
 from massviz.io.meta import check_meta
 
@@ -334,12 +333,7 @@ MAX_JSON_BYTES = 16 << 20
 
 
 def _load_json(path: Path) -> dict:
-    try:
-        if path.stat().st_size > MAX_JSON_BYTES:
-            raise RecordingError(f"is {path.stat().st_size} bytes; at most {MAX_JSON_BYTES} are read", path)
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
-        raise RecordingError(f"not valid JSON ({type(err).__name__}: {err})", path) from None
+    data = load_json(path, path.name, RecordingError, MAX_JSON_BYTES)
     if not isinstance(data, dict):
         raise RecordingError("expected a JSON object", path)
     return data

@@ -21,7 +21,7 @@ from massviz.core.types import Detections, PackedMask, RecordingInfo
 from massviz.errors import MassvizError
 from massviz.io.atomic import atomic_path
 from massviz.io.ground_truth import with_ground_truth
-from massviz.io.untrusted import MAX_INDEX, load_npz_checked
+from massviz.io.untrusted import MAX_INDEX, load_npz_checked, parse_json
 
 TRACE_FORMAT = 2  # 2: typed events, recording info as a dataclass
 
@@ -67,7 +67,7 @@ def load_trace(path: str | Path) -> Trace:
     path = Path(path)
     try:
         data = load_npz_checked(path)
-        header = json.loads(data["header"].tobytes().decode())
+        header = parse_json(data["header"].tobytes(), path, "trace header", MassvizError)
     except Exception as err:  # noqa: BLE001 - any read problem is a corrupt trace file
         raise MassvizError(f"not a massviz trace ({type(err).__name__}: {_first_line(err)})", path) from None
     if not isinstance(header, dict) or header.get("format") != TRACE_FORMAT:

@@ -10,6 +10,10 @@ One place for the checks every reader makes on what it reads from a file (see RE
   turned into file names only through ``safe_filename``.
 * :func:`number` — a numeric field is finite, in range and integral where it must be, checked where it is read.
 * :func:`check_image_size` — the size an image *declares* in its header is bounded before it is decoded.
+* :func:`load_json` / :func:`parse_json` — every JSON file from a dataset or a user: size bounded, nesting depth
+  bounded before parsing, integers of more than a few hundred digits refused; any failure one error naming the file.
+* :func:`load_npz_checked` — .npz arrays: declared sizes and the inflated size bounded before anything is inflated.
+* :func:`printable` — text from data files made safe for the terminal (control characters escaped).
 """
 from __future__ import annotations
 
@@ -298,6 +302,81 @@ def check_image_size(path: str | Path, error=MassvizError, what: str = "image", 
                     "pixels); not decoded", path)
 
 
+# --------------------------------------------------------------------------------------------------------- JSON
+#: largest JSON file read from a dataset or a user (meta.json, intrinsics.json, ranges, class maps, exclusions).
+MAX_JSON_BYTES = 16 << 20
+#: deepest nesting of arrays/objects a JSON file may have (massviz's own files nest at most 4 deep).
+MAX_JSON_DEPTH = 64
+#: most digits of an integer in a JSON file (Python refuses > 4300 with a ValueError; no field needs > 20).
+MAX_JSON_INT_DIGITS = 100
+
+
+def _json_depth(text: str) -> int:
+    """The deepest nesting of ``[``/``{`` in ``text``, brackets inside strings ignored; stops early once it
+    exceeds MAX_JSON_DEPTH (the parser is never handed a document that would exhaust its recursion)."""
+    depth = deepest = 0
+    # strings (with their escapes) are removed first, so their brackets do not count
+    for m in re.finditer(r'"(?:[^"\\]|\\.)*"|[\[\]{}]', text):
+        tok = m.group()
+        if tok in "[{":
+            depth += 1
+            if depth > deepest:
+                deepest = depth
+                if deepest > MAX_JSON_DEPTH:
+                    break
+        elif tok in "]}":
+            depth -= 1
+    return deepest
+
+
+def _json_int(text: str) -> int:
+    digits = len(text.lstrip("-"))
+    if digits > MAX_JSON_INT_DIGITS:
+        raise ValueError(f"an integer of {digits} digits (at most {MAX_JSON_INT_DIGITS})")
+    return int(text)
+
+
+def parse_json(text: str | bytes, source, what: str = "JSON file", error=DataError):
+    """``text`` (from ``source``) parsed as JSON, untrusted: at most MAX_JSON_BYTES, nesting at most
+    MAX_JSON_DEPTH deep (checked before parsing), integers of at most MAX_JSON_INT_DIGITS digits. ``error`` naming
+    ``source`` otherwise — never ``RecursionError`` or Python's int-digits ``ValueError``."""
+    import json
+
+    if len(text) > MAX_JSON_BYTES:
+        raise error(f"{what} is {len(text)} bytes; at most {MAX_JSON_BYTES} are read", source)
+    if isinstance(text, bytes):
+        try:
+            text = text.decode("utf-8")
+        except UnicodeDecodeError as err:
+            raise error(f"cannot read {what}: not JSON (not UTF-8 text at byte {err.start})", source) from None
+    if text.count("[") + text.count("{") > MAX_JSON_DEPTH and _json_depth(text) > MAX_JSON_DEPTH:
+        raise error(f"cannot read {what}: it nests arrays/objects more than {MAX_JSON_DEPTH} deep", source)
+    try:
+        return json.loads(text, parse_int=_json_int)
+    except json.JSONDecodeError as err:
+        raise error(f"cannot read {what}: not valid JSON ({err.msg} at line {err.lineno} column {err.colno})",
+                    source) from None
+    except (ValueError, RecursionError, MemoryError) as err:
+        raise error(f"cannot read {what}: not valid JSON ({_first_line(err)})", source) from None
+
+
+def load_json(path: str | Path, what: str = "JSON file", error=DataError, max_bytes: int = MAX_JSON_BYTES):
+    """The JSON document of the untrusted file ``path`` (see :func:`parse_json`); the size is checked before the
+    file is read. ``error`` naming ``path`` for any failure (missing, unreadable, too big, malformed)."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            size = os.fstat(fh.fileno()).st_size
+            if size > max_bytes:
+                raise error(f"{what} is {size} bytes; at most {max_bytes} are read", path)
+            data = fh.read(max_bytes + 1)
+    except OSError as err:
+        raise error(f"cannot read {what} ({err.strerror or err})", path) from None
+    if len(data) > max_bytes:
+        raise error(f"{what} is larger than {max_bytes} bytes", path)
+    return parse_json(data, path, what, error)
+
+
 # ---------------------------------------------------------------------------------------------------------- npz
 #: most bytes of arrays an .npz (trace, replay) may declare.
 MAX_NPZ_BYTES = 1 << 31
@@ -332,6 +411,6 @@ def load_npz_checked(path: str | Path, max_bytes: int = MAX_NPZ_BYTES) -> dict[s
         return {name: z[name] for name in z.files}
 
 
-__all__ = ["MAX_NPZ_BYTES", "load_npz_checked", "MAX_CALIB_BYTES", "MAX_ID_CHARS", "MAX_IMAGE_SIDE", "MAX_IMAGE_PIXELS", "MAX_INDEX",
+__all__ = ["MAX_JSON_BYTES", "MAX_JSON_DEPTH", "MAX_JSON_INT_DIGITS", "parse_json", "load_json", "MAX_NPZ_BYTES", "load_npz_checked", "MAX_CALIB_BYTES", "MAX_ID_CHARS", "MAX_IMAGE_SIDE", "MAX_IMAGE_PIXELS", "MAX_INDEX",
            "RestrictedUnpickler", "load_calibration_pickle", "confined", "text_id", "safe_filename", "number",
            "check_image_size", "image_header_size", "frame_path"]
