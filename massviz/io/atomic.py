@@ -1,11 +1,16 @@
 """Atomic file output: write to a temporary file beside the target, then rename it into place.
 
 A reader never sees a half-written file, and an interrupted run leaves the previous file (if any) untouched.
+
+What the user's path names is never replaced by something else (:func:`output_target`): a symlink is written
+*through* (the file it points to is replaced, the link stays), a character or block device, a FIFO or a socket is
+refused (one line; massviz writes whole files, never streams into devices or pipes).
 """
 from __future__ import annotations
 
 import os
 import shutil
+import stat
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -14,15 +19,50 @@ from pathlib import Path
 from massviz.errors import MassvizError
 
 
+_KINDS = {stat.S_IFCHR: "a character device", stat.S_IFBLK: "a block device", stat.S_IFIFO: "a FIFO (named pipe)",
+          stat.S_IFSOCK: "a socket"}
+
+
+def output_target(path: str | Path, folder: bool = False) -> Path:
+    """The path massviz really writes for the output ``path``: ``path`` itself, or for a symlink the file (or
+    folder) it points to — written through, the link is kept. A device, FIFO or socket (also behind a link), or
+    a link that cannot be resolved (a loop), is a ``MassvizError`` naming ``path``: it is never replaced."""
+    path = Path(path)
+    target = path
+    if path.is_symlink():
+        try:
+            target = Path(os.path.realpath(path, strict=False))
+            os.stat(path)  # a loop raises here
+        except FileNotFoundError:
+            pass  # a dangling link: the file it names is created
+        except OSError as err:
+            raise MassvizError(f"cannot resolve the symlink ({err.strerror or err})", path) from None
+    try:
+        mode = os.stat(target).st_mode
+    except FileNotFoundError:
+        return target
+    except OSError as err:
+        raise MassvizError(f"cannot write ({err.strerror or err})", path) from None
+    kind = _KINDS.get(stat.S_IFMT(mode))
+    if kind is not None:
+        via = f" (through the symlink to {target})" if target != path else ""
+        raise MassvizError(f"is {kind}{via}; massviz writes whole {'folders' if folder else 'files'} only and "
+                           "never replaces a device, FIFO or socket — give a file path", path)
+    return target
+
+
 @contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path in ``path``'s folder (same suffix); on success rename it to ``path``.
 
     Write the whole file to the yielded path inside the ``with`` block. If the block raises, the temporary file is
     removed and ``path`` is left as it was. The new file gets the usual permissions (0666 minus the umask), not
-    ``mkstemp``'s private 0600. A missing parent folder is a ``MassvizError``.
+    ``mkstemp``'s private 0600. A missing parent folder is a ``MassvizError``. A symlink is written through and a
+    device/FIFO/socket refused (:func:`output_target`).
     """
-    path = Path(path)
+    path = output_target(path)
+    if path.is_dir():
+        raise MassvizError("is a directory; a file path is needed", path)
     if not path.parent.is_dir():
         raise MassvizError(f"cannot write: folder {path.parent} does not exist", path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=path.parent)
@@ -42,8 +82,11 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
 def atomic_dir(path: str | Path) -> Iterator[Path]:
     """Yield a new temporary folder beside ``path``; on success it replaces ``path`` (an existing folder is moved
     aside, the new one renamed into place, then the old one removed). If the block raises, the temporary folder is
-    removed and ``path`` is left as it was. The folder gets the usual permissions (0777 minus the umask)."""
-    path = Path(path)
+    removed and ``path`` is left as it was. The folder gets the usual permissions (0777 minus the umask). A symlink
+    to a folder is written through (the link is kept); ``path`` naming a file, device or FIFO is refused."""
+    path = output_target(path, folder=True)
+    if path.exists() and not path.is_dir():
+        raise MassvizError("exists and is not a folder", path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part"))
     umask = os.umask(0)
@@ -85,6 +128,8 @@ def check_output_file(path: str | Path, option: str | None = None) -> Path:
     exists, is a folder and is writable. ``MassvizError`` naming ``path`` otherwise. Nothing is left behind."""
     path = Path(path)
     needs = f"; {option} needs a file path" if option else ""
+    output_target(path)
+    path = Path(os.path.realpath(path)) if path.is_symlink() else path
     if path.is_dir():
         raise MassvizError(f"is a directory{needs}", path)
     parent = path.parent
@@ -103,6 +148,7 @@ def check_output_dir(path: str | Path, option: str | None = None) -> Path:
     part of it is a folder, the nearest existing one writable). ``MassvizError`` naming ``path`` otherwise."""
     path = Path(path)
     needs = f"; {option} needs a folder" if option else ""
+    output_target(path, folder=True)
     if path.exists():
         if not path.is_dir():
             raise MassvizError(f"exists and is not a folder{needs}", path)

@@ -209,6 +209,21 @@ def text_id(value, what: str, source, error=DataError) -> str:
     return text
 
 
+def printable(text, keep: str = "") -> str:
+    """``text`` safe to print on a terminal: every control, C1 or bidirectional-override character except those in
+    ``keep`` (e.g. ``"\\n\\r\\t"`` for whole progress output) is written as its escape (``\\x1b``, ``\\u202e``), so
+    a name from a data file cannot move the cursor, retitle the window or clear the screen."""
+    text = str(text)
+
+    def escape(m: re.Match) -> str:
+        c = m.group()
+        if c in keep:
+            return c
+        return f"\\x{ord(c):02x}" if ord(c) < 0x100 else f"\\u{ord(c):04x}"
+
+    return _CONTROL.sub(escape, text)
+
+
 def safe_filename(text: str, max_chars: int = 100) -> str:
     """``text`` as one file-name component: letters, digits and ``_.-`` kept, any run of anything else (``/``,
     ``\\``, ``..``, spaces, ``:``) replaced by one ``_``, leading/trailing ``._`` stripped; never empty, never
@@ -413,4 +428,4 @@ def load_npz_checked(path: str | Path, max_bytes: int = MAX_NPZ_BYTES) -> dict[s
 
 __all__ = ["MAX_JSON_BYTES", "MAX_JSON_DEPTH", "MAX_JSON_INT_DIGITS", "parse_json", "load_json", "MAX_NPZ_BYTES", "load_npz_checked", "MAX_CALIB_BYTES", "MAX_ID_CHARS", "MAX_IMAGE_SIDE", "MAX_IMAGE_PIXELS", "MAX_INDEX",
            "RestrictedUnpickler", "load_calibration_pickle", "confined", "text_id", "safe_filename", "number",
-           "check_image_size", "image_header_size", "frame_path"]
+           "check_image_size", "image_header_size", "frame_path", "printable"]
