@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import importlib
 import contextlib
-import io
 import os
 import pkgutil
 import re
@@ -106,7 +105,7 @@ def _signals_end_like_ctrl_c():
 _TQDM_MOVES = re.compile(r"(\x1b\[A)+")
 
 
-class EscapingStream(io.TextIOBase):
+class EscapingStream:
     """A text stream that writes to ``raw`` with every control character escaped
     (:func:`massviz.io.untrusted.printable`) except newline, carriage return and tab (progress bars need them) and
     tqdm's own cursor-up moves written on their own."""
@@ -122,28 +121,8 @@ class EscapingStream(io.TextIOBase):
         self.raw.write(text)
         return len(text)
 
-    def flush(self) -> None:
-        self.raw.flush()
-
-    def isatty(self) -> bool:
-        return self.raw.isatty()
-
-    def fileno(self) -> int:
-        return self.raw.fileno()
-
-    def close(self) -> None:
-        self.raw.close()
-
-    @property
-    def encoding(self):
-        return getattr(self.raw, "encoding", "utf-8")
-
-    @property
-    def closed(self) -> bool:
-        return self.raw.closed
-
-    def writable(self) -> bool:
-        return True
+    def __getattr__(self, name):  # flush, isatty, fileno, encoding, close ... of the real stream (not an IOBase:
+        return getattr(self.raw, name)  # being garbage-collected must not close the real stderr)
 
 
 def error_line(command: str, message) -> str:

@@ -39,10 +39,8 @@ def output_target(path: str | Path, folder: bool = False) -> Path:
             raise MassvizError(f"cannot resolve the symlink ({err.strerror or err})", path) from None
     try:
         mode = os.stat(target).st_mode
-    except FileNotFoundError:
+    except OSError:  # missing, or a parent that is not a folder: the callers' checks say which
         return target
-    except OSError as err:
-        raise MassvizError(f"cannot write ({err.strerror or err})", path) from None
     kind = _KINDS.get(stat.S_IFMT(mode))
     if kind is not None:
         via = f" (through the symlink to {target})" if target != path else ""
