@@ -58,6 +58,7 @@ def run(args) -> int:
     from massviz.views.open3d_view import write_ply
 
     from massviz.io.atomic import check_output_dir
+    from massviz.io.untrusted import csv_safe, json_safe
 
     out = check_output_dir(args.out, "--out")
     rec, trace = measured_trace(args)
@@ -75,13 +76,13 @@ def run(args) -> int:
     rows = measurement_rows(trace, gt)
     columns = list(rows[0]) if rows else ["rank", "detection", "frame", "height_mm", "width_mm", "depth_mm"]
     with atomic_path(out / "measurements.csv") as tmp:
-        pd.DataFrame(rows, columns=columns).to_csv(tmp, index=False)
+        csv_safe(pd.DataFrame(rows, columns=columns)).to_csv(tmp, index=False)
     payload = {"recording": rec.id, "estimate_g": trace.estimate, "ground_truth": gt,
                "axes": "camera frame, metres: x right, y down, z forward (OpenCV/RDF)",
                "measurements": [{**m.to_dict(), **row} for m, row in zip(measurements_of(trace), rows)],
                "files": written}
     with atomic_path(out / "measurements.json") as tmp:
-        tmp.write_text(json.dumps(payload, indent=1) + "\n")
+        tmp.write_text(json.dumps(json_safe(payload), indent=1, allow_nan=False) + "\n")
     for row in rows:
         line = (f"chosen {row['rank']} (detection {row['detection']}, frame {row['frame']}): height "
                 f"{row['height_mm']:.0f} mm, width {row['width_mm']:.0f} mm, depth {row['depth_mm']:.0f} mm "

@@ -98,7 +98,7 @@ def run(args) -> int:
           f"({int(best['estimated'])} estimated)")
     if args.csv:
         with atomic_path(Path(args.csv)) as tmp:
-            table.to_csv(tmp, index=False, float_format="%.4f")
+            csv_safe(table).to_csv(tmp, index=False, float_format="%.4f")
     if args.plot:
         plot_heatmap(table, args.plot)
     if len(traces) < len(outcomes):

@@ -224,6 +224,48 @@ def printable(text, keep: str = "") -> str:
     return _CONTROL.sub(escape, text)
 
 
+#: first characters that make a spreadsheet read a CSV cell as a formula (OWASP "CSV injection").
+_FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+
+
+def csv_cell(value):
+    """``value`` as a CSV cell a spreadsheet will not run: text starting with ``= + - @`` (or tab/CR), that is not a
+    number, gets a leading ``'``. Numbers and other text are returned unchanged (matching uses the raw id; only
+    what is written is neutralised)."""
+    if not isinstance(value, str) or not value.startswith(_FORMULA_START):
+        return value
+    try:
+        float(value)
+        return value  # "-1", "+2.5": a number, not a formula
+    except ValueError:
+        return "'" + value
+
+
+def csv_safe(frame):
+    """A copy of the pandas ``frame`` with :func:`csv_cell` applied to every text cell (and header): the one
+    guard every CSV massviz writes goes through (``frame.to_csv``) or, for ``csv.writer`` rows, ``csv_cell``."""
+    out = frame.copy()
+    for col in out.columns:
+        if out[col].dtype == object or str(out[col].dtype).startswith("string"):
+            out[col] = out[col].map(csv_cell)
+    out.columns = [csv_cell(c) for c in out.columns]
+    return out
+
+
+def json_safe(value):
+    """``value`` (dicts, lists, numbers) with every non-finite float replaced by None: JSON has no NaN/Infinity
+    and massviz writes none (``json.dumps(..., allow_nan=False)`` then cannot fail)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, np.floating):
+        return json_safe(float(value))
+    return value
+
+
 def safe_filename(text: str, max_chars: int = 100) -> str:
     """``text`` as one file-name component: letters, digits and ``_.-`` kept, any run of anything else (``/``,
     ``\\``, ``..``, spaces, ``:``) replaced by one ``_``, leading/trailing ``._`` stripped; never empty, never
@@ -444,4 +486,5 @@ def load_npz_checked(path: str | Path, max_bytes: int = MAX_NPZ_BYTES) -> dict[s
 
 __all__ = ["MAX_NPZ_RATIO", "MAX_JSON_BYTES", "MAX_JSON_DEPTH", "MAX_JSON_INT_DIGITS", "parse_json", "load_json", "MAX_NPZ_BYTES", "load_npz_checked", "MAX_CALIB_BYTES", "MAX_ID_CHARS", "MAX_IMAGE_SIDE", "MAX_IMAGE_PIXELS", "MAX_INDEX",
            "RestrictedUnpickler", "load_calibration_pickle", "confined", "text_id", "safe_filename", "number",
-           "check_image_size", "image_header_size", "frame_path", "printable"]
+           "check_image_size", "image_header_size", "frame_path", "printable", "csv_cell", "csv_safe",
+           "json_safe"]

@@ -229,7 +229,7 @@ def write_patch_set(out: str | Path, found: Sequence[tuple[str, Sequence[tuple[s
             for name, png, row in files:
                 (tmp / name).write_bytes(png)
                 rows.append(row)
-        pd.DataFrame(rows, columns=list(INDEX_COLUMNS)).to_csv(tmp / INDEX_NAME, index=False)
+        csv_safe(pd.DataFrame(rows, columns=list(INDEX_COLUMNS))).to_csv(tmp / INDEX_NAME, index=False)
     return ExtractResult(out, len(rows), len(found) if n_recordings is None else n_recordings, tuple(empty))
 
 
@@ -605,8 +605,8 @@ def _train_into(run: Path, out: Path, model, train_set, val_set, ranges, index, 
     """The body of :func:`train_run`, writing into the temporary folder ``run`` (renamed to ``out`` after)."""
     import rerun as rr
 
-    pd.DataFrame({"recording": sorted(index["recording"].unique())}).assign(
-        part=lambda t: t["recording"].map(split.part_of)).to_csv(run / "split.csv", index=False)
+    csv_safe(pd.DataFrame({"recording": sorted(index["recording"].unique())}).assign(
+        part=lambda t: t["recording"].map(split.part_of))).to_csv(run / "split.csv", index=False)
     stream = rr.RecordingStream("massviz_train")
     stream.save(run / "train.rrd")
     try:
