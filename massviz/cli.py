@@ -151,6 +151,9 @@ def _run(parser: argparse.ArgumentParser, argv) -> int:
         parser.print_help(sys.stderr)
         return 2
     try:
+        from massviz.commands._common import check_int_options
+
+        check_int_options(args)
         return int(args.func(args) or 0)
     except MassvizError as err:
         print(error_line(args.command, err), file=sys.stderr)

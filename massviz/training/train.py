@@ -461,6 +461,10 @@ def resolve_device(name: str = "auto") -> torch.device:
         raise MassvizError(f"--device {name}: {e}") from None
     if device.type == "cuda" and not torch.cuda.is_available():
         raise MassvizError(f"--device {name}: CUDA is not available here (use --device cpu)")
+    if device.type == "mps" and not (getattr(torch.backends, "mps", None) and torch.backends.mps.is_available()):
+        raise MassvizError(f"--device {name}: Apple's MPS is not available here (use --device cpu)")
+    if device.type not in ("cpu", "cuda", "mps"):
+        raise MassvizError(f"--device {name}: massviz trains on cpu, cuda or mps")
     return device
 
 
