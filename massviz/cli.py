@@ -57,6 +57,7 @@ def _quiet_native_logs() -> None:
     if not os.environ.get("MASSVIZ_DEBUG"):
         os.environ.setdefault("OPENCV_LOG_LEVEL", "OFF")
         os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
+        os.environ.setdefault("RUST_LOG", "off")  # Rerun's own log lines (a failed file sink): massviz says it once
 
 
 def os_error_line(err: OSError) -> str:

@@ -104,6 +104,77 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
         raise
 
 
+@contextmanager
+def staged_files(folder: str | Path) -> Iterator[Path]:
+    """Yield a hidden temporary folder inside ``folder`` (created if missing); on success every file written into
+    it is moved into ``folder`` (replacing files of the same name; others in ``folder`` are kept). If the block
+    raises (a full disk, a signal), the temporary folder is removed, and ``folder`` too when this call created it:
+    a command writing several files into the user's folder leaves all of them or none."""
+    folder = Path(folder)
+    created = not folder.exists()
+    folder.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(dir=folder, prefix=".massviz.", suffix=".part"))
+    try:
+        yield stage
+        for item in sorted(stage.iterdir()):
+            os.replace(item, folder / item.name)
+        stage.rmdir()
+    except MassvizError as err:  # name the file the user will look for, not the hidden one
+        shutil.rmtree(stage, ignore_errors=True)
+        if created:
+            shutil.rmtree(folder, ignore_errors=True)
+        if err.path is None or not err.path.startswith(str(stage)):
+            raise
+        message = str(err)[len(err.path) + 2:]
+        raise MassvizError(message, folder / Path(err.path).relative_to(stage)) from None
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        if created:
+            shutil.rmtree(folder, ignore_errors=True)
+        raise
+
+
+@contextmanager
+def native_stderr(keep: int = 4096) -> Iterator[list[str]]:
+    """Capture what native code (C libraries: Open3D's RPly, codecs) writes to file descriptor 2 inside the block:
+    yields a list that holds, after the block, the first lines written (at most ``keep`` bytes; the rest is read
+    and dropped, so the writer never blocks). Python's own ``sys.stderr`` is flushed first and is unaffected."""
+    import sys
+    import threading
+
+    lines: list[str] = []
+    try:
+        sys.stderr.flush()
+    except Exception:  # noqa: BLE001 - a closed or odd stderr: nothing to flush
+        pass
+    read_fd, write_fd = os.pipe()
+    saved = os.dup(2)
+    chunks: list[bytes] = []
+
+    def drain():
+        kept = 0
+        while True:
+            data = os.read(read_fd, 65536)
+            if not data:
+                return
+            if kept < keep:
+                chunks.append(data[:keep - kept])
+                kept += len(chunks[-1])
+
+    reader = threading.Thread(target=drain, daemon=True)
+    reader.start()
+    os.dup2(write_fd, 2)
+    os.close(write_fd)
+    try:
+        yield lines
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        reader.join(timeout=10)
+        os.close(read_fd)
+        lines.extend(line for line in b"".join(chunks).decode("utf-8", "replace").splitlines() if line.strip())
+
+
 # ------------------------------------------------------------------------------------------- checking outputs first
 def _probe_writable(folder: Path, path: Path) -> None:
     """Create and remove a temporary file in ``folder`` (the only sure test: modes, read-only mounts, quotas)."""

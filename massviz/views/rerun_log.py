@@ -682,6 +682,8 @@ def log_trace(trace: Trace, recording: Recording, *, rrd: str | Path | None = No
         try:
             rec.flush()
         except RuntimeError as err:  # the gRPC sink reports an unreachable viewer here
+            if rrd is not None and not spawn:  # the file sink: a full disk or a failing write
+                raise MassvizError(f"cannot write the recording ({err}; is the disk full?)", rrd) from None
             where = "the spawned Rerun viewer" if spawn else "Rerun"
             raise MassvizError(f"could not deliver the recording to {where} ({err}); without a display, "
                                "log to a file (rrd) and open it elsewhere with 'rerun FILE.rrd'") from None
