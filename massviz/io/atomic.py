@@ -71,9 +71,21 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     try:
         yield Path(tmp)
         os.replace(tmp, path)
+    except OSError as err:
+        Path(tmp).unlink(missing_ok=True)
+        raise _naming(err, path, tmp) from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def _naming(err: OSError, path: Path, tmp) -> BaseException:
+    """An OS error met while writing the temporary ``tmp`` of ``path`` (a full disk: often without a file name, or
+    naming the hidden temporary): one ``MassvizError`` naming ``path``. Errors about other files pass unchanged."""
+    name = None if err.filename is None else str(err.filename)
+    if name is None or name.startswith(str(tmp)):
+        return MassvizError(f"cannot write ({err.strerror or err})", path)
+    return err
 
 
 @contextmanager
@@ -99,6 +111,9 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
             shutil.rmtree(old, ignore_errors=True)
         else:
             os.replace(tmp, path)
+    except OSError as err:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise _naming(err, path, tmp) from None
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
