@@ -57,6 +57,7 @@ def run(args) -> int:
     from massviz.errors import MassvizError
     from massviz.evaluation.metrics import default_class_of, parse_class_map, read_annotations
     from massviz.evaluation.sweep import MAX_SWEEP_PAIRS, best_pair, parse_range, sweep
+    from massviz.io.untrusted import csv_safe
     from massviz.views.score_plot import plot_heatmap
 
     thresholds = parse_range(args.threshold, float, "--threshold")

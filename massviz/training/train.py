@@ -57,7 +57,7 @@ from tqdm.auto import tqdm
 
 from massviz.errors import DataError, MassvizError
 from massviz.io.atomic import atomic_dir
-from massviz.io.untrusted import check_image_size, confined, number, safe_filename, text_id
+from massviz.io.untrusted import check_image_size, confined, csv_safe, number, safe_filename, text_id
 from massviz.evaluation.metrics import ANN_CONTAINER, ANN_ID, ANN_MASS
 from massviz.core.types import GroundTruth
 from massviz.core.model import MassNet, Ranges, preprocess_patch
