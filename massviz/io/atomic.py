@@ -79,6 +79,17 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         raise
 
 
+def check_room(tmp: str | Path, nbytes: int = 1 << 16) -> None:
+    """Write ``nbytes`` into the (empty) temporary file ``tmp`` and truncate it again: ``OSError`` when the disk is
+    full or a file-size limit is below that. For writers that cannot report such a failure themselves (Rerun's
+    file sink blocks for ever when its very first write fails)."""
+    with open(tmp, "r+b") as fh:
+        fh.write(bytes(nbytes))
+        fh.flush()
+        os.fsync(fh.fileno())
+        fh.truncate(0)
+
+
 def _naming(err: OSError, path: Path, tmp) -> BaseException:
     """An OS error met while writing the temporary ``tmp`` of ``path`` (a full disk: often without a file name, or
     naming the hidden temporary): one ``MassvizError`` naming ``path``. Errors about other files pass unchanged."""

@@ -73,7 +73,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 from tqdm.auto import tqdm
 
-from massviz.io.atomic import atomic_path
+from massviz.io.atomic import atomic_path, check_room
 from massviz.errors import MassvizError
 from massviz.io.recording import Recording
 from massviz.core.trace import Trace
@@ -746,6 +746,8 @@ def show_in_notebook(trace: Trace, recording: Recording, *, width: int = 1000, h
 
 def _connect(rec: rr.RecordingStream, path: Path | None, spawn: bool) -> None:
     """Point ``rec`` at a file, a (spawned) viewer, or both."""
+    if path is not None:
+        check_room(path)  # Rerun's file sink hangs when its first write fails (a full disk): fail here instead
     if spawn:
         rr.spawn(connect=False)
     if path is not None and spawn:
