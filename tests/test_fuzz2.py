@@ -666,11 +666,18 @@ def patch_set(base, tmp_path_factory) -> Path:
     code = cli.main(["extract", *map(str, recs), "--out", str(out), "--detector", "replay", "--replay",
                      str(base.replay), "--weights", str(base.weights), "--cache", str(root / "cache"), "--quiet"])
     assert code == 0 and (out / "index.csv").is_file()
+    import pandas as pd
+
+    index = pd.read_csv(out / "index.csv")  # copies of one sample: spread d, a, b (min-max ranges need a span)
+    for col, step in (("d", 37.0), ("a", 0.01), ("b", 0.01)):
+        index[col] = index[col] + step * np.arange(len(index))
+    index.to_csv(out / "index.csv", index=False)
     return out
 
 
 TRAIN_CASES = {
-    "lr-10": (lambda w, p, b: ["--lr", "10"], lambda w, p: w / "run", r"training stopped.*loss|non-finite"),
+    "lr-10": (lambda w, p, b: ["--lr", "10", "--epochs", "40"], lambda w, p: "training stopped:",
+              r"(loss|weight).*lower --lr"),
     "init-nan-bn": (lambda w, p, b: ["--init", _ckpt(CHECKPOINTS["bn-negative-var"][0])(w, b)],
                     lambda w, p: w / "ckpt.torch", "negative variance"),
     "patch-truncated": (lambda w, p, b: _damage_patch(p, w, b"\x89PNG\r\n\x1a\n\x00\x00"), None, "cannot be read"),

@@ -522,6 +522,13 @@ def fit(model: MassNet, train_set: Dataset, val_set: Dataset, ranges: Ranges, co
                 seen += len(target)
                 bar.update(1)
             val_loss, val_mae = evaluate(model, val_set, ranges, device)
+            from massviz.io.checkpoint import MAX_WEIGHT_MAGNITUDE
+
+            largest = max(float(t.detach().abs().max()) for t in model.state_dict().values() if t.is_floating_point())
+            if not largest <= MAX_WEIGHT_MAGNITUDE:  # a checkpoint load_checkpoint would refuse: stop now
+                raise MassvizError(f"training stopped: a weight reached {largest:g} after epoch {epoch} (beyond "
+                                   f"+-{MAX_WEIGHT_MAGNITUDE:g}: diverged; lower --lr, now {config.lr:g}); nothing "
+                                   "was kept")
             if not (math.isfinite(val_loss) and math.isfinite(val_mae)):
                 raise MassvizError(f"training stopped: the validation loss is {val_loss} after epoch {epoch} "
                                    f"(diverged; lower --lr, now {config.lr:g}); nothing was kept")
