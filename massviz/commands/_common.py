@@ -95,3 +95,25 @@ def unmatched_line(command: str, trace, unmatched) -> str:
     """The line for exclusion entries of a recording that match none of its detections."""
     return (f"massviz {command}: {trace.recording.id}: {len(unmatched)} exclusion(s) match no detection "
             f"(first: frame {unmatched[0].frame}, box {list(unmatched[0].box)})")
+
+
+# ------------------------------------------------------------------------------------------ integer option bounds
+#: bounds of the integer options that have their own (every other integer option: at most MAX_INT_OPTION in size).
+INT_OPTION_BOUNDS = {"threads": (1, 1024), "workers": (1, 1024), "seed": (0, 2**32 - 1)}
+#: largest magnitude of any integer option (a frame index, K, a batch, a port: all far below).
+MAX_INT_OPTION = 2**31 - 1
+
+
+def check_int_options(args: argparse.Namespace) -> None:
+    """Every integer option of a parsed command line within its bounds (:data:`INT_OPTION_BOUNDS`, else
+    ±:data:`MAX_INT_OPTION`): ``--threads 2**70`` or ``--seed -1`` is one clear ``MassvizError`` naming the option,
+    before any work (the commands check their options' meaning, e.g. ``--k >= 1``, after this)."""
+    from massviz.errors import MassvizError
+
+    for dest, value in vars(args).items():
+        if isinstance(value, bool) or not isinstance(value, int):
+            continue
+        lo, hi = INT_OPTION_BOUNDS.get(dest, (-MAX_INT_OPTION, MAX_INT_OPTION))
+        if not lo <= value <= hi:
+            shown = str(value) if len(str(value)) <= 30 else f"{str(value)[:27]}..."
+            raise MassvizError(f"--{dest.replace('_', '-')} {shown}: must be an integer in [{lo}, {hi}]")

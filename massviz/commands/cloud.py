@@ -52,12 +52,13 @@ def run(args) -> int:
 
     import pandas as pd
 
-    from massviz.io.atomic import atomic_path
+    from massviz.io.atomic import atomic_path, staged_files
     from massviz.commands._3d import measured_trace
     from massviz.core.geometry import annotation_size, ground_truth_size, measurements_of
     from massviz.views.open3d_view import write_ply
 
     from massviz.io.atomic import check_output_dir
+    from massviz.io.untrusted import csv_safe, json_safe
 
     from massviz.core.geometry import skip_reason
     from massviz.errors import MassvizError
@@ -78,17 +79,20 @@ def run(args) -> int:
 
         gt = annotation_size(read_annotations(args.annotations), rec.config_id) or gt
     frames = [int(f) for f in trace.frames] if args.all_frames else None
-    written = write_ply(out, trace, rec, frames=frames)
-    rows = measurement_rows(trace, gt)
-    columns = list(rows[0]) if rows else ["rank", "detection", "frame", "height_mm", "width_mm", "depth_mm"]
-    with atomic_path(out / "measurements.csv") as tmp:
-        pd.DataFrame(rows, columns=columns).to_csv(tmp, index=False)
-    payload = {"recording": rec.id, "estimate_g": trace.estimate, "ground_truth": gt,
-               "axes": "camera frame, metres: x right, y down, z forward (OpenCV/RDF)",
-               "measurements": [{**m.to_dict(), **row} for m, row in zip(measurements_of(trace), rows)],
-               "files": written}
-    with atomic_path(out / "measurements.json") as tmp:
-        tmp.write_text(json.dumps(payload, indent=1) + "\n")
+    # every file goes to a hidden folder inside OUT first and is moved in at the end: a full disk or a signal
+    # leaves OUT as it was (and no OUT at all when this run created it)
+    with staged_files(out) as stage:
+        written = write_ply(stage, trace, rec, frames=frames)
+        rows = measurement_rows(trace, gt)
+        columns = list(rows[0]) if rows else ["rank", "detection", "frame", "height_mm", "width_mm", "depth_mm"]
+        with atomic_path(stage / "measurements.csv") as tmp:
+            csv_safe(pd.DataFrame(rows, columns=columns)).to_csv(tmp, index=False)
+        payload = {"recording": rec.id, "estimate_g": trace.estimate, "ground_truth": gt,
+                   "axes": "camera frame, metres: x right, y down, z forward (OpenCV/RDF)",
+                   "measurements": [{**m.to_dict(), **row} for m, row in zip(measurements_of(trace), rows)],
+                   "files": written}
+        with atomic_path(stage / "measurements.json") as tmp:
+            tmp.write_text(json.dumps(json_safe(payload), indent=1, allow_nan=False) + "\n")
     for row in rows:
         line = (f"chosen {row['rank']} (detection {row['detection']}, frame {row['frame']}): height "
                 f"{row['height_mm']:.0f} mm, width {row['width_mm']:.0f} mm, depth {row['depth_mm']:.0f} mm "

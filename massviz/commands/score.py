@@ -65,6 +65,7 @@ def run(args: argparse.Namespace) -> int:
     from massviz.evaluation.metrics import (ANN_ID, PRED_ID, default_class_of, parse_class_map, read_annotations,
                                             read_predictions, score)
     from massviz.io.atomic import atomic_path
+    from massviz.io.untrusted import json_safe
 
     from massviz.io.atomic import check_output_file
 
@@ -90,7 +91,13 @@ def run(args: argparse.Namespace) -> int:
                 notes.append(f"massviz score: warning: {label}: {pred_path} predicts {int(covered.sum())} of the "
                              f"{len(ann)} recordings in {ann_path}; the {int((~covered).sum())} missing count 0 in "
                              "the score (score the predicted ones only with --only-predicted)")
-        reports.append(score(pred, ann, class_of))
+        try:
+            reports.append(score(pred, ann, class_of))
+        except MassvizError as err:  # a container without a class: name the annotations (or the mapping)
+            if err.path is not None:
+                raise
+            raise MassvizError(str(err), args.classes if args.classes and "mapping" in str(err) else ann_path) \
+                from None
 
     for (label, pred, ann), report in zip(pairs, reports):
         if len(pairs) > 1:
@@ -102,7 +109,8 @@ def run(args: argparse.Namespace) -> int:
         docs = [{"label": label, "predictions": pred, "annotations": ann, **report.to_dict()}
                 for (label, pred, ann), report in zip(pairs, reports)]
         with atomic_path(args.json) as tmp:
-            tmp.write_text(json.dumps(docs[0] if len(docs) == 1 else docs, indent=1) + "\n")
+            tmp.write_text(json.dumps(json_safe(docs[0] if len(docs) == 1 else docs), indent=1, allow_nan=False)
+                           + "\n")
         print(f"wrote {args.json}")
     if args.plot:
         from massviz.views.score_plot import plot_score_analysis, save_figure  # matplotlib only when plotting

@@ -56,7 +56,8 @@ def run(args) -> int:
     from massviz.commands._runner import exit_status, open_dataset, run_tasks
     from massviz.errors import MassvizError
     from massviz.evaluation.metrics import default_class_of, parse_class_map, read_annotations
-    from massviz.evaluation.sweep import best_pair, parse_range, sweep
+    from massviz.evaluation.sweep import MAX_SWEEP_PAIRS, best_pair, parse_range, sweep
+    from massviz.io.untrusted import csv_safe
     from massviz.views.score_plot import plot_heatmap
 
     thresholds = parse_range(args.threshold, float, "--threshold")
@@ -65,6 +66,9 @@ def run(args) -> int:
         raise MassvizError(f"--threshold values must lie in [0, 1), got {args.threshold!r}")
     if min(ks) < 1:
         raise MassvizError(f"--k values must be >= 1, got {args.k!r}")
+    if len(thresholds) * len(ks) > MAX_SWEEP_PAIRS:
+        raise MassvizError(f"--threshold x --k is {len(thresholds)} x {len(ks)} = {len(thresholds) * len(ks)} pairs "
+                           f"(at most {MAX_SWEEP_PAIRS}); use larger steps")
     for option in ("csv", "plot"):
         if getattr(args, option):
             check_output_file(getattr(args, option), f"--{option}")
@@ -99,7 +103,7 @@ def run(args) -> int:
           f"({int(best['estimated'])} estimated)")
     if args.csv:
         with atomic_path(Path(args.csv)) as tmp:
-            table.to_csv(tmp, index=False, float_format="%.4f")
+            csv_safe(table).to_csv(tmp, index=False, float_format="%.4f")
     if args.plot:
         plot_heatmap(table, args.plot)
     if len(traces) < len(outcomes):

@@ -56,6 +56,11 @@ def predict_detections(model, rgb: np.ndarray, dets: Detections) -> tuple[np.nda
     if ok:
         feats = np.stack([dets.a[ok], dets.b[ok], dets.d[ok]], axis=1)
         pred[ok] = model.predict([patches[i] for i in ok], feats)
+        if not np.isfinite(pred[ok]).all():  # weights whose numbers are finite but overflow on this input
+            from massviz.errors import WeightsError
+
+            raise WeightsError("the mass CNN predicted a non-finite mass (its weights or ranges overflow)",
+                               getattr(model, "checkpoint_path", None))
     return pred, patches
 
 

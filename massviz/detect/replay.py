@@ -22,7 +22,6 @@ is allocated. Anything else is one ``DataError`` naming the file and the detecti
 """
 from __future__ import annotations
 
-import json
 from collections import defaultdict
 from pathlib import Path
 
@@ -32,7 +31,7 @@ import numpy as np
 from massviz.core.types import COCO_KEEP, OBJECT_CLASS_ID, Detections, Frame, PackedMask
 from massviz.errors import DataError
 from massviz.io.trace_file import load_trace
-from massviz.io.untrusted import MAX_INDEX, check_image_size, confined, number
+from massviz.io.untrusted import MAX_INDEX, check_image_size, confined, load_json, number
 
 #: largest replay JSON read.
 MAX_REPLAY_JSON_BYTES = 256 << 20
@@ -57,7 +56,7 @@ def _load_json(path: Path) -> tuple[Detections, list[Path]]:
     try:
         if path.stat().st_size > MAX_REPLAY_JSON_BYTES:
             raise ValueError(f"the file is larger than {MAX_REPLAY_JSON_BYTES} bytes")
-        data = json.loads(path.read_text())
+        data = load_json(path, "replay detections file", DataError, MAX_REPLAY_JSON_BYTES)
         rows = data["detections"] if isinstance(data, dict) else None
         if not isinstance(rows, list):
             raise TypeError("expected an object whose 'detections' is a list")

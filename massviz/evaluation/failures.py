@@ -98,12 +98,9 @@ def save_exclusions(path: str | Path, exclusions: Iterable[Exclusion]) -> Path:
 def load_exclusions(path: str | Path) -> list[Exclusion]:
     """Read an exclusions JSON file; ``DataError`` naming the file and entry when it is malformed."""
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except OSError as err:
-        raise DataError(f"cannot read the exclusions file ({err.strerror or err})", path) from None
-    except ValueError as err:
-        raise DataError(f"not a JSON file ({err})", path) from None
+    from massviz.io.untrusted import load_json
+
+    doc = load_json(path, "exclusions file", DataError)
     if not isinstance(doc, dict) or doc.get("format") != EXCLUSIONS_FORMAT:
         raise DataError(f'not a massviz exclusions file (expected an object with "format": "{EXCLUSIONS_FORMAT}")',
                         path)

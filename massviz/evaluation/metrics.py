@@ -80,6 +80,11 @@ def _read_table(path: Path, required: Sequence[str]) -> tuple[list[str], list[_R
     frame = frame.iloc[1:]
     if not any(header):
         raise DataError("empty file: no header row", path)
+    seen = set()
+    for name in header:
+        if name in seen and name:
+            raise DataError(f"header: column '{name[:60]}' appears twice (which one holds the values?)", path)
+        seen.add(name)
     for name in required:
         if name not in header:
             raise DataError(f"header: missing column '{name}' (expected a CSV with columns "
@@ -123,6 +128,12 @@ def _integer(text: str) -> int:
     return int(value)
 
 
+#: largest magnitude of a mass (g) or size (mm, mL) read from a CSV (a container is far below: 1e9 g is 1000 t).
+MAX_QUANTITY = 1e9
+#: smallest true mass (g): ε divides by it (a 1e-300 g container would make ε overflow).
+MIN_TRUE_MASS_G = 1e-3
+
+
 def _number(text: str) -> float:
     try:
         value = float(text)
@@ -130,13 +141,17 @@ def _number(text: str) -> float:
         raise ValueError(f"{text!r} is not a number" if text else "empty value") from None
     if not math.isfinite(value):
         raise ValueError(f"{text!r} is not a finite number")
+    if abs(value) > MAX_QUANTITY:
+        raise ValueError(f"{text[:40]!r} is beyond +-{MAX_QUANTITY:g}")
     return value
 
 
 def _positive_mass(text: str) -> float:
     value = _number(text)
     if value <= 0:
-        raise ValueError(f"the true mass must be > 0 g (ε divides by it), got {text}")
+        raise ValueError(f"the true mass must be > 0 g (ε divides by it), got {text[:40]}")
+    if value < MIN_TRUE_MASS_G:
+        raise ValueError(f"the true mass must be >= {MIN_TRUE_MASS_G:g} g (ε divides by it), got {text[:40]}")
     return value
 
 
@@ -217,10 +232,9 @@ def default_class_of(container_id: int) -> str:
 def parse_class_map(spec: str) -> dict[int, str]:
     """Container→class mapping from ``"1=cup,2=cup,..."`` or from a JSON file ``{"1": "cup", ...}``."""
     if spec.strip().endswith(".json") or Path(spec).is_file():
-        try:
-            raw = json.loads(Path(spec).read_text())
-        except (OSError, ValueError) as err:
-            raise DataError(f"cannot read the class mapping: {err}", spec) from None
+        from massviz.io.untrusted import load_json
+
+        raw = load_json(spec, "class mapping", DataError)
         if not isinstance(raw, dict):
             raise DataError('class mapping must be a JSON object {"1": "cup", ...}', spec)
         pairs = [(str(k), str(v)) for k, v in raw.items()]

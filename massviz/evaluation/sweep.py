@@ -22,6 +22,8 @@ from massviz.core.trace import Trace
 
 #: most values a range may expand to (a step of 1e-9 would otherwise ask for a billion).
 MAX_RANGE_VALUES = 10_000
+#: most (threshold, K) pairs one sweep scores (each costs one pass over every recording's detections).
+MAX_SWEEP_PAIRS = 100_000
 
 
 def parse_range(spec: str, kind=float, option: str = "range") -> list:

@@ -1,11 +1,16 @@
 """Atomic file output: write to a temporary file beside the target, then rename it into place.
 
 A reader never sees a half-written file, and an interrupted run leaves the previous file (if any) untouched.
+
+What the user's path names is never replaced by something else (:func:`output_target`): a symlink is written
+*through* (the file it points to is replaced, the link stays), a character or block device, a FIFO or a socket is
+refused (one line; massviz writes whole files, never streams into devices or pipes).
 """
 from __future__ import annotations
 
 import os
 import shutil
+import stat
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -14,15 +19,48 @@ from pathlib import Path
 from massviz.errors import MassvizError
 
 
+_KINDS = {stat.S_IFCHR: "a character device", stat.S_IFBLK: "a block device", stat.S_IFIFO: "a FIFO (named pipe)",
+          stat.S_IFSOCK: "a socket"}
+
+
+def output_target(path: str | Path, folder: bool = False) -> Path:
+    """The path massviz really writes for the output ``path``: ``path`` itself, or for a symlink the file (or
+    folder) it points to — written through, the link is kept. A device, FIFO or socket (also behind a link), or
+    a link that cannot be resolved (a loop), is a ``MassvizError`` naming ``path``: it is never replaced."""
+    path = Path(path)
+    target = path
+    if path.is_symlink():
+        try:
+            target = Path(os.path.realpath(path, strict=False))
+            os.stat(path)  # a loop raises here
+        except FileNotFoundError:
+            pass  # a dangling link: the file it names is created
+        except OSError as err:
+            raise MassvizError(f"cannot resolve the symlink ({err.strerror or err})", path) from None
+    try:
+        mode = os.stat(target).st_mode
+    except OSError:  # missing, or a parent that is not a folder: the callers' checks say which
+        return target
+    kind = _KINDS.get(stat.S_IFMT(mode))
+    if kind is not None:
+        via = f" (through the symlink to {target})" if target != path else ""
+        raise MassvizError(f"is {kind}{via}; massviz writes whole {'folders' if folder else 'files'} only and "
+                           "never replaces a device, FIFO or socket — give a file path", path)
+    return target
+
+
 @contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path in ``path``'s folder (same suffix); on success rename it to ``path``.
 
     Write the whole file to the yielded path inside the ``with`` block. If the block raises, the temporary file is
     removed and ``path`` is left as it was. The new file gets the usual permissions (0666 minus the umask), not
-    ``mkstemp``'s private 0600. A missing parent folder is a ``MassvizError``.
+    ``mkstemp``'s private 0600. A missing parent folder is a ``MassvizError``. A symlink is written through and a
+    device/FIFO/socket refused (:func:`output_target`).
     """
-    path = Path(path)
+    path = output_target(path)
+    if path.is_dir():
+        raise MassvizError("is a directory; a file path is needed", path)
     if not path.parent.is_dir():
         raise MassvizError(f"cannot write: folder {path.parent} does not exist", path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=path.parent)
@@ -33,17 +71,43 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     try:
         yield Path(tmp)
         os.replace(tmp, path)
+    except OSError as err:
+        Path(tmp).unlink(missing_ok=True)
+        raise _naming(err, path, tmp) from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def check_room(tmp: str | Path, nbytes: int = 1 << 16) -> None:
+    """Write ``nbytes`` into the (empty) temporary file ``tmp`` and truncate it again: ``OSError`` when the disk is
+    full or a file-size limit is below that. For writers that cannot report such a failure themselves (Rerun's
+    file sink blocks for ever when its very first write fails)."""
+    with open(tmp, "r+b") as fh:
+        fh.write(bytes(nbytes))
+        fh.flush()
+        os.fsync(fh.fileno())
+        fh.truncate(0)
+
+
+def _naming(err: OSError, path: Path, tmp) -> BaseException:
+    """An OS error met while writing the temporary ``tmp`` of ``path`` (a full disk: often without a file name, or
+    naming the hidden temporary): one ``MassvizError`` naming ``path``. Errors about other files pass unchanged."""
+    name = None if err.filename is None else str(err.filename)
+    if name is None or name.startswith(str(tmp)):
+        return MassvizError(f"cannot write ({err.strerror or err})", path)
+    return err
 
 
 @contextmanager
 def atomic_dir(path: str | Path) -> Iterator[Path]:
     """Yield a new temporary folder beside ``path``; on success it replaces ``path`` (an existing folder is moved
     aside, the new one renamed into place, then the old one removed). If the block raises, the temporary folder is
-    removed and ``path`` is left as it was. The folder gets the usual permissions (0777 minus the umask)."""
-    path = Path(path)
+    removed and ``path`` is left as it was. The folder gets the usual permissions (0777 minus the umask). A symlink
+    to a folder is written through (the link is kept); ``path`` naming a file, device or FIFO is refused."""
+    path = output_target(path, folder=True)
+    if path.exists() and not path.is_dir():
+        raise MassvizError("exists and is not a folder", path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part"))
     umask = os.umask(0)
@@ -58,9 +122,83 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
             shutil.rmtree(old, ignore_errors=True)
         else:
             os.replace(tmp, path)
+    except OSError as err:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise _naming(err, path, tmp) from None
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+@contextmanager
+def staged_files(folder: str | Path) -> Iterator[Path]:
+    """Yield a hidden temporary folder inside ``folder`` (created if missing); on success every file written into
+    it is moved into ``folder`` (replacing files of the same name; others in ``folder`` are kept). If the block
+    raises (a full disk, a signal), the temporary folder is removed, and ``folder`` too when this call created it:
+    a command writing several files into the user's folder leaves all of them or none."""
+    folder = Path(folder)
+    created = not folder.exists()
+    folder.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(dir=folder, prefix=".massviz.", suffix=".part"))
+    try:
+        yield stage
+        for item in sorted(stage.iterdir()):
+            os.replace(item, folder / item.name)
+        stage.rmdir()
+    except MassvizError as err:  # name the file the user will look for, not the hidden one
+        shutil.rmtree(stage, ignore_errors=True)
+        if created:
+            shutil.rmtree(folder, ignore_errors=True)
+        if err.path is None or not err.path.startswith(str(stage)):
+            raise
+        message = str(err)[len(err.path) + 2:]
+        raise MassvizError(message, folder / Path(err.path).relative_to(stage)) from None
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        if created:
+            shutil.rmtree(folder, ignore_errors=True)
+        raise
+
+
+@contextmanager
+def native_stderr(keep: int = 4096) -> Iterator[list[str]]:
+    """Capture what native code (C libraries: Open3D's RPly, codecs) writes to file descriptor 2 inside the block:
+    yields a list that holds, after the block, the first lines written (at most ``keep`` bytes; the rest is read
+    and dropped, so the writer never blocks). Python's own ``sys.stderr`` is flushed first and is unaffected."""
+    import sys
+    import threading
+
+    lines: list[str] = []
+    try:
+        sys.stderr.flush()
+    except Exception:  # noqa: BLE001 - a closed or odd stderr: nothing to flush
+        pass
+    read_fd, write_fd = os.pipe()
+    saved = os.dup(2)
+    chunks: list[bytes] = []
+
+    def drain():
+        kept = 0
+        while True:
+            data = os.read(read_fd, 65536)
+            if not data:
+                return
+            if kept < keep:
+                chunks.append(data[:keep - kept])
+                kept += len(chunks[-1])
+
+    reader = threading.Thread(target=drain, daemon=True)
+    reader.start()
+    os.dup2(write_fd, 2)
+    os.close(write_fd)
+    try:
+        yield lines
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        reader.join(timeout=10)
+        os.close(read_fd)
+        lines.extend(line for line in b"".join(chunks).decode("utf-8", "replace").splitlines() if line.strip())
 
 
 # ------------------------------------------------------------------------------------------- checking outputs first
@@ -85,6 +223,8 @@ def check_output_file(path: str | Path, option: str | None = None) -> Path:
     exists, is a folder and is writable. ``MassvizError`` naming ``path`` otherwise. Nothing is left behind."""
     path = Path(path)
     needs = f"; {option} needs a file path" if option else ""
+    output_target(path)
+    path = Path(os.path.realpath(path)) if path.is_symlink() else path
     if path.is_dir():
         raise MassvizError(f"is a directory{needs}", path)
     parent = path.parent
@@ -103,6 +243,7 @@ def check_output_dir(path: str | Path, option: str | None = None) -> Path:
     part of it is a folder, the nearest existing one writable). ``MassvizError`` naming ``path`` otherwise."""
     path = Path(path)
     needs = f"; {option} needs a folder" if option else ""
+    output_target(path, folder=True)
     if path.exists():
         if not path.is_dir():
             raise MassvizError(f"exists and is not a folder{needs}", path)

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from massviz.io.atomic import atomic_path
+from massviz.io.untrusted import csv_cell
 
 #: The challenge CSV header, in order (the CORSMAL challenge format; shared/ccm/README.md in the reference data).
 COLUMNS = (
@@ -61,7 +62,7 @@ def write_challenge_csv(path: str | Path, rows: Iterable[Any], *, exact: bool = 
             raise ValueError(f"recording {config_id} appears twice")
         seen.add(config_id)
         values = {name: str(NOT_ESTIMATED) for name in COLUMNS}
-        values["Configuration ID"] = str(config_id)
+        values["Configuration ID"] = csv_cell(str(config_id))  # "=cmd" -> "'=cmd"; seen/matching use the raw id
         values["Container mass"] = _mass_text(_field(row, "mass_g"), exact)
         seconds = _field(row, "exec_time_s")
         values["Execution time"] = (str(NOT_ESTIMATED) if seconds is None or float(seconds) < 0

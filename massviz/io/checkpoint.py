@@ -3,7 +3,6 @@ a ``massviz.core.model.MassNet`` with its normalisation ranges, :func:`save_chec
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import torch
@@ -17,6 +16,12 @@ from massviz.io.weights import PUBLISHED, published_by_sha256, sha256_file
 CHECKPOINT_FORMAT = "massviz.massnet/1"
 #: suffix of the ranges file expected beside a checkpoint that carries no ranges: ``<checkpoint>.ranges.json``.
 SIDECAR_SUFFIX = ".ranges.json"
+#: largest magnitude a normalisation range may have (distances in mm, ratios, grams: all far below).
+MAX_RANGE_MAGNITUDE = 1e7
+#: smallest span (max - min) of a normalisation range: below it normalised features overflow float32.
+MIN_RANGE_SPAN = 1e-6
+#: largest magnitude of a weight (float32's range, with room for the products a forward pass makes).
+MAX_WEIGHT_MAGNITUDE = 1e6
 
 
 def load_checkpoint(path: str | Path, ranges: Ranges | None = None) -> MassNet:
@@ -52,13 +57,63 @@ def load_checkpoint(path: str | Path, ranges: Ranges | None = None) -> MassNet:
         else:
             ranges = _read_sidecar(path)
 
+    check_ranges(ranges, path)
     model = MassNet(ranges=ranges, weights_id=sha[:12])
     _check_state_dict(model, state, path)
-    for name, value in state.items():  # NaN weights would turn every prediction into NaN, silently
-        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
-            raise WeightsError(f"parameter {name} holds NaN or infinite values (a diverged training?)", path)
+    _check_tensors(state, path)
     model.load_state_dict(state, strict=True)
-    return model.eval()
+    model.checkpoint_path = str(path)  # named by the error of a prediction that still overflows
+    _probe(model.eval(), path)
+    return model
+
+
+def check_ranges(ranges: Ranges, path) -> None:
+    """Ranges that would make normalised features or masses overflow float32: a span below MIN_RANGE_SPAN or a
+    value beyond MAX_RANGE_MAGNITUDE. :class:`WeightsError` naming ``path``."""
+    from massviz.core.model import RANGE_KEYS
+
+    values = ranges.as_tuple()
+    for key, v in zip(RANGE_KEYS, values):
+        if abs(v) > MAX_RANGE_MAGNITUDE:
+            raise WeightsError(f"range {key} = {v:g} is beyond +-{MAX_RANGE_MAGNITUDE:g}", path)
+    for lo_key, lo, hi in zip(RANGE_KEYS[0::2], values[0::2], values[1::2]):
+        if hi - lo < MIN_RANGE_SPAN:
+            raise WeightsError(f"range {lo_key[3:]} spans {hi - lo:g} (max - min must be at least "
+                               f"{MIN_RANGE_SPAN:g})", path)
+
+
+def _check_tensors(state: dict, path: Path) -> None:
+    """NaN, infinite (also once cast to the model's float32: a float64 1e300 is inf there), too large weights and
+    negative BatchNorm variances would turn every prediction into NaN or inf, silently."""
+    for name, value in state.items():
+        if not value.is_floating_point():
+            continue
+        as32 = value.detach().to(torch.float32)
+        if not bool(torch.isfinite(as32).all()):
+            raise WeightsError(f"parameter {name} holds NaN or infinite values (in float32; a diverged training?)",
+                               path)
+        if as32.numel() and float(as32.abs().max()) > MAX_WEIGHT_MAGNITUDE:
+            raise WeightsError(f"parameter {name} holds values beyond +-{MAX_WEIGHT_MAGNITUDE:g} "
+                               f"({float(as32.abs().max()):g}; a diverged training?)", path)
+        if name.endswith("running_var") and bool((as32 < 0).any()):
+            raise WeightsError(f"parameter {name} holds a negative variance", path)
+
+
+def _probe(model: MassNet, path: Path) -> None:
+    """One prediction on a grey patch at the middle of the ranges: a checkpoint whose numbers are each finite but
+    overflow together is refused here, not after a whole recording."""
+    import numpy as np
+
+    r = model.ranges
+    feats = np.array([[(r.min_ratio_width + r.max_ratio_width) / 2, (r.min_ratio_height + r.max_ratio_height) / 2,
+                       (r.min_distance + r.max_distance) / 2]])
+    try:
+        with torch.no_grad():
+            pred = model.predict([np.full((32, 32, 3), 128, np.uint8)], feats)
+    except Exception as err:  # noqa: BLE001 - weights that fit the shapes but cannot be evaluated
+        raise WeightsError(f"cannot evaluate the checkpoint ({type(err).__name__}: {err})"[:300], path) from None
+    if not np.isfinite(pred).all():
+        raise WeightsError("the checkpoint predicts a non-finite mass (its weights or ranges overflow)", path)
 
 
 def _read_sidecar(path: Path) -> Ranges:
@@ -67,10 +122,9 @@ def _read_sidecar(path: Path) -> Ranges:
         hint = (" (it is named like a published checkpoint but its sha256 differs)" if path.name in PUBLISHED else "")
         raise WeightsError(f"checkpoint carries no normalisation ranges and its ranges file {sidecar} is missing"
                            f"{hint}", path)
-    try:
-        data = json.loads(sidecar.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise WeightsError(f"cannot read ranges file ({e})", sidecar) from e
+    from massviz.io.untrusted import load_json
+
+    data = load_json(sidecar, "ranges file", WeightsError)
     return Ranges.from_dict(data, sidecar)
 
 

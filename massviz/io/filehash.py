@@ -52,10 +52,13 @@ class FileHasher:
     def _read(memo: Path | None) -> dict:
         if memo is None:
             return {}
+        from massviz.errors import MassvizError
+        from massviz.io.untrusted import load_json
+
         try:
-            data = json.loads(memo.read_text())
-        except (OSError, ValueError):
-            return {}  # missing or unreadable memory: hash again and rewrite it
+            data = load_json(memo, "digest memo")
+        except MassvizError:
+            return {}  # missing, unreadable or hostile memory: hash again and rewrite it
         return data if isinstance(data, dict) else {}
 
     def digests(self, paths, group: str) -> list[str]:

@@ -21,7 +21,7 @@ from massviz.core.types import Detections, PackedMask, RecordingInfo
 from massviz.errors import MassvizError
 from massviz.io.atomic import atomic_path
 from massviz.io.ground_truth import with_ground_truth
-from massviz.io.untrusted import MAX_INDEX, load_npz_checked, png_header_size
+from massviz.io.untrusted import MAX_INDEX, load_npz_checked, parse_json, png_header_size
 
 TRACE_FORMAT = 2  # 2: typed events, recording info as a dataclass
 
@@ -67,7 +67,7 @@ def load_trace(path: str | Path) -> Trace:
     path = Path(path)
     try:
         data = load_npz_checked(path)
-        header = json.loads(data["header"].tobytes().decode())
+        header = parse_json(data["header"].tobytes(), path, "trace header", MassvizError)
     except Exception as err:  # noqa: BLE001 - any read problem is a corrupt trace file
         raise MassvizError(f"not a massviz trace ({type(err).__name__}: {_first_line(err)})", path) from None
     if not isinstance(header, dict) or header.get("format") != TRACE_FORMAT:
@@ -184,6 +184,92 @@ def check_trace_arrays(header: dict, data: dict) -> None:
         raise ValueError(f"header estimate must be a finite number, got {est!r}"[:200])
     if not isinstance(header["events"], list) or not isinstance(header["recording"], dict):
         raise ValueError("header events must be a list and recording an object")
+    check_trace_header(header, data)
+
+
+def check_trace_header(header: dict, data: dict) -> None:
+    """``ValueError`` naming the field when a saved trace's header fields have the wrong type or a non-finite value
+    (a trace from elsewhere: a list as detector name, text as timings or fps, NaN intrinsics)."""
+    import math
+
+    from massviz.core.trace import EVENT_KINDS
+    from massviz.errors import DataError
+    from massviz.io.untrusted import number, text_id
+
+    def text(value, what, optional=False, limit=10_000):
+        if optional and value is None:
+            return
+        if not isinstance(value, str) or len(value) > limit:
+            raise ValueError(f"header {what} must be text (at most {limit} characters), got "
+                             f"{type(value).__name__}")
+
+    def num(value, what, **bounds):
+        try:
+            number(value, f"header {what}", **bounds)
+        except DataError as err:
+            raise ValueError(str(err)) from None
+
+    det = header["detector"]
+    if not isinstance(det, dict) or not all(isinstance(det.get(k, ""), str) and len(det.get(k, "")) <= 200
+                                            for k in ("name", "precision")):
+        raise ValueError(f"header detector must be an object with a text name, got {type(det).__name__}")
+    text(header.get("weights_id"), "weights_id", optional=True, limit=200)
+    timings = header["timings"]
+    if not isinstance(timings, dict):
+        raise ValueError(f"header timings must be an object of seconds, got {type(timings).__name__}")
+    for name, seconds in timings.items():
+        num(seconds, f"timings.{str(name)[:40]}", lo=0)
+    for i, event in enumerate(header["events"]):
+        if not (isinstance(event, list) and 2 <= len(event) <= 5):
+            raise ValueError(f"header events[{i}] must be [frame, message, kind, level, detection]")
+        num(event[0], f"events[{i}] frame", lo=-1, hi=MAX_INDEX, integral=True)
+        text(event[1], f"events[{i}] message")
+        if len(event) > 2 and event[2] not in EVENT_KINDS:
+            raise ValueError(f"header events[{i}] kind must be one of {', '.join(EVENT_KINDS)}")
+        if len(event) > 3 and event[3] not in ("debug", "info", "warn"):
+            raise ValueError(f"header events[{i}] level must be debug, info or warn")
+        if len(event) > 4:
+            num(event[4], f"events[{i}] detection", lo=-1, hi=MAX_INDEX, integral=True)
+    rec = header["recording"]
+    try:
+        text_id(rec.get("id"), "header recording.id", None)
+    except DataError as err:
+        raise ValueError(str(err)) from None
+    for name in ("path", "config_id", "kind", "rgb"):
+        if name in rec:
+            text(rec[name] if not isinstance(rec[name], int) or isinstance(rec[name], bool) else str(rec[name]),
+                 f"recording.{name}")
+    for name in ("width", "height", "num_frames"):
+        if name in rec:
+            num(rec[name], f"recording.{name}", lo=0, hi=MAX_INDEX, integral=True)
+    if "fps" in rec:
+        num(rec["fps"], "recording.fps", lo=0, hi=1000)
+    if "meta" in rec and not isinstance(rec["meta"], dict):
+        raise ValueError("header recording.meta must be an object")
+    intr = rec.get("intrinsics")
+    if intr is not None:
+        if not isinstance(intr, dict) or not {"fx", "fy", "cx", "cy", "width", "height"} <= set(intr):
+            raise ValueError("header recording.intrinsics must be an object with fx, fy, cx, cy, width, height")
+        for name in ("fx", "fy"):
+            num(intr[name], f"recording.intrinsics.{name}", lo=0, lo_open=True)
+        for name in ("width", "height"):
+            num(intr[name], f"recording.intrinsics.{name}", lo=1, hi=MAX_INDEX, integral=True)
+        num(intr["cx"], "recording.intrinsics.cx", lo=0, hi=intr["width"])
+        num(intr["cy"], "recording.intrinsics.cy", lo=0, hi=intr["height"])
+    if not isinstance(header.get("measurements", []), list):
+        raise ValueError("header measurements must be a list")
+    if "flags" in header and header["flags"] is not None and not isinstance(header["flags"], dict):
+        raise ValueError("header flags must be an object")
+    stages = header.get("frame_timing_stages", [])
+    if not isinstance(stages, list) or not all(isinstance(s, str) and len(s) <= 100 for s in stages):
+        raise ValueError("header frame_timing_stages must be a list of names")
+    for i in range(len(stages)):
+        a = np.asarray(data[f"frame_time_{i}"])
+        if a.dtype.kind != "f" or not np.isfinite(a).all():
+            raise ValueError(f"frame_time_{i} must be finite floats")
+    text(header.get("ground_truth_source", ""), "ground_truth_source")
+    if not math.isfinite(float(header["estimate"])):
+        raise ValueError("header estimate must be a finite number")
 
 
 def _first_line(err: BaseException) -> str:

@@ -10,6 +10,10 @@ One place for the checks every reader makes on what it reads from a file (see RE
   turned into file names only through ``safe_filename``.
 * :func:`number` — a numeric field is finite, in range and integral where it must be, checked where it is read.
 * :func:`check_image_size` — the size an image *declares* in its header is bounded before it is decoded.
+* :func:`load_json` / :func:`parse_json` — every JSON file from a dataset or a user: size bounded, nesting depth
+  bounded before parsing, integers of more than a few hundred digits refused; any failure one error naming the file.
+* :func:`load_npz_checked` — .npz arrays: declared sizes and the inflated size bounded before anything is inflated.
+* :func:`printable` — text from data files made safe for the terminal (control characters escaped).
 """
 from __future__ import annotations
 
@@ -205,6 +209,63 @@ def text_id(value, what: str, source, error=DataError) -> str:
     return text
 
 
+def printable(text, keep: str = "") -> str:
+    """``text`` safe to print on a terminal: every control, C1 or bidirectional-override character except those in
+    ``keep`` (e.g. ``"\\n\\r\\t"`` for whole progress output) is written as its escape (``\\x1b``, ``\\u202e``), so
+    a name from a data file cannot move the cursor, retitle the window or clear the screen."""
+    text = str(text)
+
+    def escape(m: re.Match) -> str:
+        c = m.group()
+        if c in keep:
+            return c
+        return f"\\x{ord(c):02x}" if ord(c) < 0x100 else f"\\u{ord(c):04x}"
+
+    return _CONTROL.sub(escape, text)
+
+
+#: first characters that make a spreadsheet read a CSV cell as a formula (OWASP "CSV injection").
+_FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+
+
+def csv_cell(value):
+    """``value`` as a CSV cell a spreadsheet will not run: text starting with ``= + - @`` (or tab/CR), that is not a
+    number, gets a leading ``'``. Numbers and other text are returned unchanged (matching uses the raw id; only
+    what is written is neutralised)."""
+    if not isinstance(value, str) or not value.startswith(_FORMULA_START):
+        return value
+    try:
+        float(value)
+        return value  # "-1", "+2.5": a number, not a formula
+    except ValueError:
+        return "'" + value
+
+
+def csv_safe(frame):
+    """A copy of the pandas ``frame`` with :func:`csv_cell` applied to every text cell (and header): the one
+    guard every CSV massviz writes goes through (``frame.to_csv``) or, for ``csv.writer`` rows, ``csv_cell``."""
+    out = frame.copy()
+    for col in out.columns:
+        if out[col].dtype == object or str(out[col].dtype).startswith("string"):
+            out[col] = out[col].map(csv_cell)
+    out.columns = [csv_cell(c) for c in out.columns]
+    return out
+
+
+def json_safe(value):
+    """``value`` (dicts, lists, numbers) with every non-finite float replaced by None: JSON has no NaN/Infinity
+    and massviz writes none (``json.dumps(..., allow_nan=False)`` then cannot fail)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, np.floating):
+        return json_safe(float(value))
+    return value
+
+
 def safe_filename(text: str, max_chars: int = 100) -> str:
     """``text`` as one file-name component: letters, digits and ``_.-`` kept, any run of anything else (``/``,
     ``\\``, ``..``, spaces, ``:``) replaced by one ``_``, leading/trailing ``._`` stripped; never empty, never
@@ -306,26 +367,114 @@ def check_image_size(path: str | Path, error=MassvizError, what: str = "image", 
                     "pixels); not decoded", path)
 
 
+# --------------------------------------------------------------------------------------------------------- JSON
+#: largest JSON file read from a dataset or a user (meta.json, intrinsics.json, ranges, class maps, exclusions).
+MAX_JSON_BYTES = 16 << 20
+#: deepest nesting of arrays/objects a JSON file may have (massviz's own files nest at most 4 deep).
+MAX_JSON_DEPTH = 64
+#: most digits of an integer in a JSON file (Python refuses > 4300 with a ValueError; no field needs > 20).
+MAX_JSON_INT_DIGITS = 100
+
+
+def _json_depth(text: str) -> int:
+    """The deepest nesting of ``[``/``{`` in ``text``, brackets inside strings ignored; stops early once it
+    exceeds MAX_JSON_DEPTH (the parser is never handed a document that would exhaust its recursion)."""
+    depth = deepest = 0
+    # strings (with their escapes) are removed first, so their brackets do not count
+    for m in re.finditer(r'"(?:[^"\\]|\\.)*"|[\[\]{}]', text):
+        tok = m.group()
+        if tok in "[{":
+            depth += 1
+            if depth > deepest:
+                deepest = depth
+                if deepest > MAX_JSON_DEPTH:
+                    break
+        elif tok in "]}":
+            depth -= 1
+    return deepest
+
+
+def _json_int(text: str) -> int:
+    digits = len(text.lstrip("-"))
+    if digits > MAX_JSON_INT_DIGITS:
+        raise ValueError(f"an integer of {digits} digits (at most {MAX_JSON_INT_DIGITS})")
+    return int(text)
+
+
+def parse_json(text: str | bytes, source, what: str = "JSON file", error=DataError):
+    """``text`` (from ``source``) parsed as JSON, untrusted: at most MAX_JSON_BYTES, nesting at most
+    MAX_JSON_DEPTH deep (checked before parsing), integers of at most MAX_JSON_INT_DIGITS digits. ``error`` naming
+    ``source`` otherwise — never ``RecursionError`` or Python's int-digits ``ValueError``."""
+    import json
+
+    if len(text) > MAX_JSON_BYTES:
+        raise error(f"{what} is {len(text)} bytes; at most {MAX_JSON_BYTES} are read", source)
+    if isinstance(text, bytes):
+        try:
+            text = text.decode("utf-8")
+        except UnicodeDecodeError as err:
+            raise error(f"cannot read {what}: not JSON (not UTF-8 text at byte {err.start})", source) from None
+    if text.count("[") + text.count("{") > MAX_JSON_DEPTH and _json_depth(text) > MAX_JSON_DEPTH:
+        raise error(f"cannot read {what}: it nests arrays/objects more than {MAX_JSON_DEPTH} deep", source)
+    try:
+        return json.loads(text, parse_int=_json_int)
+    except json.JSONDecodeError as err:
+        raise error(f"cannot read {what}: not valid JSON ({err.msg} at line {err.lineno} column {err.colno})",
+                    source) from None
+    except (ValueError, RecursionError, MemoryError) as err:
+        raise error(f"cannot read {what}: not valid JSON ({_first_line(err)})", source) from None
+
+
+def load_json(path: str | Path, what: str = "JSON file", error=DataError, max_bytes: int = MAX_JSON_BYTES):
+    """The JSON document of the untrusted file ``path`` (see :func:`parse_json`); the size is checked before the
+    file is read. ``error`` naming ``path`` for any failure (missing, unreadable, too big, malformed)."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            size = os.fstat(fh.fileno()).st_size
+            if size > max_bytes:
+                raise error(f"{what} is {size} bytes; at most {max_bytes} are read", path)
+            data = fh.read(max_bytes + 1)
+    except OSError as err:
+        raise error(f"cannot read {what} ({err.strerror or err})", path) from None
+    if len(data) > max_bytes:
+        raise error(f"{what} is larger than {max_bytes} bytes", path)
+    return parse_json(data, path, what, error)
+
+
 # ---------------------------------------------------------------------------------------------------------- npz
-#: most bytes of arrays an .npz (trace, replay) may declare.
-MAX_NPZ_BYTES = 1 << 31
+#: most bytes of arrays an .npz (trace, replay, cache entry) may inflate to, all members together.
+MAX_NPZ_BYTES = 1 << 29  # 512 MiB: a trace of an hour-long recording is far below
+#: a member inflating to more than MAX_NPZ_SMALL bytes must compress at most this well (massviz's own traces: < 30:1;
+#: a deflate bomb: ~1000:1).
+MAX_NPZ_RATIO = 200
+MAX_NPZ_SMALL = 1 << 20
 
 
 def load_npz_checked(path: str | Path, max_bytes: int = MAX_NPZ_BYTES) -> dict[str, np.ndarray]:
-    """The arrays of an .npz file, never unpickling and never allocating what the file only *declares*: each
-    member's .npy header (shape x item size) must fit in the member's stored size, all of them in ``max_bytes``.
-    ``ValueError`` (or ``zipfile.BadZipFile``/``OSError``) otherwise."""
+    """The arrays of an .npz file, never unpickling and never allocating what the file only *declares*: the
+    inflated sizes the zip directory declares must total at most ``max_bytes`` and each large member must compress
+    at most MAX_NPZ_RATIO:1 (a deflate bomb is refused before anything is inflated); each member's .npy header
+    (shape x item size) must fit in the member's size; members are read with bounded reads (never more than the
+    declared size). ``ValueError`` (or ``zipfile.BadZipFile``/``OSError``) otherwise."""
     import zipfile
 
     total = 0
     with zipfile.ZipFile(path) as z:
-        for info in z.infolist():
+        infos = z.infolist()
+        names = [i.filename for i in infos]
+        if len(set(names)) != len(names):
+            raise ValueError("it holds two members of the same name")
+        for info in infos:
             name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
             if not info.filename.endswith(".npy"):
                 raise ValueError(f"member {name!r} is not a .npy array")
             total += info.file_size
             if total > max_bytes:
-                raise ValueError(f"its arrays hold more than {max_bytes} bytes")
+                raise ValueError(f"its arrays inflate to more than {max_bytes} bytes")
+            if info.file_size > MAX_NPZ_SMALL and info.file_size > MAX_NPZ_RATIO * max(info.compress_size, 1):
+                raise ValueError(f"array {name} inflates {info.compress_size} bytes to {info.file_size} (more than "
+                                 f"{MAX_NPZ_RATIO}:1; a compression bomb?)")
             with z.open(info) as fh:
                 version = np.lib.format.read_magic(fh)
                 read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
@@ -336,10 +485,14 @@ def load_npz_checked(path: str | Path, max_bytes: int = MAX_NPZ_BYTES) -> dict[s
             declared = math.prod(shape) * dtype.itemsize
             if declared > info.file_size:
                 raise ValueError(f"array {name} declares {declared} bytes but holds {info.file_size}")
-    with np.load(path, allow_pickle=False) as z:
-        return {name: z[name] for name in z.files}
+        out = {}
+        for info in infos:
+            with z.open(info) as fh:  # ZipExtFile stops at the declared size and checks the CRC
+                out[info.filename[:-4]] = np.lib.format.read_array(fh, allow_pickle=False)
+        return out
 
 
-__all__ = ["MAX_NPZ_BYTES", "load_npz_checked", "MAX_CALIB_BYTES", "MAX_ID_CHARS", "MAX_IMAGE_SIDE", "MAX_IMAGE_PIXELS", "MAX_INDEX",
+__all__ = ["MAX_NPZ_RATIO", "MAX_JSON_BYTES", "MAX_JSON_DEPTH", "MAX_JSON_INT_DIGITS", "parse_json", "load_json", "MAX_NPZ_BYTES", "load_npz_checked", "MAX_CALIB_BYTES", "MAX_ID_CHARS", "MAX_IMAGE_SIDE", "MAX_IMAGE_PIXELS", "MAX_INDEX",
            "RestrictedUnpickler", "load_calibration_pickle", "confined", "text_id", "safe_filename", "number",
-           "check_image_size", "image_header_size", "png_header_size", "frame_path"]
+           "check_image_size", "image_header_size", "png_header_size", "frame_path", "printable", "csv_cell",
+           "csv_safe", "json_safe"]

@@ -57,7 +57,7 @@ from tqdm.auto import tqdm
 
 from massviz.errors import DataError, MassvizError
 from massviz.io.atomic import atomic_dir
-from massviz.io.untrusted import check_image_size, confined, number, safe_filename, text_id
+from massviz.io.untrusted import check_image_size, confined, csv_safe, number, safe_filename, text_id
 from massviz.evaluation.metrics import ANN_CONTAINER, ANN_ID, ANN_MASS
 from massviz.core.types import GroundTruth
 from massviz.core.model import MassNet, Ranges, preprocess_patch
@@ -234,7 +234,7 @@ def write_patch_set(out: str | Path, found: Sequence[tuple[str, Sequence[tuple[s
             for name, png, row in files:
                 (tmp / name).write_bytes(png)
                 rows.append(row)
-        pd.DataFrame(rows, columns=list(INDEX_COLUMNS)).to_csv(tmp / INDEX_NAME, index=False)
+        csv_safe(pd.DataFrame(rows, columns=list(INDEX_COLUMNS))).to_csv(tmp / INDEX_NAME, index=False)
     return ExtractResult(out, len(rows), len(found) if n_recordings is None else n_recordings, tuple(empty))
 
 
@@ -379,7 +379,12 @@ class PatchDataset(Dataset):
     def __getitem__(self, i: int):
         n = len(self.files)
         j = i % n
-        image = Image.open(self.files[j]).convert("RGB")
+        try:
+            with Image.open(self.files[j]) as img:
+                image = img.convert("RGB")
+        except (OSError, ValueError, Image.DecompressionBombError) as err:  # truncated, not an image, missing
+            raise DataError(f"patch image cannot be read ({type(err).__name__}: {str(err)[:120]})",
+                            self.files[j]) from None
         if i >= n:
             image = self.augment(image)
         return preprocess_patch(np.asarray(image)), self.features[j], self.targets[j]
@@ -461,6 +466,10 @@ def resolve_device(name: str = "auto") -> torch.device:
         raise MassvizError(f"--device {name}: {e}") from None
     if device.type == "cuda" and not torch.cuda.is_available():
         raise MassvizError(f"--device {name}: CUDA is not available here (use --device cpu)")
+    if device.type == "mps" and not (getattr(torch.backends, "mps", None) and torch.backends.mps.is_available()):
+        raise MassvizError(f"--device {name}: Apple's MPS is not available here (use --device cpu)")
+    if device.type not in ("cpu", "cuda", "mps"):
+        raise MassvizError(f"--device {name}: massviz trains on cpu, cuda or mps")
     return device
 
 
@@ -505,6 +514,9 @@ def fit(model: MassNet, train_set: Dataset, val_set: Dataset, ranges: Ranges, co
             for images, feats, target in loader:
                 y = model(images.to(device), feats.to(device))[:, 0]
                 loss = loss_fn(y, target.to(device))
+                if not bool(torch.isfinite(loss)):
+                    raise MassvizError(f"training stopped: the loss is {float(loss)} at epoch {epoch}, step "
+                                       f"{steps + 1} (diverged; lower --lr, now {config.lr:g}); nothing was kept")
                 optimiser.zero_grad()
                 loss.backward()
                 nn.utils.clip_grad_norm_(model.parameters(), config.max_grad_norm)
@@ -515,6 +527,16 @@ def fit(model: MassNet, train_set: Dataset, val_set: Dataset, ranges: Ranges, co
                 seen += len(target)
                 bar.update(1)
             val_loss, val_mae = evaluate(model, val_set, ranges, device)
+            from massviz.io.checkpoint import MAX_WEIGHT_MAGNITUDE
+
+            largest = max(float(t.detach().abs().max()) for t in model.state_dict().values() if t.is_floating_point())
+            if not largest <= MAX_WEIGHT_MAGNITUDE:  # a checkpoint load_checkpoint would refuse: stop now
+                raise MassvizError(f"training stopped: a weight reached {largest:g} after epoch {epoch} (beyond "
+                                   f"+-{MAX_WEIGHT_MAGNITUDE:g}: diverged; lower --lr, now {config.lr:g}); nothing "
+                                   "was kept")
+            if not (math.isfinite(val_loss) and math.isfinite(val_mae)):
+                raise MassvizError(f"training stopped: the validation loss is {val_loss} after epoch {epoch} "
+                                   f"(diverged; lower --lr, now {config.lr:g}); nothing was kept")
             metrics = EpochMetrics(epoch, total / seen, val_loss, val_mae, schedule.get_last_lr()[0], steps)
             bar.set_postfix(epoch=epoch, train=f"{metrics.train_loss:.4f}", val=f"{val_loss:.4f}",
                             mae=f"{val_mae:.1f}g")
@@ -560,10 +582,8 @@ def train_run(patches: str | Path, out: str | Path, config: TrainConfig, *, init
     metrics as Rerun scalars on an ``epoch`` timeline) and ``split.csv`` (each recording's part). ``init``
     fine-tunes from a checkpoint's weights; its ranges are kept with ``keep_ranges``, else recomputed from the
     training split. A non-empty ``out`` is an error unless ``force``. The same ``config.seed`` on the CPU gives the
-    same checkpoint.
+    same checkpoint. Nothing appears at ``out`` unless training ends (see :func:`massviz.io.atomic.atomic_dir`).
     """
-    import rerun as rr
-
     cfg = config.resolved()
     patches, out = Path(patches), Path(out)
     index = read_index(patches)
@@ -586,36 +606,58 @@ def train_run(patches: str | Path, out: str | Path, config: TrainConfig, *, init
         train_set = PatchDataset(patches, train_rows, ranges, cfg.augment_factor, augment)
         val_set = PatchDataset(patches, val_rows, ranges)
 
-        out.mkdir(parents=True, exist_ok=True)
-        pd.DataFrame({"recording": sorted(index["recording"].unique())}).assign(
-            part=lambda t: t["recording"].map(split.part_of)).to_csv(out / "split.csv", index=False)
-        stream = rr.RecordingStream("massviz_train")
-        stream.save(out / "train.rrd")
-        best, history = None, []
-        extra = {"split": cfg.split, "seed": cfg.seed, "patches": str(patches.resolve()),
-                 "init": None if init is None else str(init), "config": asdict(cfg),
-                 "n_train_patches": len(train_rows), "n_val_patches": len(val_rows)}
-        device = torch.device(cfg.device)
-        start = EpochMetrics(0, math.nan, *evaluate(model.to(device), val_set, ranges, device), cfg.lr, 0)
-        with open(out / "metrics.csv", "w", newline="") as f:
-            writer = csv.writer(f)
-            writer.writerow(["epoch", "train_loss", "val_loss", "val_mae_g", "lr", "steps"])
-            for m in (start, *fit(model, train_set, val_set, ranges, cfg, progress=progress)):
-                history.append(m)
-                writer.writerow([m.epoch, "" if m.epoch == 0 else f"{m.train_loss:.6g}", f"{m.val_loss:.6g}", f"{m.val_mae_g:.4f}",
-                                 f"{m.lr:.6g}", m.steps])
-                f.flush()
-                _log_scalars(stream, m)
-                if m.epoch > 0 and (best is None or m.val_loss < best.val_loss):
-                    best = m
-                    save_checkpoint(out / "best.torch", model, ranges,
-                                    extra={**extra, "epoch": m.epoch, "val_loss": m.val_loss,
-                                           "val_mae_g": m.val_mae_g})
-        stream.flush()
-        stream.disconnect()
+        # The run is written in a hidden folder beside RUN and renamed to RUN when training ends: a failure, a
+        # full disk, a diverged loss or a signal (SIGINT/SIGTERM/SIGHUP) leaves RUN as it was, never half-written.
+        with atomic_dir(out) as tmp:
+            best, history = _train_into(tmp, out, model, train_set, val_set, ranges, index, split, cfg, init,
+                                        patches, len(train_rows), len(val_rows), progress)
     flagged = {"train": int(train_rows["flagged"].sum()), "val": int(val_rows["flagged"].sum())}
     return TrainResult(out, out / "best.torch", best.epoch, best.val_loss, best.val_mae_g, ranges, split,
                        tuple(history), flagged)
+
+
+def _train_into(run: Path, out: Path, model, train_set, val_set, ranges, index, split, cfg, init, patches,
+                n_train: int, n_val: int, progress: bool):
+    """The body of :func:`train_run`, writing into the temporary folder ``run`` (renamed to ``out`` after)."""
+    import rerun as rr
+
+    csv_safe(pd.DataFrame({"recording": sorted(index["recording"].unique())}).assign(
+        part=lambda t: t["recording"].map(split.part_of))).to_csv(run / "split.csv", index=False)
+    stream = rr.RecordingStream("massviz_train")
+    stream.save(run / "train.rrd")
+    try:
+        return _epochs(run, stream, model, train_set, val_set, ranges, split, cfg, init, patches, n_train, n_val,
+                       progress)
+    finally:
+        stream.flush()
+        stream.disconnect()
+
+
+def _epochs(run, stream, model, train_set, val_set, ranges, split, cfg, init, patches, n_train, n_val, progress):
+    best, history = None, []
+    extra = {"split": cfg.split, "seed": cfg.seed, "patches": str(patches.resolve()),
+             "init": None if init is None else str(init), "config": asdict(cfg),
+             "n_train_patches": n_train, "n_val_patches": n_val}
+    device = torch.device(cfg.device)
+    start = EpochMetrics(0, math.nan, *evaluate(model.to(device), val_set, ranges, device), cfg.lr, 0)
+    if not (math.isfinite(start.val_loss) and math.isfinite(start.val_mae_g)):
+        raise MassvizError(f"the initial model's validation loss is {start.val_loss} (not a finite number)",
+                           init)
+    with open(run / "metrics.csv", "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["epoch", "train_loss", "val_loss", "val_mae_g", "lr", "steps"])
+        for m in (start, *fit(model, train_set, val_set, ranges, cfg, progress=progress)):
+            history.append(m)
+            writer.writerow([m.epoch, "" if m.epoch == 0 else f"{m.train_loss:.6g}", f"{m.val_loss:.6g}", f"{m.val_mae_g:.4f}",
+                             f"{m.lr:.6g}", m.steps])
+            f.flush()
+            _log_scalars(stream, m)
+            if m.epoch > 0 and (best is None or m.val_loss < best.val_loss):
+                best = m
+                save_checkpoint(run / "best.torch", model, ranges,
+                                extra={**extra, "epoch": m.epoch, "val_loss": m.val_loss,
+                                       "val_mae_g": m.val_mae_g})
+    return best, history
 
 
 __all__ = ["INDEX_NAME", "IMAGES_DIR", "INDEX_COLUMNS", "FOLDS", "SPLITS", "AUGMENT_FACTOR", "DEFAULT_EPOCHS",

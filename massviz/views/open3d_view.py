@@ -20,7 +20,7 @@ from massviz.core.geometry import (DEPTH_TRUNC_M, _by_frame, detection_cloud, me
                                    require_intrinsics, rgbd_cloud, scene_cloud, skip_reason)
 from massviz.core.types import Intrinsics
 from massviz.errors import MassvizError
-from massviz.io.atomic import atomic_path
+from massviz.io.atomic import atomic_path, native_stderr
 from massviz.views.palette import BOX_COLOUR, CHOSEN_COLOUR, FLAGGED_COLOUR, rgb255
 
 # ------------------------------------------------------------------------------------------------ files
@@ -28,8 +28,14 @@ def save_cloud(path: str | Path, pcd: o3d.geometry.PointCloud) -> Path:
     """Write a binary .ply atomically (a reader never sees half a file)."""
     path = Path(path)
     with atomic_path(path) as tmp:
-        if not o3d.io.write_point_cloud(str(tmp), pcd, write_ascii=False):
-            raise MassvizError("Open3D could not write the point cloud", path)
+        with native_stderr() as native:  # RPly prints one line per failed vertex (thousands on a full disk)
+            ok = o3d.io.write_point_cloud(str(tmp), pcd, write_ascii=False)
+        if not ok or native:
+            import shutil
+
+            why = native[0].strip()[:120] if native else "Open3D could not write the point cloud"
+            raise MassvizError(f"cannot write the point cloud ({why}; {shutil.disk_usage(path.parent).free} bytes "
+                               "free on its disk)", path)
     return path
 
 

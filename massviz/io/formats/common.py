@@ -19,6 +19,7 @@ import numpy as np
 from massviz.core.types import Frame, Intrinsics, RecordingInfo
 from massviz.errors import RecordingError
 from massviz.io.untrusted import MAX_IMAGE_SIDE, MAX_INDEX, check_image_size, number
+from massviz.io.untrusted import load_json as untrusted_json
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
@@ -326,13 +327,9 @@ MAX_JSON_BYTES = 16 << 20
 
 
 def load_json(path: Path) -> dict:
-    """A JSON object from ``path`` (bounded size), or one ``RecordingError`` naming it."""
-    try:
-        if path.stat().st_size > MAX_JSON_BYTES:
-            raise RecordingError(f"is {path.stat().st_size} bytes; at most {MAX_JSON_BYTES} are read", path)
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError, ValueError) as err:
-        raise RecordingError(f"not valid JSON ({type(err).__name__}: {err})", path) from None
+    """A JSON object from ``path`` (bounded size, depth and integer digits: ``massviz.io.untrusted.load_json``, the
+    one loader of untrusted JSON), or one ``RecordingError`` naming it."""
+    data = untrusted_json(path, path.name, RecordingError, MAX_JSON_BYTES)
     if not isinstance(data, dict):
         raise RecordingError("expected a JSON object", path)
     return data

@@ -12,7 +12,7 @@ from pathlib import Path
 import rerun as rr
 
 from massviz.errors import MassvizError
-from massviz.io.atomic import atomic_path
+from massviz.io.atomic import atomic_path, check_room
 
 APPLICATION_ID = "massviz"
 
@@ -42,6 +42,11 @@ class Output:
         sinks = []
         if self.rrd is not None:
             self._tmp = self._stack.enter_context(atomic_path(self.rrd))
+            try:
+                check_room(self._tmp)  # Rerun's file sink hangs when its first write fails (a full disk): fail here
+            except OSError as err:
+                self._abandon(err)
+                raise MassvizError(f"cannot write ({err.strerror or err})", self.rrd) from None
             sinks.append(rr.FileSink(os.fspath(self._tmp)))
         if spawn:
             rr.spawn(connect=False)
@@ -55,6 +60,8 @@ class Output:
         try:
             self.stream.flush()
         except RuntimeError as err:
+            if self.rrd is not None and not self.spawn:  # the file sink: a full disk or a failing write
+                raise MassvizError(f"cannot write {what} ({err}; is the disk full?)", self.rrd) from None
             where = "the spawned Rerun viewer" if self.spawn else "Rerun"
             raise MassvizError(f"could not deliver {what} to {where} ({err}); without a display, log to a file "
                                "(--rrd FILE.rrd) and open it elsewhere with 'rerun FILE.rrd'") from None

@@ -1,0 +1,782 @@
+"""Hostile inputs, second round (issue 23): numbers the JSON parser refuses, checkpoints that compute inf/NaN,
+outputs that are not regular files, a full disk, signals, terminal escapes, compression bombs, scores and tables,
+trace files from elsewhere, arguments.
+
+Every case runs ``python -m massviz`` as a real subprocess (its peak RSS read with ``os.wait4``, its wall time
+bounded) and is held to the same promise (:func:`check_promise`): the expected exit code, exactly one error line
+naming the right file and saying what is wrong, no traceback / internal error, no non-finite number in stdout,
+stderr or any file written, nothing left in or beside the outputs (no hidden temporaries), nothing written outside
+the case's folder (its TMPDIR stays empty), no raw control character on the terminal, peak memory under
+:data:`MEM_BOUND_MB` and wall time under :data:`TIME_BOUND_S`. Cases are generated per class (parametrised
+generators); the first case of each class runs by default, the others are marked ``slow``. The last tests call the
+library on the same fixtures: only massviz's error types may come out.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import resource
+import shutil
+import signal
+import stat
+import subprocess
+import sys
+import threading
+import time
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pytest
+
+from test_fuzz import ANN_HEADER, ANN_ROWS, PRED_HEADER, PRED_ROWS, Base, base, copy_sample, csv_text  # noqa: F401
+
+ROOT = Path(__file__).resolve().parents[1]
+#: peak resident memory a hostile case may reach (python + torch + the pipeline on 3 frames: ~0.5-0.7 GB; the
+#: bombs of issue 23 reached 1.9-2.5 GB).
+MEM_BOUND_MB = 1200
+#: wall time a case may take (a hang was killed after 120 s in issue 23; a case takes 5-25 s on 2 busy cores).
+TIME_BOUND_S = 150
+#: a non-finite number as text: what must never appear in an output or on the terminal.
+NON_FINITE = re.compile(r"(?<![A-Za-z_])(nan|NaN|NAN|-?inf|-?Inf|-?Infinity)(?![A-Za-z_])")
+#: characters that may appear raw on the terminal (everything else below 0x20, DEL and C1 must come escaped).
+RAW_CONTROL = re.compile(r"[\x00-\x08\x0b\x0c\x0e-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069]")
+
+
+# ============================================================================================================ runner
+@dataclass
+class Run:
+    code: int
+    stdout: str
+    stderr: str
+    peak_mb: float
+    seconds: float
+    killed: bool = False
+
+
+def run_massviz(argv, case_dir: Path, *, preexec: Callable | None = None, when: Callable[[], bool] | None = None,
+                send: int | None = None, timeout: float = TIME_BOUND_S) -> Run:
+    """``python -m massviz ARGV`` in a subprocess with TMPDIR inside ``case_dir`` (checked empty after) and HOME too;
+    its peak RSS (``os.wait4``'s rusage of exactly that child) and wall time are measured. With ``send``, the signal
+    is sent as soon as ``when()`` holds (polled), i.e. while the command is writing."""
+    env = {k: v for k, v in os.environ.items() if k not in ("MASSVIZ_DEBUG", "MASSVIZ_WEIGHTS", "RUST_LOG")}
+    tmpdir = case_dir / "tmpdir"
+    tmpdir.mkdir(exist_ok=True)
+    env.update(TMPDIR=str(tmpdir), HOME=str(case_dir / "home"), PYTHONPATH=str(ROOT),
+               MASSVIZ_CACHE_DIR=str(case_dir / "usercache"), XDG_CACHE_HOME=str(case_dir / "xdg"))
+    logs = case_dir.parent / f"{case_dir.name}.logs"
+    logs.mkdir(exist_ok=True)
+    with open(logs / "out", "wb") as fo, open(logs / "err", "wb") as fe:
+        t0 = time.monotonic()
+        proc = subprocess.Popen([sys.executable, "-m", "massviz", *map(str, argv)], stdout=fo, stderr=fe,
+                                stdin=subprocess.DEVNULL, cwd=case_dir, env=env, preexec_fn=preexec)
+        killed = []
+        timer = threading.Timer(timeout, lambda: (killed.append(1), proc.kill()))
+        timer.start()
+        if send is not None:
+            def signal_when_ready():
+                while proc.returncode is None and time.monotonic() - t0 < timeout:
+                    if when is None or when():
+                        proc.send_signal(send)
+                        return
+                    time.sleep(0.05)
+            sender = threading.Thread(target=signal_when_ready, daemon=True)
+            sender.start()
+        _, status, usage = os.wait4(proc.pid, 0)
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        seconds = time.monotonic() - t0
+        timer.cancel()
+    return Run(proc.returncode, (logs / "out").read_text(errors="replace"), (logs / "err").read_text(errors="replace"),
+               usage.ru_maxrss / 1024, seconds, bool(killed))
+
+
+def snapshot(folder: Path, skip: tuple[Path, ...] = ()) -> dict[str, tuple[int, int, int]]:
+    out = {}
+    for p in sorted(folder.rglob("*")):
+        if any(p == s or s in p.parents for s in skip):
+            continue
+        st = p.lstat()
+        out[str(p.relative_to(folder))] = (stat.S_IFMT(st.st_mode), st.st_size if stat.S_ISREG(st.st_mode) else -1,
+                                           st.st_mtime_ns)
+    return out
+
+
+def visible_lines(text: str) -> list[str]:
+    return [line.split("\r")[-1] for line in text.split("\n") if line.split("\r")[-1].strip()]
+
+
+def text_files(folder: Path):
+    for p in folder.rglob("*"):
+        if p.is_file() and not p.is_symlink() and p.suffix in (".csv", ".json", ".txt", ".log"):
+            yield p
+
+
+@dataclass
+class Case:
+    name: str
+    argv: list
+    culprit: object  # the path (or option) the error line must name first
+    what: str  # regex the rest of the line must match
+    outputs: list = field(default_factory=list)  # must not exist after
+    code: int = 2
+    line: str = "error"  # "error" or "interrupted"
+    writes: tuple = ()  # folders the command may change (the cache)
+    preexec: Callable | None = None
+    when: Callable | None = None
+    send: int | None = None
+    check: Callable | None = None  # extra checks on (case, run)
+
+
+def check_promise(case: Case, run: Run, work: Path, before: dict) -> None:
+    """The promise every hostile case is held to (see the module docstring)."""
+    both = run.stdout + run.stderr
+    where = f"{case.name}: {run.stderr[-2000:]}"
+    assert not run.killed and run.seconds < TIME_BOUND_S, f"{case.name}: took {run.seconds:.0f} s (killed)"
+    assert run.peak_mb < MEM_BOUND_MB, f"{case.name}: peak memory {run.peak_mb:.0f} MB"
+    assert "Traceback" not in both and "internal error" not in both, where
+    assert not RAW_CONTROL.search(both), f"{case.name}: raw control character on the terminal: {both[-500:]!r}"
+    assert run.code == case.code, f"exit {run.code}: {where}"
+    lines = visible_lines(run.stderr)
+    marker = ": error:" if case.line == "error" else ": interrupted"
+    errors = [line for line in lines if marker in line]
+    assert len(errors) == 1 and lines[-1] == errors[0], where
+    command = str(case.argv[0])
+    prefix = f"massviz {command}{marker}" + ("" if case.line != "error" else f" {case.culprit}")
+    assert errors[0].startswith(prefix), (errors[0], prefix)
+    assert re.search(case.what, errors[0][len(prefix):]), (case.name, errors[0])
+    assert not NON_FINITE.search(run.stdout) and " nan g" not in both, where
+    for out in case.outputs:
+        assert not os.path.lexists(out) or Path(out).is_char_device() or Path(out).is_fifo() \
+            or Path(out).is_symlink(), f"{case.name}: {out} was written"
+    skip = tuple(work / w for w in ("cache", "usercache", "xdg", "home", "tmpdir")) + tuple(case.writes)
+    after = snapshot(work, skip)
+    assert after == before, (f"{case.name}: something was written, left or replaced: "
+                             f"{sorted(set(after.items()) ^ set(before.items()))[:6]}")
+    assert not any((work / "tmpdir").iterdir()), f"{case.name}: left files in TMPDIR"
+    for p in text_files(work):
+        if not any(s in p.parents for s in skip):
+            assert not NON_FINITE.search(p.read_text(errors="replace")), f"{case.name}: non-finite number in {p}"
+    if case.check is not None:
+        case.check(case, run)
+
+
+# ============================================================================================================= bases
+# ``base`` (a 3-frame copy of the cup sample, random-weight checkpoint, replay JSON, a saved trace) is test_fuzz's.
+
+
+def pipeline_argv(work: Path, b: Base, command: str, rec: Path, *extra, weights=None, replay=None,
+                  cache: bool = True) -> list:
+    return [command, rec, *extra, "--detector", "replay", "--replay", replay or b.replay,
+            "--weights", weights or b.weights, *(["--cache", work / "cache"] if cache else ["--no-cache"]), "--quiet"]
+
+
+# ============================================================================================================ class 1
+def big_int(digits: int) -> str:
+    return "9" * digits
+
+
+def deep(n: int, kind: str = "[") -> str:
+    if kind == "[":
+        return "[" * n + "]" * n
+    return '{"a":' * n + "1" + "}" * n
+
+
+JSON_PAYLOADS = {"int5000": big_int(5000), "int4301neg": "-" + big_int(4301), "deep100k-list": deep(100_000),
+                 "deep100k-object": deep(100_000, "{"), "deep65-list": deep(65)}
+JSON_WHAT = r"digits|deep|not valid JSON"
+
+
+def json_case(target: str, payload_name: str) -> Callable[[Path, Base], Case]:
+    payload = JSON_PAYLOADS[payload_name]
+
+    def build(work: Path, b: Base) -> Case:
+        rec = copy_sample(work / "rec")
+        out = work / "preds.csv"
+        if target in ("meta", "intrinsics"):
+            path = rec / f"{target}.json"
+            data = json.loads(path.read_text())
+            key = "fps" if target == "meta" else "fx"
+            data[key] = "@@"
+            path.write_text(json.dumps(data).replace('"@@"', payload))
+            return Case("", pipeline_argv(work, b, "estimate", rec, "--out", out), path, JSON_WHAT, [out])
+        if target == "sidecar":
+            import torch
+
+            ckpt = work / "ckpt.torch"
+            p = torch.load(b.weights, weights_only=True)
+            del p["ranges"]
+            p["state_dict"]["linear3.bias"] += 1
+            torch.save(p, ckpt)
+            side = work / "ckpt.torch.ranges.json"
+            side.write_text('{"minMass": %s, "maxMass": 200}' % payload)
+            return Case("", pipeline_argv(work, b, "estimate", rec, "--out", out, weights=ckpt), side, JSON_WHAT,
+                        [out])
+        if target == "classmap":
+            ann, pred, cmap = work / "ann.csv", work / "pred.csv", work / "classes.json"
+            ann.write_text(csv_text(ANN_HEADER, ANN_ROWS))
+            pred.write_text(csv_text(PRED_HEADER, PRED_ROWS))
+            cmap.write_text('{"1": %s}' % payload)
+            js = work / "score.json"
+            return Case("", ["score", pred, "--annotations", ann, "--classes", cmap, "--json", js], cmap, JSON_WHAT,
+                        [js])
+        if target == "exclusions":
+            path = work / "exclude.json"
+            path.write_text('{"format": "massviz.exclusions/1", "exclusions": [{"frame": %s}]}' % payload)
+            return Case("", pipeline_argv(work, b, "estimate", rec, "--out", out, "--exclude", path), path,
+                        JSON_WHAT, [out])
+        if target == "replay":
+            path = work / "replay.json"
+            path.write_text('{"detections": [{"frame": %s, "box": [1, 2, 3, 4]}]}' % payload)
+            return Case("", pipeline_argv(work, b, "estimate", rec, "--out", out, replay=path), path, JSON_WHAT,
+                        [out])
+        raise AssertionError(target)
+    return build
+
+
+# ============================================================================================================ class 2
+def _ckpt(make):
+    def build(work: Path, b: Base) -> Path:
+        import torch
+
+        payload = torch.load(b.weights, weights_only=True)
+        make(payload)
+        path = work / "ckpt.torch"
+        torch.save(payload, path)
+        return path
+    return build
+
+
+CHECKPOINTS = {
+    "span-tiny": (lambda p: p["ranges"].update(minMass=1.0, maxMass=1.0 + 1e-9), "spans"),
+    "span-huge": (lambda p: p["ranges"].update(minAverageDistance=-1e300, maxAverageDistance=1e300), "beyond"),
+    "ratio-span-tiny": (lambda p: p["ranges"].update(minRatioWidth=0.5, maxRatioWidth=0.5 + 1e-12), "spans"),
+    "bn-negative-var": (lambda p: p["state_dict"]["bn1.running_var"].__setitem__(0, -4.0), "negative variance"),
+    "float64-1e300": (lambda p: p["state_dict"].update(
+        {"linear3.weight": p["state_dict"]["linear3.weight"].double().fill_(1e300)}), "NaN or infinite|beyond"),
+    "weights-huge": (lambda p: p["state_dict"]["linear1.weight"].mul_(1e10), "beyond"),
+    "bn1-mean-float64-1e39": (lambda p: p["state_dict"].update(
+        {"bn1.running_mean": p["state_dict"]["bn1.running_mean"].double().fill_(1e39)}), "NaN or infinite"),
+}
+
+
+def checkpoint_case(name: str, command: str) -> Callable[[Path, Base], Case]:
+    make, what = CHECKPOINTS[name]
+
+    def build(work: Path, b: Base) -> Case:
+        rec = copy_sample(work / "rec")
+        ckpt = _ckpt(make)(work, b)
+        if command == "estimate":
+            out = work / "preds.csv"
+            argv = pipeline_argv(work, b, "estimate", rec, "--out", out, weights=ckpt)
+        elif command == "log":
+            out = work / "o.rrd"
+            argv = pipeline_argv(work, b, "log", rec, "--rrd", out, weights=ckpt)
+        else:
+            out = work / "patches"
+            argv = pipeline_argv(work, b, "extract", rec, "--out", out, weights=ckpt)
+        return Case("", argv, ckpt, what, [out])
+    return build
+
+
+# ============================================================================================================ class 3
+def _special(kind: str, path: Path) -> Path:
+    if kind == "fifo":
+        os.mkfifo(path)
+    elif kind == "chardev":  # a /dev/null-like node of our own, never /dev/full itself
+        os.mknod(path, 0o600 | stat.S_IFCHR, os.makedev(1, 3))
+    elif kind == "link-to-chardev":
+        dev = path.with_name(path.name + ".dev")
+        os.mknod(dev, 0o600 | stat.S_IFCHR, os.makedev(1, 3))
+        os.symlink(dev.name, path)
+    elif kind == "link-to-fifo":
+        fifo = path.with_name(path.name + ".fifo")
+        os.mkfifo(fifo)
+        os.symlink(fifo.name, path)
+    elif kind == "link-loop":
+        os.symlink(path.name, path)
+    else:
+        raise AssertionError(kind)
+    return path
+
+
+SPECIAL_WHAT = r"character device|FIFO|symlink|Too many levels"
+OUTPUT_OPTIONS = {
+    "estimate-out": lambda w, b, p: pipeline_argv(w, b, "estimate", copy_sample(w / "rec"), "--out", p),
+    "log-rrd": lambda w, b, p: pipeline_argv(w, b, "log", copy_sample(w / "rec"), "--rrd", p),
+    "score-json": lambda w, b, p: ["score", _csv(w / "pred.csv", PRED_HEADER, PRED_ROWS), "--annotations",
+                                   _csv(w / "ann.csv", ANN_HEADER, ANN_ROWS), "--json", p],
+    "compare-json": lambda w, b, p: ["compare", b.trace_npz, b.trace_npz, "--json", p],
+}
+
+
+def _csv(path: Path, header, rows) -> Path:
+    path.write_text(csv_text(header, rows))
+    return path
+
+
+def output_case(option: str, kind: str) -> Callable[[Path, Base], Case]:
+    def build(work: Path, b: Base) -> Case:
+        suffix = {"log-rrd": ".rrd", "estimate-out": ".csv"}.get(option, ".json")
+        target = _special(kind, work / f"out{suffix}")
+        return Case("", OUTPUT_OPTIONS[option](work, b, target), target, SPECIAL_WHAT)
+    return build
+
+
+# ============================================================================================================ class 4
+def _fsize_limit(nbytes: int) -> Callable:
+    def limit():  # Python ignores SIGXFSZ: a write beyond the limit fails with EFBIG, as on a full disk
+        resource.setrlimit(resource.RLIMIT_FSIZE, (nbytes, nbytes))
+    return limit
+
+
+def disk_full_case(command: str, limit: int) -> Callable[[Path, Base], Case]:
+    def build(work: Path, b: Base) -> Case:
+        rec = copy_sample(work / "rec")
+        # the cache's writes are not the case: --no-cache
+        if command == "log":
+            out = work / "o.rrd"
+            argv = pipeline_argv(work, b, "log", rec, "--rrd", out, cache=False)
+        elif command == "cloud":
+            out = work / "clouds"
+            argv = pipeline_argv(work, b, "cloud", rec, "--out", out, "--all-frames", cache=False)
+        else:
+            out = work / "patches"
+            argv = pipeline_argv(work, b, "extract", rec, "--out", out, cache=False)
+        return Case("", argv, out, r"(File too large|No space left|cannot write)", [out], preexec=_fsize_limit(limit))
+    return build
+
+
+# ============================================================================================================ class 5
+def signal_case(command: str, sig: int) -> Callable[[Path, Base], Case]:
+    def build(work: Path, b: Base) -> Case:
+        rec = copy_sample(work / "rec", n=12)
+        if command == "log":
+            out = work / "o.rrd"
+            argv = pipeline_argv(work, b, "log", rec, "--rrd", out)
+        elif command == "cloud":
+            out = work / "clouds"
+            argv = pipeline_argv(work, b, "cloud", rec, "--out", out, "--all-frames")
+        else:
+            out = work / "patches"
+            argv = pipeline_argv(work, b, "extract", rec, "--out", out)
+
+        def writing() -> bool:  # the command has started its output (a hidden temporary beside or inside it)
+            return any(p.name.startswith(".") for p in work.iterdir()) or (out.is_dir() and any(out.iterdir()))
+        name = signal.Signals(sig).name
+        return Case("", argv, None, rf"\({name}\)" if sig != signal.SIGINT else "$", [out], code=128 + sig,
+                    line="interrupted", when=writing, send=sig)
+    return build
+
+
+# ============================================================================================================ class 7
+ESCAPES = {"osc-title": "\x1b]0;pwned\x07", "clear": "\x1b[2J", "csi-c1": "\x9b31m", "rtl": "\u202e", "cr": "\r"}
+
+
+def escape_case(where: str, esc: str) -> Callable[[Path, Base], Case]:
+    def build(work: Path, b: Base) -> Case:
+        seq = ESCAPES[esc]
+        if where == "folder":  # the id comes from the folder name; the error (no depth) prints it
+            rec = copy_sample(work / f"rec{seq}x")
+            shutil.rmtree(rec / "depth")
+            out = work / "preds.csv"
+            from massviz.io.untrusted import printable
+
+            return Case("", pipeline_argv(work, b, "estimate", rec, "--out", out), printable(rec), r".", [out])
+        # a trace file whose recording id carries the sequence
+        from massviz.io.untrusted import load_npz_checked
+
+        arrays = load_npz_checked(b.trace_npz)
+        header = json.loads(arrays["header"].tobytes())
+        header["recording"]["id"] = f"cup{seq}x"
+        arrays["header"] = np.frombuffer(json.dumps(header).encode(), np.uint8)
+        path = work / "t.npz"
+        np.savez_compressed(path, **arrays)
+        js = work / "c.json"
+        return Case("", ["compare", path, b.trace_npz, "--json", js], path, r"control|recording", [js])
+    return build
+
+
+# ============================================================================================================ class 9
+def npz_bomb(path: Path, inflated: int, members: int = 1) -> Path:
+    """An .npz whose uint8 members declare honestly (the .npy header matches) and inflate ~1000:1."""
+    chunk = bytes(1 << 20)
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED, compresslevel=9) as z:
+        for m in range(members):
+            with z.open(f"det_pred{m or ''}.npy", "w", force_zip64=True) as fh:
+                header = {"descr": "|u1", "fortran_order": False, "shape": (inflated,)}
+                np.lib.format.write_array_header_1_0(fh, header)
+                left = inflated
+                while left:
+                    n = min(left, len(chunk))
+                    fh.write(chunk[:n])
+                    left -= n
+    return path
+
+
+BOMBS = {"300MB": (300 << 20, 1), "2x400MB": (400 << 20, 2), "3MB": (3 << 20, 1)}
+
+
+def bomb_case(use: str, bomb: str) -> Callable[[Path, Base], Case]:
+    def build(work: Path, b: Base) -> Case:
+        size, members = BOMBS[bomb]
+        path = npz_bomb(work / "bomb.npz", size, members)
+        if use == "replay":
+            out = work / "preds.csv"
+            return Case("", pipeline_argv(work, b, "estimate", copy_sample(work / "rec"), "--out", out,
+                                          replay=path), path, r"bomb|inflate|not a massviz trace", [out])
+        js = work / "c.json"
+        return Case("", ["compare", path, b.trace_npz, "--json", js], path, r"bomb|inflate|not a massviz trace", [js])
+    return build
+
+
+# =========================================================================================================== class 10
+def table_case(name: str) -> Callable[[Path, Base], Case]:
+    def build(work: Path, b: Base) -> Case:
+        ann, pred, js = work / "ann.csv", work / "pred.csv", work / "score.json"
+        ann_rows, pred_rows, ann_header, pred_header = list(ANN_ROWS), list(PRED_ROWS), ANN_HEADER, PRED_HEADER
+        culprit, what, extra = ann, "", []
+        if name.startswith("tiny-mass-"):
+            ann_rows[1] = ann_rows[1].rsplit(",", 1)[0] + "," + name.split("-", 2)[2]
+            what = r"container mass.*>= 0.001"
+        elif name.startswith("huge-pred-"):
+            pred_rows[1] = "1," + name.split("-", 2)[2]
+            culprit, what = pred, r"Container mass.*beyond"
+        elif name == "dup-column-ann":
+            ann_header += ",container mass"
+            ann_rows = [r + ",5" for r in ann_rows]
+            what = r"appears twice"
+        elif name == "dup-column-pred":
+            pred_header += ",Configuration ID"
+            pred_rows = [r + ",9" for r in pred_rows]
+            culprit, what = pred, r"appears twice"
+        elif name == "container-without-class":
+            ann_rows[1] = "1,42," + ann_rows[1].split(",", 2)[2]
+            what = r"container 42 has no class"
+        ann.write_text(csv_text(ann_header, ann_rows))
+        pred.write_text(csv_text(pred_header, pred_rows))
+        return Case("", ["score", pred, "--annotations", ann, "--json", js, *extra], culprit, what, [js])
+    return build
+
+
+# =========================================================================================================== class 11
+TRACE_EDITS = {
+    "detector-list": (lambda h: h.__setitem__("detector", ["depth"]), "detector"),
+    "timings-text": (lambda h: h.__setitem__("timings", {"read": "fast"}), "timings"),
+    "fps-text": (lambda h: h["recording"].__setitem__("fps", "thirty"), "fps"),
+    "intrinsics-nan": (lambda h: h["recording"].__setitem__("intrinsics", {"fx": float("nan"), "fy": 1, "cx": 1,
+                                                                           "cy": 1, "width": 4, "height": 4}), "fx"),
+    "events-object": (lambda h: h.__setitem__("events", [{"frame": 1}]), "events"),
+    "weights-id-number": (lambda h: h.__setitem__("weights_id", 12), "weights_id"),
+    "stages-dict": (lambda h: h.__setitem__("frame_timing_stages", {"a": 1}), "frame_timing_stages"),
+}
+
+
+def trace_case(edit: str, use: str) -> Callable[[Path, Base], Case]:
+    fn, what = TRACE_EDITS[edit]
+
+    def build(work: Path, b: Base) -> Case:
+        from massviz.io.untrusted import load_npz_checked
+
+        arrays = load_npz_checked(b.trace_npz)
+        header = json.loads(arrays["header"].tobytes())
+        fn(header)
+        arrays["header"] = np.frombuffer(json.dumps(header).encode(), np.uint8)  # NaN written as NaN: hostile
+        path = work / "t.npz"
+        np.savez_compressed(path, **arrays)
+        if use == "compare":
+            js = work / "c.json"
+            return Case("", ["compare", path, b.trace_npz, "--json", js], path, what, [js])
+        if use == "replay":
+            out = work / "preds.csv"
+            return Case("", pipeline_argv(work, b, "estimate", copy_sample(work / "rec"), "--out", out, replay=path),
+                        path, what, [out])
+        out = work / "o.rrd"
+        return Case("", pipeline_argv(work, b, "log", copy_sample(work / "rec"), "--rrd", out, replay=path), path,
+                    what, [out])
+    return build
+
+
+# =========================================================================================================== class 12
+ARGUMENTS = {
+    "threads-2^70": (lambda w, b: pipeline_argv(w, b, "estimate", copy_sample(w / "rec"), "--out", w / "p.csv",
+                                                "--threads", str(2**70)), "--threads"),
+    "threads-0": (lambda w, b: pipeline_argv(w, b, "estimate", copy_sample(w / "rec"), "--out", w / "p.csv",
+                                             "--threads", "0"), "--threads"),
+    "stride-2^64": (lambda w, b: pipeline_argv(w, b, "estimate", copy_sample(w / "rec"), "--out", w / "p.csv",
+                                               "--stride", str(2**64)), "--stride"),
+    "train-seed-2^70": (lambda w, b: ["train", w, "--out", w / "run", "--seed", str(2**70)], "--seed"),
+    "train-seed--1": (lambda w, b: ["train", w, "--out", w / "run", "--seed=-1"], "--seed"),
+    "baseline-seed-2^40": (lambda w, b: ["baseline", "random", "--annotations", _csv(w / "a.csv", ANN_HEADER,
+                                                                                     ANN_ROWS),
+                                         "--seed", str(2**40), "--out", w / "m4.csv"], "--seed"),
+    "sweep-10^8-pairs": (lambda w, b: ["sweep", copy_sample(w / "rec"), "--threshold", "0:0.9999:0.0001",
+                                       "--k", "1:10000", "--csv", w / "s.csv"], "--threshold"),
+}
+
+
+def argument_case(name: str) -> Callable[[Path, Base], Case]:
+    make, option = ARGUMENTS[name]
+
+    def build(work: Path, b: Base) -> Case:
+        return Case("", make(work, b), option, r"integer in|pairs|at most")
+    return build
+
+
+# ============================================================================================================ cases
+def _classes() -> dict[str, list[tuple[str, Callable]]]:
+    classes: dict[str, list[tuple[str, Callable]]] = {}
+    classes["1-json"] = [(f"json-{t}-{p}", json_case(t, p))
+                         for t in ("meta", "intrinsics", "sidecar", "classmap", "exclusions", "replay")
+                         for p in JSON_PAYLOADS]
+    classes["2-checkpoint"] = [(f"ckpt-{n}-{c}", checkpoint_case(n, c)) for n in CHECKPOINTS
+                               for c in ("estimate", "log", "extract")]
+    classes["3-output"] = [(f"output-{o}-{k}", output_case(o, k)) for o in OUTPUT_OPTIONS
+                           for k in ("chardev", "fifo", "link-to-chardev", "link-to-fifo", "link-loop")]
+    classes["4-disk-full"] = [(f"disk-full-{c}-{n}", disk_full_case(c, n)) for c in ("log", "cloud", "extract")
+                              for n in (4096, 256)]
+    classes["5-signal"] = [(f"signal-{c}-{signal.Signals(s).name}", signal_case(c, s))
+                           for c in ("log", "extract", "cloud") for s in (signal.SIGTERM, signal.SIGHUP)]
+    classes["7-escape"] = [(f"escape-{w}-{e}", escape_case(w, e)) for w in ("folder", "trace") for e in ESCAPES]
+    classes["9-bomb"] = [(f"bomb-{u}-{n}", bomb_case(u, n)) for n in ("300MB", "2x400MB") for u in ("replay", "compare")]
+    classes["10-table"] = [(f"table-{n}", table_case(n)) for n in
+                           ("tiny-mass-1e-300", "tiny-mass-5e-324", "tiny-mass-0.0001", "huge-pred-1e300",
+                            "huge-pred-1e12", "dup-column-ann", "dup-column-pred", "container-without-class")]
+    classes["11-trace"] = [(f"trace-{e}-{u}", trace_case(e, u)) for e in TRACE_EDITS for u in ("compare", "replay",
+                                                                                                "log")]
+    classes["12-argument"] = [(f"arg-{n}", argument_case(n)) for n in ARGUMENTS]
+    return classes
+
+
+CLASSES = _classes()
+PARAMS = [pytest.param(build, id=name, marks=() if i == 0 else pytest.mark.slow)
+          for cases in CLASSES.values() for i, (name, build) in enumerate(cases)]
+
+
+@pytest.mark.parametrize("build", PARAMS)
+def test_hostile_input_round_two(build, base, tmp_path, request):
+    work = tmp_path / "w"
+    work.mkdir()
+    (work / "home").mkdir()
+    case = build(work, base)
+    case.name = request.node.callspec.id
+    before = snapshot(work, tuple(work / w for w in ("cache", "usercache", "xdg", "home", "tmpdir")) + tuple(case.writes))
+    run = run_massviz(case.argv, work, preexec=case.preexec, when=case.when, send=case.send)
+    check_promise(case, run, work, before)
+
+
+def test_enough_generated_cases():
+    assert len(PARAMS) >= 120 and all(len(cases) >= 4 for cases in CLASSES.values())
+
+
+# ======================================================================================== accepted hostile inputs
+def test_output_symlink_is_written_through_and_kept(base, tmp_path):
+    """A symlink as --out: the file it points to gets the CSV, the link stays a link (never replaced)."""
+    work = tmp_path / "w"
+    work.mkdir()
+    target = work / "real.csv"
+    target.write_text("old\n")
+    link = work / "link.csv"
+    link.symlink_to(target.name)
+    run = run_massviz(pipeline_argv(work, base, "estimate", copy_sample(work / "rec"), "--out", link), work)
+    assert run.code == 0, run.stderr
+    assert link.is_symlink() and os.readlink(link) == target.name
+    assert target.read_text().startswith("Configuration ID")
+    assert not [p for p in work.iterdir() if p.name.startswith(".")], "hidden temporary left"
+
+
+def test_formula_ids_are_neutralised_in_csvs(base, tmp_path):
+    """A recording id starting with '=' goes into the challenge CSV as text ("'=..."), matching on the raw id."""
+    work = tmp_path / "w"
+    work.mkdir()
+    rec = copy_sample(work / "rec")
+    meta = json.loads((rec / "meta.json").read_text())
+    meta["id"] = "=HYPERLINK(\"http://x\")"
+    meta.pop("config_id", None)
+    (rec / "meta.json").write_text(json.dumps(meta))
+    out = work / "p.csv"
+    run = run_massviz(pipeline_argv(work, base, "estimate", rec, "--out", out), work)
+    assert run.code == 0, run.stderr
+    cells = [line.split(",")[0] for line in out.read_text().splitlines()[1:]]
+    assert cells and all(not c.lstrip('"').startswith(("=", "+", "-", "@")) for c in cells), cells
+    from massviz.io.untrusted import csv_cell
+
+    assert csv_cell("=1+2") == "'=1+2" and csv_cell("-1") == "-1" and csv_cell("@x") == "'@x" and csv_cell(7) == 7
+
+
+def test_cache_memo_nested_deep_is_recomputed(base, tmp_path):
+    """A digest memo of the cache nested 100,000 deep (or with a 5,000-digit integer) is dropped and rewritten."""
+    work = tmp_path / "w"
+    work.mkdir()
+    rec = copy_sample(work / "rec")
+    argv = pipeline_argv(work, base, "estimate", rec, "--out", work / "p.csv")
+    assert run_massviz(argv, work).code == 0
+    memos = list((work / "cache").rglob("hashes/*.json"))
+    assert memos
+    for i, memo in enumerate(memos):
+        memo.write_text(deep(100_000) if i % 2 == 0 else '{"x": %s}' % big_int(5000))
+    run = run_massviz(argv, work)
+    assert run.code == 0 and "Traceback" not in run.stderr, run.stderr
+    assert run.peak_mb < MEM_BOUND_MB
+
+
+def test_deflate_bomb_in_the_cache_is_dropped(base, tmp_path):
+    """A cache entry replaced by a 300 MB deflate bomb: dropped and recomputed within the memory bound."""
+    work = tmp_path / "w"
+    work.mkdir()
+    argv = pipeline_argv(work, base, "estimate", copy_sample(work / "rec"), "--out", work / "p.csv", "--exact")
+    assert run_massviz(argv, work).code == 0
+    def masses():  # the estimate column (the execution time differs between runs)
+        return [line.split(",")[2] for line in (work / "p.csv").read_text().splitlines()]
+    first = masses()
+    (entry,) = (work / "cache" / "traces").rglob("t*.npz")
+    npz_bomb(entry, 300 << 20)
+    run = run_massviz(argv, work)
+    assert run.code == 0 and run.peak_mb < MEM_BOUND_MB, (run.stderr, run.peak_mb)
+    assert masses() == first
+
+
+def test_printable_escapes_every_control_character():
+    from massviz.io.untrusted import printable
+
+    for seq in ESCAPES.values():
+        text = printable(f"a{seq}b")
+        assert not RAW_CONTROL.search(text) and "\r" not in text and text.startswith("a") and text.endswith("b")
+    assert printable("line\nnext", keep="\n") == "line\nnext"
+
+
+# =============================================================================================== slow: training
+@pytest.fixture(scope="module")
+def patch_set(base, tmp_path_factory) -> Path:
+    from massviz import cli
+
+    root = tmp_path_factory.mktemp("fuzz2_patches")
+    recs = []
+    for i in range(4):
+        rec = copy_sample(root / f"rec{i}", n=3)
+        meta = json.loads((rec / "meta.json").read_text())
+        meta["id"] = f"rec{i}"
+        meta.setdefault("container", {})["mass_g"] = 10.0 + 5 * i
+        (rec / "meta.json").write_text(json.dumps(meta))
+        recs.append(rec)
+    out = root / "patches"
+    code = cli.main(["extract", *map(str, recs), "--out", str(out), "--detector", "replay", "--replay",
+                     str(base.replay), "--weights", str(base.weights), "--cache", str(root / "cache"), "--quiet"])
+    assert code == 0 and (out / "index.csv").is_file()
+    import pandas as pd
+
+    index = pd.read_csv(out / "index.csv")  # copies of one sample: spread d, a, b (min-max ranges need a span)
+    for col, step in (("d", 37.0), ("a", 0.01), ("b", 0.01)):
+        index[col] = index[col] + step * np.arange(len(index))
+    index.to_csv(out / "index.csv", index=False)
+    return out
+
+
+TRAIN_CASES = {
+    "lr-10": (lambda w, p, b: ["--lr", "10", "--epochs", "40"], lambda w, p: "training stopped:",
+              r"(loss|weight).*lower --lr"),
+    "init-nan-bn": (lambda w, p, b: ["--init", _ckpt(CHECKPOINTS["bn-negative-var"][0])(w, b)],
+                    lambda w, p: w / "ckpt.torch", "negative variance"),
+    "patch-truncated": (lambda w, p, b: _damage_patch(p, w, b"\x89PNG\r\n\x1a\n\x00\x00"), None, "cannot be read"),
+    "patch-not-image": (lambda w, p, b: _damage_patch(p, w, b"hello, not a png"), None, "cannot be read"),
+    "device-mps": (lambda w, p, b: ["--device", "mps"], lambda w, p: "--device", "not available|mps"),
+}
+
+
+def _damage_patch(patches: Path, work: Path, data: bytes) -> list:
+    copy = work / "patches"
+    shutil.copytree(patches, copy)
+    first = sorted((copy / "images").iterdir())[0]
+    first.write_bytes(data)
+    return []
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", list(TRAIN_CASES))
+def test_train_stops_cleanly(name, base, patch_set, tmp_path):
+    work = tmp_path / "w"
+    work.mkdir()
+    extra_of, culprit_of, what = TRAIN_CASES[name]
+    extra = extra_of(work, patch_set, base)
+    patches = work / "patches" if (work / "patches").exists() else patch_set
+    culprit = culprit_of(work, patches) if culprit_of else next(p for p in sorted((patches / "images").iterdir()))
+    argv = ["train", patches, "--out", work / "run", "--epochs", "2", "--augment", "1", "--quiet", *map(str, extra)]
+    case = Case(name, argv, culprit, what, [work / "run"])
+    before = snapshot(work)
+    check_promise(case, run_massviz(argv, work), work, before)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP])
+def test_train_signal_leaves_no_run_folder(sig, base, patch_set, tmp_path):
+    work = tmp_path / "w"
+    work.mkdir()
+    out = work / "run"
+    argv = ["train", patch_set, "--out", out, "--epochs", "200", "--augment", "1", "--quiet"]
+    name = signal.Signals(sig).name
+
+    def training() -> bool:
+        return any(p.name.startswith(".run.") and (p / "metrics.csv").exists() for p in work.iterdir())
+    case = Case(f"train-{name}", argv, None, rf"\({name}\)" if sig != signal.SIGINT else "$", [out],
+                code=128 + sig, line="interrupted", when=training, send=sig)
+    before = snapshot(work)
+    check_promise(case, run_massviz(argv, work, when=training, send=sig), work, before)
+
+
+# ============================================================================================= the library, too
+def _library_calls(work: Path, b: Base):
+    """(what, callable) on the same hostile fixtures through the API."""
+    import massviz as mv
+    from massviz.evaluation.failures import load_exclusions
+    from massviz.evaluation.metrics import parse_class_map, read_annotations, read_predictions
+    from massviz.io.checkpoint import load_checkpoint
+    from massviz.io.trace_file import load_trace
+
+    calls = []
+    for p in ("int5000", "deep100k-list", "deep100k-object"):
+        for target in ("meta", "intrinsics"):
+            (work / f"{target}-{p}").mkdir()
+            case = json_case(target, p)(work / f"{target}-{p}", b)
+            calls.append((f"open_recording {target} {p}",
+                          lambda c=case: [None for _ in mv.open_recording(c.culprit.parent).frames()]))
+        path = work / f"x-{p}.json"
+        path.write_text(JSON_PAYLOADS[p])
+        calls += [(f"parse_class_map {p}", lambda q=path: parse_class_map(str(q))),
+                  (f"load_exclusions {p}", lambda q=path: load_exclusions(q))]
+    for name in CHECKPOINTS:
+        (work / f"ck-{name}").mkdir()
+        calls.append((f"load_checkpoint {name}", lambda c=_ckpt(CHECKPOINTS[name][0])(work / f"ck-{name}", b):
+                      load_checkpoint(c)))
+    for name in ("300MB",):
+        bomb = npz_bomb(work / f"bomb-{name}.npz", BOMBS[name][0])
+        calls.append((f"load_trace bomb {name}", lambda q=bomb: load_trace(q)))
+    for edit in TRACE_EDITS:
+        (work / f"tr-{edit}").mkdir()
+        case = trace_case(edit, "compare")(work / f"tr-{edit}", b)
+        calls.append((f"load_trace {edit}", lambda q=case.culprit: load_trace(q)))
+    for name in ("tiny-mass-5e-324", "dup-column-ann", "dup-column-pred", "huge-pred-1e300"):
+        (work / f"tb-{name}").mkdir()
+        case = table_case(name)(work / f"tb-{name}", b)
+        reader = read_annotations if case.culprit.name == "ann.csv" else read_predictions
+        calls.append((f"{reader.__name__} {name}", lambda r=reader, q=case.culprit: r(q)))
+    return calls
+
+
+def test_the_library_raises_only_massviz_errors(base, tmp_path):
+    from massviz.errors import MassvizError
+
+    calls = _library_calls(tmp_path, base)
+    assert len(calls) >= 30
+    for what, call in calls:
+        try:
+            call()
+        except MassvizError as err:
+            assert err.path is not None or "mapping" in str(err), (what, err)
+            assert "\n" not in str(err), (what, err)
+        except BaseException as err:  # noqa: BLE001 - the point of the test
+            raise AssertionError(f"{what}: raised {type(err).__name__}: {err}"[:400]) from None
+        else:
+            raise AssertionError(f"{what}: accepted")
