@@ -251,7 +251,7 @@ def test_one_selection_one_score_formula_one_ground_truth_reader():
         return sorted(str(p.relative_to(PKG)) for p in FILES if needle in p.read_text())
 
     assert files_with("argsort(") == ["core/selection.py"]
-    assert files_with("np.exp(") == ["evaluation/metrics.py"]
+    assert files_with("np.exp(-") == ["evaluation/metrics.py"]  # the score's exp(-eps) (a softmax is no score)
     assert files_with('get("container")') == ["core/types.py", "io/meta.py"]
 
 

@@ -146,7 +146,7 @@ def decode(score_maps: list[np.ndarray], box_maps: list[np.ndarray], threshold: 
     idx = cv2.dnn.NMSBoxesBatched(xywh.tolist(), scores.astype(float).tolist(), classes.tolist(), float(threshold),
                                   float(nms_iou))
     idx = np.asarray(idx, dtype=np.int64).reshape(-1)
-    idx = idx[np.argsort(-scores[idx], kind="stable")][:max_detections]
+    idx = idx[np.lexsort((-scores[idx],))][:max_detections]  # by score, ties in order (stable)
     return boxes[idx], scores[idx], classes[idx]
 
 
