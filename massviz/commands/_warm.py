@@ -41,6 +41,21 @@ class _NamedModel:
         raise MassvizError("internal error: the warm path needed the mass CNN")
 
 
+def _warm_class():
+    from massviz.app import Pipeline
+
+    class WarmPipeline(Pipeline):
+        """A ``massviz.app.Pipeline`` of named stand-ins (``warm_pipeline``) that opens recordings from their
+        remembered identities (``massviz.io.identity.open_remembered``)."""
+
+        def open_recording(self, path, allow_partial: bool = False):
+            from massviz.io.identity import open_remembered
+
+            return open_remembered(path, self.cache.root, allow_partial=allow_partial)
+
+    return WarmPipeline
+
+
 def cache_root(args) -> Path | None:
     """The trace cache folder the options name (None with --no-cache)."""
     from massviz.io.cache import default_cache_dir
@@ -87,9 +102,11 @@ def build_remembering(args, threshold: float | None = None):
 def warm_pipeline(args, threshold: float | None = None):
     """A pipeline that serves cached traces only (see the module docstring), or None when the options were never
     built here or a file they read changed."""
-    from massviz.app import Pipeline, PipelineOptions
+    from massviz.app import PipelineOptions
     from massviz.io.cache import TraceCache
     from massviz.io.identity import remembered_pipeline
+
+    _Warm = _warm_class()
 
     root = cache_root(args)
     if root is None:
@@ -107,7 +124,8 @@ def warm_pipeline(args, threshold: float | None = None):
         model = _NamedModel(str(resolved["weights_id"]))
     except (KeyError, TypeError, ValueError):
         return None
-    return Pipeline(options, detector, model, TraceCache(root))
+    pipeline = _Warm(options, detector, model, TraceCache(root))
+    return pipeline
 
 
 def cache_info(pipeline) -> dict:
@@ -128,6 +146,16 @@ def locate_all(paths, root, allow_partial: bool = False):
     return out
 
 
+def all_cached(pipeline, recordings, stride: int, threshold: float) -> bool:
+    """True when every recording was recognised (``LocatedRecording``) and has a trace in the cache made with this
+    pipeline's detector settings and model (a warm pipeline serves those only)."""
+    from massviz.io.identity import LocatedRecording
+
+    if not all(isinstance(r, LocatedRecording) for r in recordings):
+        return False
+    return cached_indexes(pipeline, recordings, stride, threshold) is not None
+
+
 def cached_indexes(pipeline, recordings, stride: int, threshold: float):
     """The selection index of every recording's cached trace made with this pipeline's detector and model, with the
     recording's info as found today; None when one is missing or was made with another model."""
@@ -144,4 +172,4 @@ def cached_indexes(pipeline, recordings, stride: int, threshold: float):
     return out
 
 
-__all__ = ["cache_root", "build_remembering", "warm_pipeline", "locate_all", "cached_indexes", "cache_info"]
+__all__ = ["cache_root", "build_remembering", "warm_pipeline", "locate_all", "all_cached", "cached_indexes", "cache_info"]

@@ -87,7 +87,9 @@ class RecordingWorker:
         t0 = time.perf_counter()
         out = Outcome(task.index, task.id, task.path, "failed", worker=self.name)
         try:
-            rec = open_recording(task.path, allow_partial=self.pipeline.options.allow_partial)
+            # a pipeline may open recordings its own way (the warm path: recognised from file identities)
+            opener = getattr(self.pipeline, "open_recording", open_recording)
+            rec = opener(task.path, allow_partial=self.pipeline.options.allow_partial)
             if fault is not None:
                 fault(rec)
             trace = self.pipeline.process(rec, progress=progress)
