@@ -118,19 +118,20 @@ def cold(dataset, tmp_path_factory, env):
     return cache, out
 
 
-def _pipeline_and_recordings(dataset, cache):
+def _pipeline_and_recordings(dataset, cache, env):
     from massviz.app import build_pipeline
     from massviz.io.recording import find_recordings, open_recording
 
-    pipeline = build_pipeline(detector="depth", threshold=0.4, cache=str(cache), quiet=True)
+    pipeline = build_pipeline(detector="depth", threshold=0.4, cache=str(cache), quiet=True,
+                              weights=env["MASSVIZ_WEIGHTS"])
     return pipeline, [open_recording(p) for p in find_recordings(dataset)]
 
 
-def test_index_gives_the_full_traces_estimates_and_scores_on_a_grid(dataset, cold):
+def test_index_gives_the_full_traces_estimates_and_scores_on_a_grid(dataset, cold, env):
     from massviz.commands._warm import cached_indexes
 
     cache, _ = cold
-    pipeline, recordings = _pipeline_and_recordings(dataset, cache)
+    pipeline, recordings = _pipeline_and_recordings(dataset, cache, env)
     traces = [pipeline.process(r, progress=False) for r in recordings]
     assert all("cache" in t.timings for t in traces)  # from the cache, made by the cold run
     indexes = cached_indexes(pipeline, recordings, 1, 0.4)

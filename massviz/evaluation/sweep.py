@@ -65,10 +65,12 @@ class SweepTable:
     ``estimate_mass`` does, so the estimates are identical (not just close) to ``trace.reselect(k, threshold)`` (and
     with ``stride``, to ``massviz.evaluation.tuning.retune``)."""
 
-    def __init__(self, traces: Sequence[Trace]):
+    def __init__(self, traces: Sequence[Trace], excluded: Sequence | None = None):
+        """``excluded``: detection indices never selected, one array per trace (default: each trace's own)."""
         self.traces = list(traces)
         self.min_threshold = max((t.detect_threshold for t in self.traces), default=0.0)
-        orders = [NearestOrder(t.detections.d, t.detections.score, t.excluded) for t in self.traces]
+        excluded = [t.excluded for t in self.traces] if excluded is None else list(excluded)
+        orders = [NearestOrder(t.detections.d, t.detections.score, ex) for t, ex in zip(self.traces, excluded)]
         n = np.array([len(o.order) for o in orders], dtype=np.int64)
         self._rec = np.repeat(np.arange(len(orders), dtype=np.int64), n)
         self._start = np.concatenate([[0], np.cumsum(n)])[:-1]
