@@ -127,7 +127,9 @@ def _pipeline_and_recordings(dataset, cache, env):
     return pipeline, [open_recording(p) for p in find_recordings(dataset)]
 
 
-def test_index_gives_the_full_traces_estimates_and_scores_on_a_grid(dataset, cold, env):
+@pytest.fixture(scope="module")
+def loaded(dataset, cold, env):
+    """(full traces from the cache, their selection indexes), in the same order."""
     from massviz.commands._warm import cached_indexes
 
     cache, _ = cold
@@ -136,6 +138,11 @@ def test_index_gives_the_full_traces_estimates_and_scores_on_a_grid(dataset, col
     assert all("cache" in t.timings for t in traces)  # from the cache, made by the cold run
     indexes = cached_indexes(pipeline, recordings, 1, 0.4)
     assert indexes is not None and len(indexes) == 4
+    return traces, indexes
+
+
+def test_index_gives_the_full_traces_estimates_and_scores_on_a_grid(loaded):
+    traces, indexes = loaded
     assert {i.trace_path.name[0] for i in indexes} == {"t"}  # the full trace stays where it is, lazily read
     table = SweepTable(indexes)
     estimated = 0
@@ -158,7 +165,7 @@ def test_an_index_is_kilobytes_and_not_used_for_another_trace_file(dataset, cold
     cache, _ = cold
     for trace_file in (Path(cache) / "traces").glob("*/t*.npz"):
         idx = index_path(trace_file)
-        assert idx.is_file() and idx.stat().st_size < 64_000 < trace_file.stat().st_size
+        assert idx.is_file() and idx.stat().st_size < min(32_000, trace_file.stat().st_size)
         assert load_index(trace_file) is not None
     # a trace file replaced (another model's predictions...): its old index is ignored
     trace_file = next((Path(cache) / "traces").glob("*/t*.npz"))
@@ -166,6 +173,32 @@ def test_an_index_is_kilobytes_and_not_used_for_another_trace_file(dataset, cold
     copy.write_bytes(trace_file.read_bytes())
     index_path(trace_file).rename(index_path(copy))
     assert load_index(copy) is None
+
+
+def test_the_tuner_on_indexes_is_the_tuner_on_full_traces(loaded):
+    from massviz.views.widgets import Tuner
+
+    traces, indexes = loaded
+    full, light = Tuner(traces, k=5, threshold=0.4), Tuner(indexes, k=5, threshold=0.4)
+    assert light._full == {}  # nothing shown yet: no full trace read
+    for change in ({}, {"k": 1}, {"k": 10}, {"threshold": 0.7}, {"stride": 2}, {"stride": 3, "k": 4}):
+        full.update(**change)
+        light.update(**change)
+        assert light.estimates() == full.estimates()
+        assert light.report.score_pct == full.report.score_pct
+        for i in range(len(traces)):
+            assert np.array_equal(light.selection(i), full.selection(i))
+            assert light.patch_table(i).equals(full.patch_table(i))
+            assert light.current[i].flags == full.current[i].flags
+    assert 0 < len(light._full) <= Tuner.KEEP_FULL
+    cup = [t.recording.id for t in traces].index("cup_handover")
+    chosen = int(full.selection(cup)[0])
+    for tuner in (full, light):
+        tuner.set_mode(cup, chosen, "exclude track")
+        tuner.update(k=5)
+    assert light.estimates() == full.estimates()
+    assert light.estimates()["cup_handover"] != Tuner(indexes, k=5, threshold=0.4).estimates()["cup_handover"]
+    assert light.exclusions() == full.exclusions()
 
 
 def _warm_env(env, dataset, counts: Path):
