@@ -175,6 +175,21 @@ def test_an_index_is_kilobytes_and_not_used_for_another_trace_file(dataset, cold
     assert load_index(copy) is None
 
 
+def test_a_copied_cache_is_indexed_again(dataset, cold, env, tmp_path):
+    import shutil
+
+    from massviz.commands._warm import cached_indexes
+    from massviz.io.cache import load_index
+
+    copy = tmp_path / "copy"
+    shutil.copytree(cold[0], copy)
+    trace_files = sorted((copy / "traces").glob("*/t*.npz"))
+    assert trace_files and all(load_index(f) is None for f in trace_files)  # another inode: not trusted
+    pipeline, recordings = _pipeline_and_recordings(dataset, copy, env)
+    assert cached_indexes(pipeline, recordings, 1, 0.4) is not None
+    assert all(load_index(f) is not None for f in trace_files)
+
+
 def test_the_tuner_on_indexes_is_the_tuner_on_full_traces(loaded):
     from massviz.views.widgets import Tuner
 

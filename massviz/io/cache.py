@@ -100,8 +100,13 @@ class TraceCache:
         if path is None:
             return None
         index = load_index(path)
-        if index is None:
-            if self.load(recording, detector_info, stride, threshold) is None:
+        if index is None:  # none, stale (its trace file was replaced or copied) or unreadable: index it again
+            trace = self.load(recording, detector_info, stride, threshold)
+            if trace is None:
+                return None
+            try:
+                save_index(trace, path)
+            except (OSError, MassvizError):
                 return None
             index = load_index(path)
         return index if index is not None and index.detect_threshold <= threshold + 1e-9 else None
