@@ -250,14 +250,14 @@ def test_a_cached_rerun_opens_no_frame_file_and_imports_no_torch(dataset, cold, 
 
     out = tmp_path / "est.csv"
     run = massviz("estimate", dataset / "cup_handover", "--detector", "depth", "--cache", cache, "--out", out,
-                  "--quiet", env=warm_env)
+                  "--quiet", "--exec-time", "none", env=warm_env)
     seen = json.loads(counts.read_text())
     assert [p for p in seen["opened"] if "/rgb/" in p or "/depth/" in p] == [] and seen["torch"] is False, seen
     assert "cup_handover: 57.4 g" in run.stderr
 
     # the hook does see frames: a cold estimate (another cache) opens them and imports torch
     massviz("estimate", dataset / "cup_handover", "--detector", "depth", "--cache", tmp_path / "c2", "--out",
-            tmp_path / "cold.csv", "--quiet", env=warm_env)
+            tmp_path / "cold.csv", "--quiet", "--exec-time", "none", env=warm_env)
     seen = json.loads(counts.read_text())
     assert any("/depth/" in p for p in seen["opened"]) and seen["torch"] is True
     assert (tmp_path / "cold.csv").read_bytes() == out.read_bytes()

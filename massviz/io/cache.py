@@ -158,8 +158,13 @@ class TraceIndex:
         return self.recording.ground_truth
 
     def full_trace(self) -> Trace:
-        """The full trace (patches, masks), read now."""
-        return load_trace(self.trace_path)
+        """The full trace (patches, masks), read now, with this index's recording info (today's, as
+        ``massviz.app.process`` gives a cached trace) and the ground-truth overlaps of that recording."""
+        import dataclasses
+
+        from massviz.io.ground_truth import with_ground_truth
+
+        return with_ground_truth(dataclasses.replace(load_trace(self.trace_path), recording=self.recording))
 
 
 def index_path(trace_path: Path) -> Path:

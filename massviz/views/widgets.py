@@ -130,7 +130,7 @@ class Tuner:
         if i not in self._full:
             while len(self._full) >= self.KEEP_FULL:
                 self._full.pop(next(iter(self._full)))
-            self._full[i] = dataclasses.replace(t.full_trace(), recording=t.recording)
+            self._full[i] = t.full_trace()
         return self._full[i]
 
     def _retune(self, i: int) -> Trace:
