@@ -186,8 +186,9 @@ def test_a_copied_cache_is_indexed_again(dataset, cold, env, tmp_path):
     trace_files = sorted((copy / "traces").glob("*/t*.npz"))
     assert trace_files and all(load_index(f) is None for f in trace_files)  # another inode: not trusted
     pipeline, recordings = _pipeline_and_recordings(dataset, copy, env)
-    assert cached_indexes(pipeline, recordings, 1, 0.4) is not None
-    assert all(load_index(f) is not None for f in trace_files)
+    indexes = cached_indexes(pipeline, recordings, 1, 0.4)
+    assert indexes is not None and {i.trace_path.parent.parent.parent for i in indexes} == {copy}
+    assert all(load_index(i.trace_path) is not None for i in indexes)
 
 
 def test_the_tuner_on_indexes_is_the_tuner_on_full_traces(loaded):

@@ -13,6 +13,7 @@ Location: ``--cache PATH``, else env ``MASSVIZ_CACHE_DIR``, else the user cache 
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -131,7 +132,15 @@ class TraceCache:
 
 # -- the selection index ---------------------------------------------------------------------------------------------
 #: version of the index files (``i<threshold>.npz`` beside ``t<threshold>.npz``)
-INDEX_FORMAT = 1
+INDEX_FORMAT = 2
+
+
+@functools.lru_cache(maxsize=1)
+def _index_dtype() -> np.dtype:
+    """One record per detection: every ``Detections`` array (masks and patches apart), in its own dtype."""
+    probe = Detections(frame=[0], xyxy=[[0, 0, 1, 1]], score=[0.5], class_id=[0])
+    return np.dtype([(name, getattr(probe, name).dtype, getattr(probe, name).shape[1:])
+                     for name in Detections._ARRAYS])
 
 
 @dataclass
@@ -187,9 +196,12 @@ def save_index(trace: Trace, trace_path: Path) -> Path:
     header = {"format": INDEX_FORMAT, "recording": trace.recording.to_dict(), "detector": trace.detector,
               "detect_threshold": float(trace.detect_threshold), "stride": int(trace.stride),
               "weights_id": trace.weights_id, "trace": _trace_identity(trace_path)}
+    columns = np.zeros(len(dets), dtype=_index_dtype())
+    for name in Detections._ARRAYS:
+        columns[name] = getattr(dets, name)
+    # two members (header, one structured array of every column): a file is read with two .npy headers parsed
     arrays = {"header": np.frombuffer(json.dumps(header, default=str).encode(), dtype=np.uint8),
-              "frames": np.asarray(trace.frames, dtype=np.int64),
-              **{f"det_{name}": getattr(dets, name) for name in Detections._ARRAYS}}
+              "frames": np.asarray(trace.frames, dtype=np.int64), "columns": columns}
     out = index_path(trace_path)
     with atomic_path(out) as tmp:
         with open(tmp, "wb") as fh:
@@ -209,11 +221,13 @@ def load_index(trace_path: Path) -> TraceIndex | None:
             return None
         if header.get("trace") != _trace_identity(trace_path):
             return None  # the trace was rewritten since (another model's predictions ...): index it again
-        n = len(data["det_frame"])
-        if any(np.asarray(data[f"det_{name}"]).shape[:1] != (n,) for name in Detections._ARRAYS):
+        columns = data["columns"]
+        if columns.dtype != _index_dtype() or columns.ndim != 1:
             return None
-        dets = Detections(**{name: data[f"det_{name}"] for name in Detections._ARRAYS})
-        if n and (np.isinf(dets.d).any() or np.isnan(dets.score).any() or (dets.frame < 0).any()):
+        n = len(columns)
+        dets = Detections(**{name: columns[name] for name in Detections._ARRAYS})
+        if n and (np.isinf(dets.d).any() or np.isnan(dets.score).any() or (dets.frame < 0).any()
+                  or (dets.score < 0).any() or (dets.score > 1).any()):
             return None
         threshold, stride = float(header["detect_threshold"]), int(header["stride"])
         if not (0.0 <= threshold < 1.0 and stride >= 1):
