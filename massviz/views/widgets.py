@@ -311,13 +311,34 @@ class TuningPanel:
         self.refresh()
 
     def tiles(self, i: int, indices: Sequence[int], captions: Sequence[str]):
+        """One tile (image, caption) per chosen patch. Tiles are kept and only their values change from one update
+        to the next (a new widget is a round trip to the page and a new view to lay out: most of a slider move's
+        time in the browser); a value that did not change is not sent again."""
         import ipywidgets as W
 
         trace = self.tuner.full(i)
+        shown = self.__dict__.setdefault("_shown_trace", {})
+        if shown.get(i, id(trace)) != id(trace):  # re-read after the tuner let it go: its id may be reused
+            old = shown[i]
+            self.images._png = {key: v for key, v in self.images._png.items() if key[0] != old}
+        shown[i] = id(trace)
         flagged = {p.rank for p in self.tuner.current[i].flags.flagged}
-        return [W.VBox([W.Image(value=self.images.png(trace, d), format="png"), W.HTML(c)],
-                       layout=W.Layout(margin="2px 6px", border=_tile_border(r in flagged)))
-                for r, (d, c) in enumerate(zip(indices, captions))]
+        pool = self.__dict__.setdefault("_tile_pool", [])
+        while len(pool) < len(indices):
+            image, caption = W.Image(format="png"), W.HTML()
+            pool.append((W.VBox([image, caption], layout=W.Layout(margin="2px 6px")), image, caption))
+        out = []
+        for r, (d, c) in enumerate(zip(indices, captions)):
+            box, image, caption = pool[r]
+            png, border = self.images.png(trace, d), _tile_border(r in flagged)
+            if image.value != png:
+                image.value = png
+            if caption.value != c:
+                caption.value = c
+            if box.layout.border != border:
+                box.layout.border = border
+            out.append(box)
+        return out
 
     def refresh(self) -> None:
         i, tuner = self.i, self.tuner
