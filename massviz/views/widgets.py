@@ -317,11 +317,14 @@ class TuningPanel:
         import ipywidgets as W
 
         trace = self.tuner.full(i)
-        shown = self.__dict__.setdefault("_shown_trace", {})
-        if shown.get(i, id(trace)) != id(trace):  # re-read after the tuner let it go: its id may be reused
-            old = shown[i]
-            self.images._png = {key: v for key, v in self.images._png.items() if key[0] != old}
-        shown[i] = id(trace)
+        # PatchImages keys PNGs by id(trace): hold the traces whose PNGs are kept (so no id is reused meanwhile),
+        # the last few only, dropping the PNGs of a trace let go
+        owners = self.__dict__.setdefault("_png_owners", {})
+        owners[id(trace)] = owners.pop(id(trace), trace)
+        while len(owners) > Tuner.KEEP_FULL + 1:
+            gone = next(iter(owners))
+            owners.pop(gone)
+            self.images._png = {key: v for key, v in self.images._png.items() if key[0] != gone}
         flagged = {p.rank for p in self.tuner.current[i].flags.flagged}
         pool = self.__dict__.setdefault("_tile_pool", [])
         while len(pool) < len(indices):
