@@ -314,3 +314,21 @@ def test_a_garbage_memo_is_ignored(tmp_path, samples_dir):
             {**json.loads(memo.read_text()), "depends": {"files": {"/nonexistent": [1]}, "dirs": {}}})):
         memo.write_text(garbage)
         assert locate(rec, cache) is None
+
+
+def test_the_panel_keeps_its_tiles_across_slider_moves(loaded):
+    pytest.importorskip("ipywidgets")
+    from massviz.views.widgets import Tuner, TuningPanel
+
+    _, indexes = loaded
+    panel = TuningPanel(Tuner(indexes, k=5, threshold=0.4))
+    before = list(panel.patches.children)
+    panel.set(k=6)
+    after = list(panel.patches.children)
+    assert len(before) == 5 and len(after) == 6 and after[:5] == before  # the same widgets, new values
+    fresh = TuningPanel(Tuner(indexes, k=6, threshold=0.4))  # what a panel made at K=6 shows
+    show = lambda p: [(t.children[0].value, t.children[1].value, t.layout.border) for t in p.patches.children]  # noqa: E731
+    assert show(panel) == show(fresh)
+    panel.set(k=2, threshold=0.7)
+    fresh = TuningPanel(Tuner(indexes, k=2, threshold=0.7))
+    assert show(panel) == show(fresh) and len(panel.patches.children) == 2
