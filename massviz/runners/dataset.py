@@ -157,7 +157,8 @@ def _run_local(tasks, options, collect, threads, record, pipeline, stats, frame_
     try:
         t0 = time.perf_counter()
         worker = RecordingWorker(options, collect, threads, pipeline=pipeline)
-        stats.update(workers=1, threads=torch.get_num_threads() if torch is not None else None,
+        built = sys.modules.get("torch")  # imported by building the pipeline, unless it serves cached traces only
+        stats.update(workers=1, threads=built.get_num_threads() if built is not None else None,
                      startup_s=time.perf_counter() - t0)
         debug = bool(os.environ.get("MASSVIZ_DEBUG"))
         for task in tasks:
