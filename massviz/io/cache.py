@@ -131,7 +131,7 @@ class TraceCache:
 
 
 # -- the selection index ---------------------------------------------------------------------------------------------
-#: version of the index files (``i<threshold>.npz`` beside ``t<threshold>.npz``)
+#: version of the index files (``i<threshold>.idx`` beside ``t<threshold>.npz``)
 INDEX_FORMAT = 2
 
 
@@ -177,8 +177,9 @@ class TraceIndex:
 
 
 def index_path(trace_path: Path) -> Path:
-    """``.../t0.4.npz`` -> ``.../i0.4.npz`` (``lookup`` globs ``t*.npz`` only)."""
-    return trace_path.with_name("i" + trace_path.name[1:])
+    """``.../t0.4.npz`` -> ``.../i0.4.idx`` (an .npz inside; not named .npz, so that every ``*.npz`` of the cache
+    is a trace, as ``lookup`` and anyone counting traces expect)."""
+    return trace_path.with_name("i" + trace_path.name[1:].removesuffix(".npz") + ".idx")
 
 
 def _trace_identity(trace_path: Path) -> list[int]:
