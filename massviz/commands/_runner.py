@@ -56,7 +56,9 @@ def open_dataset(args):
     stop. Task paths are absolute: Ray workers open the recordings themselves; the local engine takes the opened
     ones (pass them to ``run_tasks(recordings=)``)."""
     from massviz.errors import MassvizError
-    from massviz.io.recording import find_recordings, open_recording
+    from massviz.commands._warm import cache_root
+    from massviz.io.identity import open_remembered
+    from massviz.io.recording import find_recordings
     from massviz.runners.dataset import Outcome, Task, default_on_error
 
     paths = [p for path in args.recordings for p in find_recordings(path, view=args.view)]
@@ -64,7 +66,8 @@ def open_dataset(args):
     tasks, failed, recordings = [], [], {}
     for i, path in enumerate(paths):
         try:
-            rec = open_recording(path, allow_partial=getattr(args, "allow_partial", False))
+            # unchanged since last opened (file identities): no frame decoded (massviz.io.identity)
+            rec = open_remembered(path, cache_root(args), allow_partial=getattr(args, "allow_partial", False))
         except MassvizError as err:
             if on_error == "stop":
                 raise

@@ -70,10 +70,20 @@ def estimate_row(trace, recording, extra, *, exclusions=None, exec_time: str = "
             "warning": flag_warning("estimate", trace)}
 
 
+def _warm_or_build(args, recordings):
+    """The warm pipeline (``massviz.commands._warm``: cached traces only, no model loaded, no torch) when every
+    recording is unchanged and cached with a model whose id is remembered; else the pipeline built."""
+    from massviz.commands._warm import all_cached, build_remembering, warm_pipeline
+
+    warm = warm_pipeline(args) if args.engine == "local" and not args.threads else None
+    if warm is not None and recordings and all_cached(warm, recordings, args.stride, args.threshold):
+        return warm
+    return build_remembering(args)
+
+
 def run(args) -> int:
     import functools
 
-    from massviz.commands._common import build
     from massviz.commands._runner import exit_status, open_dataset, run_tasks
     from massviz.errors import MassvizError
     from massviz.io.atomic import check_output_file
@@ -91,7 +101,7 @@ def run(args) -> int:
         from massviz.evaluation.failures import load_exclusions
 
         exclusions = load_exclusions(args.exclude)
-    pipeline = build(args)
+    pipeline = _warm_or_build(args, list(recordings.values()))
     collect = functools.partial(estimate_row, exclusions=exclusions, exec_time=args.exec_time)
     outcomes = run_tasks(args, "estimate", pipeline, tasks, failed, on_error, collect, recordings=recordings)
     rows = []

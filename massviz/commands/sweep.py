@@ -16,7 +16,9 @@ def register(sub) -> None:
         "detections cached at the lowest threshold of the grid serve every higher threshold, and each detection "
         "already carries its mass prediction. Recordings missing from the cache are processed once (at the "
         "lowest threshold) first, unless --cached-only; --engine says where (when every recording is cached, the cache "
-        "is read in this process whatever the engine).",
+        "is read in this process whatever the engine). A dataset whose recordings are unchanged since they were last "
+        "opened and all cached is swept from the cache's selection indexes alone: no recording opened, no model "
+        "loaded (README: Speed at dataset scale).",
         epilog="examples:\n"
         "  massviz sweep data_samples --detector depth --threshold 0.3:0.9:0.05 --k 1:10 --plot heatmap.png\n"
         "  massviz sweep /data/CCM/train --annotations Val_annotations.csv --csv sweep.csv\n"
@@ -52,13 +54,11 @@ def run(args) -> int:
     from pathlib import Path
 
     from massviz.io.atomic import atomic_path, check_output_file
-    from massviz.commands._common import build
-    from massviz.commands._runner import exit_status, open_dataset, run_tasks
+    from massviz.commands._runner import open_dataset, run_tasks
+    from massviz.commands._warm import build_remembering
     from massviz.errors import MassvizError
     from massviz.evaluation.metrics import default_class_of, parse_class_map, read_annotations
-    from massviz.evaluation.sweep import MAX_SWEEP_PAIRS, best_pair, parse_range, sweep
-    from massviz.io.untrusted import csv_safe
-    from massviz.views.score_plot import plot_heatmap
+    from massviz.evaluation.sweep import MAX_SWEEP_PAIRS, parse_range
 
     thresholds = parse_range(args.threshold, float, "--threshold")
     ks = parse_range(args.k, int, "--k")
@@ -74,10 +74,13 @@ def run(args) -> int:
             check_output_file(getattr(args, option), f"--{option}")
     ann = read_annotations(args.annotations) if args.annotations else None
     class_of = parse_class_map(args.classes) if args.classes else default_class_of
+    args.k = 1
+    indexes = _warm_indexes(args, min(thresholds))
+    if indexes is not None:  # every recording unchanged and in the cache: no recording opened, no model loaded
+        return _report_table(args, indexes, thresholds, ks, ann, class_of, [])
     tasks, failed, opened, on_error = open_dataset(args)
     recordings = [opened[t.index] for t in tasks]
-    args.k = 1
-    pipeline = build(args, threshold=min(thresholds))
+    pipeline = build_remembering(args, threshold=min(thresholds))
     detector, cache = pipeline.detector, pipeline.cache
     info = {"name": detector.name, **detector.settings()}
     missing = [r.id for r in recordings if cache is None or
@@ -91,7 +94,41 @@ def run(args) -> int:
         args.engine, args.workers, args.ray_address = "local", None, None
     outcomes = run_tasks(args, "sweep", pipeline, tasks, failed, on_error, slim_trace, desc="traces",
                          recordings=opened)
-    traces = [o.value for o in outcomes if o.ok]
+    return _report_table(args, [o.value for o in outcomes if o.ok], thresholds, ks, ann, class_of, outcomes)
+
+
+def _warm_indexes(args, threshold: float):
+    """The selection index of every recording's cached trace, found from file identities alone
+    (``massviz.commands._warm``), or None (then the recordings are opened and the pipeline built)."""
+    from massviz.commands._warm import cache_root, cached_indexes, locate_all, warm_pipeline
+    from massviz.io.recording import find_recordings
+
+    pipeline = warm_pipeline(args, threshold)
+    if pipeline is None:
+        return None
+    paths = [p for path in args.recordings for p in find_recordings(path, view=args.view)]
+    recordings = locate_all(paths, cache_root(args), getattr(args, "allow_partial", False))
+    if not recordings:
+        return None
+    indexes = cached_indexes(pipeline, recordings, args.stride, threshold)
+    if indexes is not None and args.report:
+        from massviz.runners.dataset import Outcome, write_report
+
+        write_report(args.report, [Outcome(i, r.id, str(r.path), "cached") for i, r in enumerate(recordings)],
+                     command="sweep", engine="local", ray_address=None, on_error=args.on_error or "skip",
+                     workers=0, threads=0, seconds=0.0, stopped=False)
+    return indexes
+
+
+def _report_table(args, traces, thresholds, ks, ann, class_of, outcomes) -> int:
+    from pathlib import Path
+
+    from massviz.commands._runner import exit_status
+    from massviz.errors import MassvizError
+    from massviz.evaluation.sweep import best_pair, sweep
+    from massviz.io.atomic import atomic_path
+    from massviz.io.untrusted import csv_safe
+
     if not traces:
         raise MassvizError("no recording could be processed (see the errors above)")
     table = sweep(traces, thresholds, ks, ann, class_of)
@@ -105,6 +142,8 @@ def run(args) -> int:
         with atomic_path(Path(args.csv)) as tmp:
             csv_safe(table).to_csv(tmp, index=False, float_format="%.4f")
     if args.plot:
+        from massviz.views.score_plot import plot_heatmap
+
         plot_heatmap(table, args.plot)
     if len(traces) < len(outcomes):
         print(f"massviz sweep: {len(outcomes) - len(traces)} failed recording(s) left out of the table",

@@ -145,6 +145,19 @@ def preprocess_patches(patches: Sequence[np.ndarray]) -> torch.Tensor:
     return torch.stack([preprocess_patch(p) for p in patches])
 
 
+#: torch intra-op threads for :meth:`MassNet.predict` (0: leave torch's setting). One thread: measured 5-7x faster
+#: than two for 6-16 patches on this project's shared 2-core machine under load (``benchmarks/model_threads.py``);
+#: predictions move by < 2e-5 g. Environment ``MASSVIZ_MODEL_THREADS`` overrides it.
+MODEL_THREADS = 1
+
+
+def _model_threads() -> int:
+    import os
+
+    value = os.environ.get("MASSVIZ_MODEL_THREADS", "")
+    return int(value) if value.isdigit() else MODEL_THREADS
+
+
 # ---------------------------------------------------------------------------------------------------------- network
 class MassNet(nn.Module):
     """The paper's mass CNN. ``forward(images N×3×112×112, features N×3 normalised) → N×1 normalised mass``.
@@ -239,6 +252,9 @@ class MassNet(nn.Module):
         # forward_eval: the same numbers as forward with ReLU/BatchNorm on a quarter of the data; batches of 16
         # stay in the caches (~1.6x faster than 64 on a 2-core CPU; the batch size moves predictions by ~1e-4 g)
         self.to(memory_format=torch.channels_last)
+        threads, wanted = torch.get_num_threads(), _model_threads()
+        if wanted and wanted != threads:
+            torch.set_num_threads(wanted)  # the detector keeps its own (restored below)
         try:
             out = []
             for i in range(0, len(feats), batch_size):
@@ -249,6 +265,8 @@ class MassNet(nn.Module):
                 out.append(y[:, 0].float().cpu().numpy())
         finally:
             self.train(was_training)
+            if torch.get_num_threads() != threads:
+                torch.set_num_threads(threads)
         return self.ranges.denormalise_mass(np.concatenate(out))
 
 

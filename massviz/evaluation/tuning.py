@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
@@ -108,5 +109,36 @@ def retuned_estimate(trace: Trace, *, k: int, threshold: float, stride: int = 1,
     return estimate_mass(dets.pred[keep], sel)
 
 
-__all__ = ["kept_indices", "subsample", "retune", "retuned_estimate", "original_selection", "score_traces",
+def index_recordings(recordings, options=None, *, progress: bool = False, **kwargs) -> list:
+    """The selection index (``massviz.io.cache.TraceIndex``, a few kB) of each recording's cached trace, processing
+    the recordings not in the cache first: what a ``massviz.views.widgets.Tuner`` over a whole dataset is given
+    (``Tuner(index_recordings(paths, detector="depth"))``). Options as ``massviz.app.build_pipeline``; recordings
+    unchanged since they were last opened are recognised from their file identities (``massviz.io.identity``)."""
+    import dataclasses
+
+    from massviz.app import build_pipeline
+    from massviz.io.identity import open_remembered
+
+    pipeline = build_pipeline(options, **kwargs)
+    if pipeline.cache is None:
+        raise ValueError("index_recordings needs the trace cache (no_cache=False)")
+    o = pipeline.options
+    info = {"name": pipeline.detector.name, **pipeline.detector.settings()}
+    out = []
+    for r in recordings:
+        rec = r if not isinstance(r, (str, Path)) else open_remembered(r, pipeline.cache.root,
+                                                                       allow_partial=o.allow_partial)
+        index = pipeline.cache.load_index(rec, info, o.stride, o.threshold)
+        if index is None or index.weights_id != getattr(pipeline.model, "weights_id", ""):
+            if not hasattr(rec, "frames"):  # recognised, not opened: open it to process it
+                from massviz.io.recording import open_recording
+
+                rec = open_recording(r, allow_partial=o.allow_partial)
+            pipeline.process(rec, progress=progress)
+            index = pipeline.cache.load_index(rec, info, o.stride, o.threshold)
+        out.append(dataclasses.replace(index, recording=rec.info()))
+    return out
+
+
+__all__ = ["index_recordings", "kept_indices", "subsample", "retune", "retuned_estimate", "original_selection", "score_traces",
            "score_estimates"]

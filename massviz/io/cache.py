@@ -13,13 +13,16 @@ Location: ``--cache PATH``, else env ``MASSVIZ_CACHE_DIR``, else the user cache 
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
 import shutil
 import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import platformdirs
 
 from massviz.errors import MassvizError
@@ -27,6 +30,7 @@ from massviz.io.filehash import FileHasher
 from massviz.io.untrusted import safe_filename
 from massviz.io.recording import Recording
 from massviz.core.trace import Trace
+from massviz.core.types import Detections, RecordingInfo
 from massviz.io.trace_file import load_trace, save_trace
 
 
@@ -82,7 +86,31 @@ class TraceCache:
         except Exception:  # noqa: BLE001 - whatever is wrong with an entry, it is dropped and recomputed
             _drop(path)
             return None
+        if not index_path(path).is_file():  # an entry written before the index: index it now (cheap)
+            try:
+                save_index(trace, path)
+            except (OSError, MassvizError):
+                pass
         return trace if trace.detect_threshold <= threshold else None
+
+    def load_index(self, recording, detector_info: dict, stride: int, threshold: float) -> "TraceIndex | None":
+        """The selection index of the cached trace ``load`` would return (see :class:`TraceIndex`), or None when
+        the entry is missing; an entry without a usable index (written before indexes, stale, corrupt) is indexed
+        from its full trace once. Reads no frame and decodes no patch or mask."""
+        path = self.lookup(recording, detector_info, stride, threshold)
+        if path is None:
+            return None
+        index = load_index(path)
+        if index is None:  # none, stale (its trace file was replaced or copied) or unreadable: index it again
+            trace = self.load(recording, detector_info, stride, threshold)
+            if trace is None:
+                return None
+            try:
+                save_index(trace, path)
+            except (OSError, MassvizError):
+                return None
+            index = load_index(path)
+        return index if index is not None and index.detect_threshold <= threshold + 1e-9 else None
 
     def save(self, trace: Trace, recording: Recording, detector_info: dict) -> Path | None:
         """Write the trace's entry; a file system refusal at this point (the folder was checked writable before
@@ -92,12 +120,125 @@ class TraceCache:
         try:
             if path.is_dir():
                 _drop(path)
-            return save_trace(trace, path)
+            saved = save_trace(trace, path)
+            save_index(trace, saved)
+            return saved
         except (OSError, MassvizError) as err:
             what = getattr(err, "strerror", None) or str(err)
             print(f"massviz: warning: {path}: cannot write the trace cache entry ({what}); the result is not cached",
                   file=sys.stderr)
             return None
+
+
+# -- the selection index ---------------------------------------------------------------------------------------------
+#: version of the index files (``i<threshold>.idx`` beside ``t<threshold>.npz``)
+INDEX_FORMAT = 2
+
+
+@functools.lru_cache(maxsize=1)
+def _index_dtype() -> np.dtype:
+    """One record per detection: every ``Detections`` array (masks and patches apart), in its own dtype."""
+    probe = Detections(frame=[0], xyxy=[[0, 0, 1, 1]], score=[0.5], class_id=[0])
+    return np.dtype([(name, getattr(probe, name).dtype, getattr(probe, name).shape[1:])
+                     for name in Detections._ARRAYS])
+
+
+@dataclass
+class TraceIndex:
+    """What re-selection, sweeps, scores and the flags need of a cached trace, without its masks and patches: the
+    recording's info, the detector's threshold, the stride, the model's id, the processed frames and every detection's
+    columns (``Detections`` with ``masks``/``patches`` None: frame, class, score, box, d, a, b, prediction, track and
+    the ground-truth overlaps). A few kilobytes per recording. Reads like a ``Trace`` where a sweep reads one
+    (``recording``, ``detections``, ``excluded``, ``detect_threshold``, ``ground_truth``); ``trace_path`` is the full
+    trace, for the view that needs patches or masks (``load_trace``)."""
+
+    recording: RecordingInfo
+    detector: dict
+    detect_threshold: float
+    stride: int
+    weights_id: str
+    frames: np.ndarray
+    detections: Detections
+    trace_path: Path
+    excluded: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+    @property
+    def ground_truth(self):
+        return self.recording.ground_truth
+
+    def full_trace(self) -> Trace:
+        """The full trace (patches, masks), read now, with this index's recording info (today's, as
+        ``massviz.app.process`` gives a cached trace) and the ground-truth overlaps of that recording."""
+        import dataclasses
+
+        from massviz.io.ground_truth import with_ground_truth
+
+        return with_ground_truth(dataclasses.replace(load_trace(self.trace_path), recording=self.recording))
+
+
+def index_path(trace_path: Path) -> Path:
+    """``.../t0.4.npz`` -> ``.../i0.4.idx`` (an .npz inside; not named .npz, so that every ``*.npz`` of the cache
+    is a trace, as ``lookup`` and anyone counting traces expect)."""
+    return trace_path.with_name("i" + trace_path.name[1:].removesuffix(".npz") + ".idx")
+
+
+def _trace_identity(trace_path: Path) -> list[int]:
+    from massviz.io.filehash import identity
+
+    return identity(os.stat(trace_path))[:4]
+
+
+def save_index(trace: Trace, trace_path: Path) -> Path:
+    """Write the selection index of ``trace`` (saved at ``trace_path``) beside it, atomically; it names the trace
+    file's identity (size, mtime, ctime, inode), so an index whose trace was replaced is not used."""
+    from massviz.io.atomic import atomic_path
+
+    dets = trace.detections
+    header = {"format": INDEX_FORMAT, "recording": trace.recording.to_dict(), "detector": trace.detector,
+              "detect_threshold": float(trace.detect_threshold), "stride": int(trace.stride),
+              "weights_id": trace.weights_id, "trace": _trace_identity(trace_path)}
+    columns = np.zeros(len(dets), dtype=_index_dtype())
+    for name in Detections._ARRAYS:
+        columns[name] = getattr(dets, name)
+    # two members (header, one structured array of every column): a file is read with two .npy headers parsed
+    arrays = {"header": np.frombuffer(json.dumps(header, default=str).encode(), dtype=np.uint8),
+              "frames": np.asarray(trace.frames, dtype=np.int64), "columns": columns}
+    out = index_path(trace_path)
+    with atomic_path(out) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)  # uncompressed: a few kB, read fastest
+    return out
+
+
+def load_index(trace_path: Path) -> TraceIndex | None:
+    """The index beside ``trace_path``; None when missing, unreadable, inconsistent or not of this trace file."""
+    from massviz.io.untrusted import load_npz_checked
+
+    path = index_path(trace_path)
+    try:
+        data = load_npz_checked(path, max_bytes=64 << 20)
+        header = json.loads(data["header"].tobytes().decode())
+        if not isinstance(header, dict) or header.get("format") != INDEX_FORMAT:
+            return None
+        if header.get("trace") != _trace_identity(trace_path):
+            return None  # the trace was rewritten since (another model's predictions ...): index it again
+        columns = data["columns"]
+        if columns.dtype != _index_dtype() or columns.ndim != 1:
+            return None
+        n = len(columns)
+        dets = Detections(**{name: columns[name] for name in Detections._ARRAYS})
+        if n and (np.isinf(dets.d).any() or np.isnan(dets.score).any() or (dets.frame < 0).any()
+                  or (dets.score < 0).any() or (dets.score > 1).any()):
+            return None
+        threshold, stride = float(header["detect_threshold"]), int(header["stride"])
+        if not (0.0 <= threshold < 1.0 and stride >= 1):
+            return None
+        return TraceIndex(recording=RecordingInfo.from_dict(header["recording"]), detector=dict(header["detector"]),
+                          detect_threshold=threshold, stride=stride, weights_id=str(header["weights_id"]),
+                          frames=np.asarray(data["frames"], dtype=np.int64), detections=dets,
+                          trace_path=Path(trace_path))
+    except Exception:  # noqa: BLE001 - missing, truncated, garbage: the full trace is read instead
+        return None
 
 
 def _drop(path: Path) -> None:

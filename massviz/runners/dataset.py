@@ -155,18 +155,21 @@ def run_dataset(tasks: Sequence[Task], options, collect: Callable | None = None,
 
 def _run_local(tasks, options, collect, threads, record, pipeline, stats, frame_progress: bool,
                recordings: dict) -> None:
-    import torch
-
-    before = torch.get_num_threads()
+    # torch only when something here uses it (a warm pipeline serving cached traces does not import it)
+    torch = sys.modules.get("torch") if threads is None else __import__("torch")
+    before = torch.get_num_threads() if torch is not None else None
     try:
         t0 = time.perf_counter()
         worker = RecordingWorker(options, collect, threads, pipeline=pipeline)
-        stats.update(workers=1, threads=torch.get_num_threads(), startup_s=time.perf_counter() - t0)
+        built = sys.modules.get("torch")  # imported by building the pipeline, unless it serves cached traces only
+        stats.update(workers=1, threads=built.get_num_threads() if built is not None else None,
+                     startup_s=time.perf_counter() - t0)
         debug = bool(os.environ.get("MASSVIZ_DEBUG"))
         for task in tasks:
             record(worker.run(task, debug=debug, progress=frame_progress, recording=recordings.get(task.index)))
     finally:
-        torch.set_num_threads(before)
+        if before is not None:
+            torch.set_num_threads(before)
 
 
 def write_report(path: str | Path, outcomes: Sequence[Outcome], **run_info) -> Path:

@@ -91,8 +91,10 @@ class RecordingWorker:
         t0 = time.perf_counter()
         out = Outcome(task.index, task.id, task.path, "failed", worker=self.name)
         try:
+            # a pipeline may open recordings its own way (the warm path: recognised from file identities)
+            opener = getattr(self.pipeline, "open_recording", open_recording)
             rec = recording if recording is not None else \
-                open_recording(task.path, allow_partial=self.pipeline.options.allow_partial)
+                opener(task.path, allow_partial=self.pipeline.options.allow_partial)
             if fault is not None:
                 fault(rec)
             trace = self.pipeline.process(rec, progress=progress)

@@ -35,6 +35,7 @@ import pandas as pd
 from massviz.evaluation.failures import (Exclusion, chosen_table, exclusion_of, rank_by_error, save_exclusions,
                                          track_of)
 from massviz.core.trace import Trace
+from massviz.evaluation.sweep import SweepTable
 from massviz.evaluation.tuning import original_selection, retune, retuned_estimate, score_estimates
 from massviz.views.palette import CHOSEN_HEX, FLAGGED_HEX
 
@@ -45,9 +46,16 @@ MODES = ("keep", "exclude", "exclude track")
 class Tuner:
     """Re-estimation state over many traces (see the module docstring).
 
-    ``traces`` are the cached traces (any K; their detections are what counts). ``ann``/``class_of``: annotation
-    frame for ``score_traces`` (None: the recordings' meta.json).
+    ``traces`` are the cached traces (any K; their detections are what counts) or their selection indexes
+    (``massviz.io.cache.TraceIndex``, a few kB each: ``massviz.evaluation.tuning.cached_indexes``); then only the
+    recordings shown load their full trace (patches, masks; :meth:`full`, the last few kept). Every estimate of a
+    slider move is one vectorised re-selection over all recordings (``massviz.evaluation.sweep.SweepTable``); the
+    flags are analysed only for the recordings read from ``current``. ``ann``/``class_of``: annotation frame for
+    ``score_traces`` (None: the recordings' meta.json).
     """
+
+    #: full traces kept in memory when the tuner holds indexes (the shown recording and a few before it)
+    KEEP_FULL = 4
 
     def __init__(self, traces: Sequence[Trace], *, k: int = 5, threshold: float | None = None, stride: int = 1,
                  ann: pd.DataFrame | None = None, class_of=None):
@@ -57,6 +65,8 @@ class Tuner:
         self.k, self.stride = int(k), int(stride)
         self.threshold = self.min_threshold if threshold is None else float(threshold)
         self.modes: list[dict[int, str]] = [{} for _ in self.traces]  # detection index -> "exclude" / "exclude track"
+        self._table = SweepTable(self.traces, excluded=[()] * len(self.traces))  # the user's exclusions apart
+        self._full: dict[int, Trace] = {}
         self.current: list[Trace] = []
         self.report = None
         self.update()
@@ -104,12 +114,27 @@ class Tuner:
         if stride is not None:
             self.stride = int(stride)
         self.current = _LazyTraces(self._retune, len(self.traces))  # made when read: the shown ones
-        self._estimates = [retuned_estimate(t, k=self.k, threshold=self.threshold, stride=self.stride,
-                                            exclude=self.excluded(i)) for i, t in enumerate(self.traces)]
+        estimates = self._table.estimates(self.threshold, self.k, self.stride).tolist()
+        for i, modes in enumerate(self.modes):  # recordings with exclusions: one by one
+            if modes:
+                estimates[i] = retuned_estimate(self.traces[i], k=self.k, threshold=self.threshold,
+                                                stride=self.stride, exclude=self.excluded(i))
+        self._estimates = estimates
         self.report = self._score()
 
+    def full(self, i: int) -> Trace:
+        """The full trace of recording ``i`` (read from the cache when the tuner holds its index)."""
+        t = self.traces[i]
+        if isinstance(t, Trace):
+            return t
+        if i not in self._full:
+            while len(self._full) >= self.KEEP_FULL:
+                self._full.pop(next(iter(self._full)))
+            self._full[i] = t.full_trace()
+        return self._full[i]
+
     def _retune(self, i: int) -> Trace:
-        return retune(self.traces[i], k=self.k, threshold=self.threshold, stride=self.stride,
+        return retune(self.full(i), k=self.k, threshold=self.threshold, stride=self.stride,
                       exclude=self.excluded(i))
 
     def _score(self):
@@ -120,14 +145,14 @@ class Tuner:
 
     def selection(self, i: int) -> np.ndarray:
         """Chosen patches of recording ``i`` as indices into ``traces[i].detections``, nearest first."""
-        return original_selection(self.traces[i], self.current[i], self.stride)
+        return original_selection(self.full(i), self.current[i], self.stride)
 
     def estimates(self) -> dict[str, float]:
         return {t.recording.id: e for t, e in zip(self.traces, self._estimates)}
 
     def patch_table(self, i: int) -> pd.DataFrame:
         """The chosen patches of recording ``i``: rank, detection, frame, class, score, a, b, d_mm, pred_g."""
-        t = self.traces[i].table()
+        t = self.full(i).table()
         sel = self.selection(i)
         out = t.iloc[sel][["frame", "class", "score", "a", "b", "d_mm", "pred_g"]].copy()
         out.insert(0, "detection", sel)
@@ -276,13 +301,37 @@ class TuningPanel:
         self.refresh()
 
     def tiles(self, i: int, indices: Sequence[int], captions: Sequence[str]):
+        """One tile (image, caption) per chosen patch. Tiles are kept and only their values change from one update
+        to the next (a new widget is a round trip to the page and a new view to lay out: most of a slider move's
+        time in the browser); a value that did not change is not sent again."""
         import ipywidgets as W
 
-        trace = self.tuner.traces[i]
+        trace = self.tuner.full(i)
+        # PatchImages keys PNGs by id(trace): hold the traces whose PNGs are kept (so no id is reused meanwhile),
+        # the last few only, dropping the PNGs of a trace let go
+        owners = self.__dict__.setdefault("_png_owners", {})
+        owners[id(trace)] = owners.pop(id(trace), trace)
+        while len(owners) > Tuner.KEEP_FULL + 1:
+            gone = next(iter(owners))
+            owners.pop(gone)
+            self.images._png = {key: v for key, v in self.images._png.items() if key[0] != gone}
         flagged = {p.rank for p in self.tuner.current[i].flags.flagged}
-        return [W.VBox([W.Image(value=self.images.png(trace, d), format="png"), W.HTML(c)],
-                       layout=W.Layout(margin="2px 6px", border=_tile_border(r in flagged)))
-                for r, (d, c) in enumerate(zip(indices, captions))]
+        pool = self.__dict__.setdefault("_tile_pool", [])
+        while len(pool) < len(indices):
+            image, caption = W.Image(format="png"), W.HTML()
+            pool.append((W.VBox([image, caption], layout=W.Layout(margin="2px 6px")), image, caption))
+        out = []
+        for r, (d, c) in enumerate(zip(indices, captions)):
+            box, image, caption = pool[r]
+            png, border = self.images.png(trace, d), _tile_border(r in flagged)
+            if image.value != png:
+                image.value = png
+            if caption.value != c:
+                caption.value = c
+            if box.layout.border != border:
+                box.layout.border = border
+            out.append(box)
+        return out
 
     def refresh(self) -> None:
         i, tuner = self.i, self.tuner
