@@ -152,7 +152,7 @@ def test_png_folder_logs_the_whole_entity_tree(tmp_path):
     assert {"Boxes2D:class_ids", "Boxes2D:labels"} <= components(contents, "/camera/detections")
     assert "SegmentationImage:buffer" in components(contents, "/camera/masks")
     assert "/world/points" not in contents
-    assert {"Image:buffer", "pred_g", "d_mm", "a", "b", "frame"} <= components(contents, "/patches/0")
+    assert {"EncodedImage:blob", "pred_g", "d_mm", "a", "b", "frame"} <= components(contents, "/patches/0")
     assert "Scalars:scalars" in components(contents, "/predictions/estimate")
     assert "TextLog:text" in components(contents, "/log")
     assert not list(tmp_path.glob(".out.rrd.*")), "temporary file left behind"

@@ -31,7 +31,7 @@ entity                         what is logged
 ``/world/points``              only with ``points=True`` (``massviz log --points``): ``Points3D``, depth back-projected
                                (Open3D) to metres in the camera frame, every ``step``-th pixel, at most ``max_points``,
                                coloured by RGB (only with intrinsics)
-``/patches/<rank>``            ``Image`` of chosen patch ``rank`` (0 = nearest) as the model saw it (zero-padded
+``/patches/<rank>``            ``EncodedImage`` (JPEG, quality 85) of chosen patch ``rank`` (0 = nearest) as the model saw it (zero-padded
                                square, 112×112) at its source frame, with ``AnyValues`` a, b, d_mm, frame, class,
                                score, pred_g, detection, track, flagged, flag
 ``/patches/<rank>/outline``    ``Boxes2D`` around the tile: chosen colour, or flagged colour labelled "⚑ flagged: why"

@@ -125,6 +125,11 @@ class RgbLogger:
                 media_type="image/jpeg"))
 
 
+#: JPEG quality of the patch tiles: they are logged wherever the running selection changes (every rank, often every
+#: frame), so they are compressed; the exact pixels the model saw are in the trace (``Detections.patches``).
+PATCH_JPEG_QUALITY = 85
+
+
 def jpeg_bytes(rgb: np.ndarray, quality: int, what: str = "a frame", path=None) -> bytes:
     """``rgb`` (H×W×3 RGB) as JPEG bytes at ``quality``; an encoder failure is one line naming ``what``/``path``."""
     ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, quality])
@@ -234,7 +239,9 @@ def log_patch(rec: rr.RecordingStream, rank: int, dets: Detections, i: int, patc
     ``massviz.core.flags.PatchFlag``)."""
     image = model_view(patch)
     flagged = flag is not None and flag.flagged
-    rec.log(f"/patches/{rank}", rr.Image(image), rr.AnyValues(
+    rec.log(f"/patches/{rank}", rr.EncodedImage(contents=jpeg_bytes(image, PATCH_JPEG_QUALITY, f"patch {rank}"),
+                                                media_type="image/jpeg"),
+            rr.AnyValues(
         a=float(dets.a[i]), b=float(dets.b[i]), d_mm=float(dets.d[i]), frame=int(dets.frame[i]),
         class_name=class_name(dets.class_id[i]), score=float(dets.score[i]), pred_g=float(dets.pred[i]),
         detection=int(i), track=int(dets.track[i]), flagged=bool(flagged), flag="" if not flagged else flag.reason))
