@@ -93,7 +93,9 @@ class RecordingWorker:
         try:
             # a pipeline may open recordings its own way (the warm path: recognised from file identities)
             opener = getattr(self.pipeline, "open_recording", open_recording)
-            rec = recording if recording is not None else \
+            # the recording opened up front is used when it can give frames (a LocatedRecording, recognised from
+            # file identities, cannot: the pipeline's opener opens it its own way)
+            rec = recording if recording is not None and hasattr(recording, "frames") else \
                 opener(task.path, allow_partial=self.pipeline.options.allow_partial)
             if fault is not None:
                 fault(rec)
