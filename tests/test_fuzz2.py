@@ -365,6 +365,8 @@ def signal_case(command: str, sig: int) -> Callable[[Path, Base], Case]:
             argv = pipeline_argv(work, b, "extract", rec, "--out", out)
 
         def writing() -> bool:  # the command has started its output (a hidden temporary beside or inside it)
+            if command == "extract":  # extract writes its folder in one go at the very end (a replayed run is over
+                return (work / "cache").exists()  # in ~1 s): signal it once its pipeline is built, while it runs
             return any(p.name.startswith(".") for p in work.iterdir()) or (out.is_dir() and any(out.iterdir()))
         name = signal.Signals(sig).name
         return Case("", argv, None, rf"\({name}\)" if sig != signal.SIGINT else "$", [out], code=128 + sig,
