@@ -153,7 +153,8 @@ class WebViewer:
         cmd = [str(_viewer_binary()), "--web-viewer", "--bind", HOST, "--web-viewer-port", str(port), url]
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                                      preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
-                                     env={**os.environ, "RERUN_TELEMETRY_ENABLED": "false"})
+                                     # its log line says where it serves: on even when massviz quiets Rerun's logs
+                                     env={**os.environ, "RERUN_TELEMETRY_ENABLED": "false", "RUST_LOG": "info"})
         self.url, found = None, threading.Event()
         self._tail: list[str] = []
 
