@@ -239,7 +239,9 @@ def check_viewer(image: np.ndarray, frame: np.ndarray, colours, patches) -> dict
     # the 3D view is the right half of the row below the RGB view (default_blueprint)
     region = image[int(y2 + 0.2 * h):int(y2 + 0.7 * h), int(x1 + 0.55 * w):int(x2 - 0.05 * w)]
     out["3d_coloured"] = round(saturated_fraction(region), 3)
-    if out["3d_coloured"] < 0.15:
+    # a blank view has ~0 %; since the 3D view starts oblique and backed off (issue 22 item 7) the cloud covers less
+    # of it (8 % in the notebook's 640-pixel-high inline viewer, where the region also takes in the time panel)
+    if out["3d_coloured"] < 0.04:
         out["failures"].append(f"the 3D view is blank ({out['3d_coloured']:.0%} coloured pixels)")
     return out
 
