@@ -79,3 +79,20 @@ def sample_cache(tmp_path_factory, shared_dir: Path, samples_dir: Path) -> Path:
                            cache=str(root), quiet=True)
         (root / "complete").write_text("ok\n")
     return root
+
+
+def samples_and_618(root: Path, shared_dir: Path, samples_dir: Path, intrinsics: dict) -> Path:
+    """The three samples and CCM 618 as one folder ``root`` of massviz recordings (frames linked, not copied)."""
+    import json
+
+    root.mkdir()
+    for name in ("box_handover", "cup_handover", "glass_handover"):
+        (root / name).symlink_to(samples_dir / name, target_is_directory=True)
+    rec = root / "618"
+    rec.mkdir()
+    for part in ("rgb", "depth"):
+        (rec / part).symlink_to(shared_dir / "ccm_real" / "618" / part, target_is_directory=True)
+    (rec / "intrinsics.json").write_text(json.dumps(intrinsics))
+    (rec / "meta.json").write_text(json.dumps({"id": "618", "fps": 3.0,
+                                               "container": {"mass_g": 10.0, "class": "cup", "id": 1}}))
+    return root

@@ -5,7 +5,6 @@ a subset. The dataset is the three bundled samples plus the real CCM recording 6
 from __future__ import annotations
 
 import functools
-import json
 import math
 import os
 import re
@@ -17,7 +16,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from support import run_massviz
+from support import run_massviz, samples_and_618
 
 pytestmark = pytest.mark.slow  # a dataset of 4 recordings, servers, subprocesses of massviz
 
@@ -40,17 +39,7 @@ def env(weights):
 def dataset(tmp_path_factory, shared_dir, samples_dir) -> Path:
     """The samples and CCM 618 as one folder of massviz recordings (frames linked, not copied)."""
     root = tmp_path_factory.mktemp("dataset") / "ds"
-    root.mkdir()
-    for name in ("box_handover", "cup_handover", "glass_handover"):
-        (root / name).symlink_to(samples_dir / name, target_is_directory=True)
-    rec = root / "618"
-    rec.mkdir()
-    for part in ("rgb", "depth"):
-        (rec / part).symlink_to(shared_dir / "ccm_real" / "618" / part, target_is_directory=True)
-    (rec / "intrinsics.json").write_text(json.dumps(INTR_618))
-    (rec / "meta.json").write_text(json.dumps({"id": "618", "fps": 3.0,
-                                               "container": {"mass_g": 10.0, "class": "cup", "id": 1}}))
-    return root
+    return samples_and_618(root, shared_dir, samples_dir, INTR_618)
 
 
 @pytest.fixture(scope="module")

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from support import samples_and_618
 
 from massviz.core.selection import NearestOrder, estimate_mass
 from massviz.evaluation.sweep import SweepTable, sweep
@@ -85,17 +86,7 @@ def env(shared_dir):
 def dataset(tmp_path_factory, shared_dir, samples_dir) -> Path:
     """The samples and CCM 618 as one folder of massviz recordings (frames linked, not copied)."""
     root = tmp_path_factory.mktemp("scale") / "ds"
-    root.mkdir()
-    for name in ("box_handover", "cup_handover", "glass_handover"):
-        (root / name).symlink_to(samples_dir / name, target_is_directory=True)
-    rec = root / "618"
-    rec.mkdir()
-    for part in ("rgb", "depth"):
-        (rec / part).symlink_to(shared_dir / "ccm_real" / "618" / part, target_is_directory=True)
-    (rec / "intrinsics.json").write_text(json.dumps(INTR_618))
-    (rec / "meta.json").write_text(json.dumps({"id": "618", "fps": 3.0,
-                                               "container": {"mass_g": 10.0, "class": "cup", "id": 1}}))
-    return root
+    return samples_and_618(root, shared_dir, samples_dir, INTR_618)
 
 
 def massviz(*args, env, check=True, timeout=900):
