@@ -80,7 +80,7 @@ def run_massviz(argv, case_dir: Path, *, preexec: Callable | None = None, when: 
         if send is not None:
             def signal_when_ready():
                 while proc.returncode is None and time.monotonic() - t0 < timeout:
-                    if when is None or when():
+                    if when is None or (when(proc.pid) if getattr(when, "takes_pid", False) else when()):
                         proc.send_signal(send)
                         return
                     time.sleep(0.05)
@@ -351,6 +351,16 @@ def disk_full_case(command: str, limit: int) -> Callable[[Path, Base], Case]:
 
 
 # ============================================================================================================ class 5
+def handles_signal(pid: int, sig: int) -> bool:
+    """Whether process ``pid`` has a handler installed for ``sig`` (Linux: the SigCgt mask in /proc/PID/status)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return False
+    caught = re.search(r"^SigCgt:\s*([0-9a-f]+)", status, re.M)
+    return bool(caught) and bool(int(caught.group(1), 16) >> (sig - 1) & 1)
+
+
 def signal_case(command: str, sig: int) -> Callable[[Path, Base], Case]:
     def build(work: Path, b: Base) -> Case:
         rec = copy_sample(work / "rec", n=12)
@@ -364,10 +374,12 @@ def signal_case(command: str, sig: int) -> Callable[[Path, Base], Case]:
             out = work / "patches"
             argv = pipeline_argv(work, b, "extract", rec, "--out", out)
 
-        def writing() -> bool:  # the command has started its output (a hidden temporary beside or inside it)
-            if command == "extract":  # extract writes its folder in one go at the very end (a replayed run is over
-                return (work / "cache").exists()  # in ~1 s): signal it once its pipeline is built, while it runs
-            return any(p.name.startswith(".") for p in work.iterdir()) or (out.is_dir() and any(out.iterdir()))
+        def writing(pid: int) -> bool:
+            # as soon as massviz has installed its handler for the signal (/proc's SigCgt mask), while it still
+            # imports and runs: a replayed 12-frame run is over within ~1 s, and extract writes its folder in one go
+            # at the very end, so waiting for the output to appear raced the command's end (flaky)
+            return handles_signal(pid, sig)
+        writing.takes_pid = True
         name = signal.Signals(sig).name
         return Case("", argv, None, rf"\({name}\)" if sig != signal.SIGINT else "$", [out], code=128 + sig,
                     line="interrupted", when=writing, send=sig)
