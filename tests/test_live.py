@@ -415,6 +415,7 @@ def test_serve_web_serves_a_viewer_on_localhost_and_ends_with_the_session(rs, pl
 
     ports = free_ports(2)
     seen = {}
+    before = {p.pid for p in psutil.Process().children(recursive=True)}  # other tests' children are not this one's
 
     def watch():  # during the session: the page, the listening sockets, the server process
         deadline = time.monotonic() + 120
@@ -423,7 +424,7 @@ def test_serve_web_serves_a_viewer_on_localhost_and_ends_with_the_session(rs, pl
                 with urllib.request.urlopen(f"http://127.0.0.1:{ports[0]}/", timeout=2) as page:
                     seen["status"] = page.status
                 seen["listening"] = listeners(ports)
-                seen["children"] = psutil.Process().children(recursive=True)
+                seen["children"] = [p for p in psutil.Process().children(recursive=True) if p.pid not in before]
                 seen["servers"] = [p.name() for p in seen["children"]
                                    if p.pid in {pid for pid, _ in seen["listening"]}]
             except OSError:
