@@ -99,22 +99,61 @@ def scene_cloud(frame: Frame, intr: Intrinsics, *, depth_trunc: float = DEPTH_TR
 def masked_cloud(frame: Frame, mask: np.ndarray, intr: Intrinsics, *, depth_trunc: float = DEPTH_TRUNC_M,
                  band_m: float | None = BAND_M, clean: bool = True) -> o3d.geometry.PointCloud:
     """The cloud of a full-frame boolean ``mask``: depth zeroed outside it, then (``clean``) the depth band around its
-    median and statistical outlier removal (module docstring)."""
-    depth = np.where(mask, frame.depth, 0).astype(np.uint16)
-    if clean and band_m is not None:
-        z = depth[depth > 0]
-        if z.size:
-            med = float(np.median(z))
-            depth[np.abs(depth.astype(np.float64) - med) > band_m * 1000.0] = 0
-    pcd = rgbd_cloud(frame.rgb, depth, intr, depth_trunc=depth_trunc)
-    if clean and len(pcd.points) > SOR_NEIGHBOURS:
-        pcd, _ = pcd.remove_statistical_outlier(nb_neighbors=SOR_NEIGHBOURS, std_ratio=SOR_STD_RATIO)
-    return pcd
+    median and statistical outlier removal (module docstring). Only the mask's bounding rectangle is back-projected
+    (``Crop``): the same points, in the same order, as the whole frame would give."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return o3d.geometry.PointCloud()
+    crop = Crop.of(frame, (int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1),
+                   mask[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1])
+    return crop.cloud(intr, depth_trunc=depth_trunc, band_m=band_m, clean=clean)
 
 
 def detection_cloud(frame: Frame, dets: Detections, i: int, intr: Intrinsics, **kw) -> o3d.geometry.PointCloud:
-    """Cleaned cloud of detection ``i`` (its mask pasted into the frame)."""
-    return masked_cloud(frame, dets.full_mask(i, frame.height, frame.width), intr, **kw)
+    """Cleaned cloud of detection ``i`` (its box's pixels under its mask)."""
+    return Crop.of_detection(frame, dets, i).cloud(intr, **kw)
+
+
+@dataclass
+class Crop:
+    """What the measure stage needs of one detection: the RGB and depth inside a rectangle ``xyxy`` of frame
+    ``frame`` (copies, so a reader may reuse its buffers) and the boolean mask over it. Back-projecting the crop with
+    the principal point shifted by the rectangle's corner gives exactly the points of the same pixels in the full
+    frame (pixel (u, v) of the crop is (u + x1, v + y1) of the frame), so a crop can be kept from a frame and measured
+    later — the pipeline measures only the detections still chosen at the end, without reading a frame again."""
+
+    frame: int
+    xyxy: tuple[int, int, int, int]
+    rgb: np.ndarray
+    depth: np.ndarray
+    mask: np.ndarray
+
+    @classmethod
+    def of(cls, frame: Frame, xyxy, mask: np.ndarray) -> "Crop":
+        x1, y1, x2, y2 = (int(v) for v in xyxy)
+        return cls(frame.index, (x1, y1, x2, y2), frame.rgb[y1:y2, x1:x2].copy(), frame.depth[y1:y2, x1:x2].copy(),
+                   np.asarray(mask, dtype=bool))
+
+    @classmethod
+    def of_detection(cls, frame: Frame, dets: Detections, i: int) -> "Crop":
+        return cls.of(frame, dets.xyxy[i], dets.mask(i))
+
+    def cloud(self, intr: Intrinsics, *, depth_trunc: float = DEPTH_TRUNC_M, band_m: float | None = BAND_M,
+              clean: bool = True) -> o3d.geometry.PointCloud:
+        x1, y1, x2, y2 = self.xyxy
+        if x2 <= x1 or y2 <= y1:
+            return o3d.geometry.PointCloud()
+        depth = np.where(self.mask, self.depth, 0).astype(np.uint16)
+        if clean and band_m is not None:
+            z = depth[depth > 0]
+            if z.size:
+                med = float(np.median(z))
+                depth[np.abs(depth.astype(np.float64) - med) > band_m * 1000.0] = 0
+        shifted = Intrinsics(intr.fx, intr.fy, intr.cx - x1, intr.cy - y1, x2 - x1, y2 - y1)
+        pcd = rgbd_cloud(self.rgb, depth, shifted, depth_trunc=depth_trunc)
+        if clean and len(pcd.points) > SOR_NEIGHBOURS:
+            pcd, _ = pcd.remove_statistical_outlier(nb_neighbors=SOR_NEIGHBOURS, std_ratio=SOR_STD_RATIO)
+        return pcd
 
 
 # ------------------------------------------------------------------------------------------------ measuring
@@ -217,12 +256,19 @@ def measure_detection(frame: Frame, dets: Detections, i: int, intr: Intrinsics, 
                       ) -> Measurement | None:
     """The measured size of detection ``i`` of ``dets`` (detections of ``frame``) from its cleaned cloud, as a
     ``Measurement`` (``detection``: its index in the trace, default ``i``; ``rank`` its rank in the selection, -1
-    unknown); None when its cloud has fewer than 10 points. What the pipeline's measure stage runs on each detection
-    that enters the running K nearest (``massviz.core.pipeline.FramePipeline``)."""
-    size = measure_cloud(detection_cloud(frame, dets, i, intr, depth_trunc=depth_trunc, band_m=band_m))
+    unknown); None when its cloud has fewer than 10 points."""
+    return measure_crop(Crop.of_detection(frame, dets, i), intr, detection=i if detection is None else detection,
+                        rank=rank, depth_trunc=depth_trunc, band_m=band_m)
+
+
+def measure_crop(crop: Crop, intr: Intrinsics, *, detection: int, rank: int = -1,
+                 depth_trunc: float = DEPTH_TRUNC_M, band_m: float | None = BAND_M) -> Measurement | None:
+    """``measure_detection`` on a kept ``Crop``: what the pipeline's measure stage runs, at the end of a recording, on
+    each chosen detection (``massviz.core.pipeline.FramePipeline``)."""
+    size = measure_cloud(crop.cloud(intr, depth_trunc=depth_trunc, band_m=band_m))
     if size is None:
         return None
-    return Measurement.from_size(rank, i if detection is None else detection, frame.index, size)
+    return Measurement.from_size(rank, detection, crop.frame, size)
 
 
 def ground_truth_size(meta: dict | None) -> dict | None:
@@ -323,6 +369,6 @@ def depth_to_points(depth: np.ndarray, intrinsics: Intrinsics, rgb: np.ndarray |
 
 __all__ = [
     "DEPTH_TRUNC_M", "BAND_M", "skip_reason", "require_intrinsics", "pinhole", "rgbd_cloud", "scene_cloud",
-    "masked_cloud", "detection_cloud", "Size", "oriented_box", "vertical_axis", "view_aligned_box", "measure_cloud",
-    "Measurement", "measure_detection", "ground_truth_size", "annotation_size", "compare", "measure", "with_measurements",
+    "masked_cloud", "detection_cloud", "Crop", "Size", "oriented_box", "vertical_axis", "view_aligned_box", "measure_cloud",
+    "Measurement", "measure_detection", "measure_crop", "ground_truth_size", "annotation_size", "compare", "measure", "with_measurements",
     "measurements_of", "depth_to_points"]

@@ -118,9 +118,11 @@ class FramePipeline:
     score cut; one below it is refused (those detections were never kept).
 
     ``measure`` (recordings with intrinsics; off by default here, where live sessions step, on in ``run``): the
-    measure stage, ``massviz.core.geometry.measure_detection``, runs
-    on each detection as it enters the running K nearest (as its patch is kept), so the trace's ``measurements``
-    hold the measured size of every chosen detection without reading a frame again (stage time ``measure3d``).
+    measure stage. As a detection enters the running K nearest, the RGB, depth and mask inside its box are kept
+    (``massviz.core.geometry.Crop``; dropped when it leaves the K nearest, so at most K are held); ``finish`` measures
+    the ones chosen at the end (``measure_crop``), so the trace's ``measurements`` hold the measured size of every
+    chosen detection without reading a frame again, and a detection that was overtaken is never measured (stage time
+    ``measure3d``, charged once, in ``finish``).
     """
 
     def __init__(self, detector: Detector, model, *, selection: Selection | None = None, k: int | None = None,
@@ -154,7 +156,7 @@ class FramePipeline:
         self._start = time.perf_counter()
         self._tracker = Tracker(recording.fps if recording is not None else None)
         self._intrinsics = recording.intrinsics if (measure and recording is not None) else None
-        self._measured: dict[int, object] = {}
+        self._crops: dict = {}  # global detection index -> geometry.Crop of a detection in the running K nearest
 
     @property
     def frames_done(self) -> int:
@@ -191,8 +193,7 @@ class FramePipeline:
         timings = {"read": read_seconds, "detect": t2 - t1, "features": t3 - t2, "predict": t4 - t3,
                    "select": t5 - t4}
         if self._intrinsics is not None:
-            self._measure_entrants(frame, dets, offset, selection)
-            timings["measure3d"] = time.perf_counter() - t5
+            self._keep_crops(frame, dets, offset, selection)
         for name, seconds in timings.items():
             self._frame_timings[name].append(seconds)
             if name != "select":  # the whole recording's selection is timed in finish()
@@ -201,14 +202,28 @@ class FramePipeline:
         return FrameResult(frame=frame, detections=dets, patches=patches, offset=offset, selection=selection,
                            running_estimate=running, timings=timings, events=events)
 
-    def _measure_entrants(self, frame: Frame, dets: Detections, offset: int, selection: np.ndarray) -> None:
-        """The measure stage: the size of each detection of this frame that entered the running K nearest."""
-        from massviz.core.geometry import measure_detection  # Open3D: imported on the first measurement
+    def _keep_crops(self, frame: Frame, dets: Detections, offset: int, selection: np.ndarray) -> None:
+        """The measure stage's part in a step: keep the crops of this frame's detections that entered the running K
+        nearest, drop those of detections that left it."""
+        from massviz.core.geometry import Crop
 
+        chosen = {int(g) for g in selection}
+        for g in [g for g in self._crops if g not in chosen]:
+            del self._crops[g]
         for g in selection[selection >= offset]:
-            m = measure_detection(frame, dets, int(g) - offset, self._intrinsics, detection=int(g))
+            self._crops[int(g)] = Crop.of_detection(frame, dets, int(g) - offset)
+
+    def _measure(self, selection: np.ndarray) -> list[dict]:
+        """The measure stage's end: the measured size of each chosen detection whose crop was kept."""
+        from massviz.core.geometry import measure_crop  # Open3D: imported on the first measurement
+
+        out = []
+        for g in selection:
+            crop = self._crops.get(int(g))
+            m = None if crop is None else measure_crop(crop, self._intrinsics, detection=int(g))
             if m is not None:
-                self._measured[int(g)] = m.to_dict()
+                out.append(m.to_dict())
+        return out
 
     def _update_selection(self, dets: Detections, offset: int) -> tuple[np.ndarray, float]:
         local = self._exclude[(self._exclude >= offset) & (self._exclude < offset + len(dets))] - offset
@@ -231,9 +246,13 @@ class FramePipeline:
         estimate = estimate_mass(detections.pred, selection)
         timings = dict(self.timings)
         timings["select"] = time.perf_counter() - t5
+        measurements = []
+        if self._intrinsics is not None:
+            t6 = time.perf_counter()
+            measurements = ranked_measurements(self._measure(selection), selection)
+            timings["measure3d"] = time.perf_counter() - t6
         timings["total"] = time.perf_counter() - self._start
         events = [*self.events, *describe_selection(detections, selection, estimate, self.k, self.events)]
-        measurements = ranked_measurements(list(self._measured.values()), selection)
         info = self.recording if self.recording is not None else RecordingInfo(id="live")
         return Trace(recording=info, detector={"name": self.detector.name, **self.detector.settings()},
                      detect_threshold=self.detect_threshold, threshold=self.selection.threshold,
