@@ -31,7 +31,7 @@ WEIGHTS = SHARED / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch"
 def make_recording(folder: Path, frames: int) -> Path:
     """A massviz folder recording of ``frames`` frames: 618's 8 real frames, repeated."""
     sys.path.insert(0, str(ROOT))
-    from massviz.io.recording import _intrinsics_ccm  # the CCM calibration reader (restricted unpickler)
+    from massviz.io.formats.ccm import intrinsics_ccm  # the CCM calibration reader (restricted unpickler)
 
     sources = sorted((SOURCE / "rgb").glob("*.png"))
     (folder / "rgb").mkdir(parents=True)
@@ -40,7 +40,7 @@ def make_recording(folder: Path, frames: int) -> Path:
         src = sources[i % len(sources)]
         shutil.copyfile(src, folder / "rgb" / f"{i:06d}.png")
         shutil.copyfile(SOURCE / "depth" / src.name, folder / "depth" / f"{i:06d}.png")
-    intr = _intrinsics_ccm(SOURCE / "calib" / "c3_calib.pickle", 1280, 720)
+    intr = intrinsics_ccm(SOURCE / "calib" / "c3_calib.pickle", 1280, 720)
     (folder / "intrinsics.json").write_text(json.dumps(intr.to_dict()))
     return folder
 
