@@ -28,6 +28,12 @@ MARK_BY_FIXTURE = {"browser": "browser", "ray_address": "ray", "executed": "note
 SLOW_KINDS = ("browser", "ray", "notebook")
 
 
+#: under pytest-xdist (``-n 2``, ``--dist loadgroup``: the README's test command), the tests of one kind run on one
+#: worker, so that its session fixtures (Chromium, JupyterLab, the local Ray cluster) start once
+XDIST_GROUP = {"browser": "browser", "notebook": "browser", "ray": "ray"}
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist's own hook, which reads the groups
 def pytest_collection_modifyitems(config, items):
     for item in items:
         for fixture, marker in MARK_BY_FIXTURE.items():
@@ -35,6 +41,9 @@ def pytest_collection_modifyitems(config, items):
                 item.add_marker(marker)
         if any(item.get_closest_marker(kind) for kind in SLOW_KINDS) and not item.get_closest_marker("slow"):
             item.add_marker("slow")
+        group = next((g for kind, g in XDIST_GROUP.items() if item.get_closest_marker(kind)), None)
+        if group is not None:
+            item.add_marker(pytest.mark.xdist_group(group))
 
 
 #: seconds a process started by the suite may take to exit after the last fixture ended it
