@@ -166,12 +166,14 @@ def run_session(args, pipeline, stream, name: str) -> int:
 
                 logger = LiveLogger(name=name, k=fp.selection.k, threshold=fp.selection.threshold,
                                     intrinsics=info.intrinsics, rrd=args.rrd, spawn=args.spawn, connect=connect)
-        except BaseException:
-            stream.stop()
+            print(f"massviz live: {stream.description}; Ctrl-C ends the session", file=sys.stderr)
+            result = run_live(stream, fp, logger=logger, duration=args.duration, save=args.save,
+                              progress=not args.quiet, name=name, source=stream.description)
+        except BaseException as err:  # (a signal too) run_live ends the stream and logger itself; before it starts,
+            stream.stop()  # this does (both idempotent)
+            if logger is not None:
+                logger.abort(err)
             raise
-        print(f"massviz live: {stream.description}; Ctrl-C ends the session", file=sys.stderr)
-        result = run_live(stream, fp, logger=logger, duration=args.duration, save=args.save, progress=not args.quiet,
-                          name=name, source=stream.description)
         trace, stats = result.trace, result.stats
         cached = _cache(pipeline, trace, result, args, stream)
     finally:
