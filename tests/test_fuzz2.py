@@ -790,7 +790,9 @@ def live_signal_case(sig: int, outputs: str, when: str) -> Callable[[Path, Base,
     """``massviz live --file X.db3 --save REC [--rrd OUT.rrd]`` sent ``sig``: ``when="session"`` once the first frame
     is in --save's hidden folder (the session runs: it ends as Ctrl-C ends it, exit 0, every output complete and
     valid), ``when="start"`` once massviz's handlers are installed (it is still loading: interrupted, exit 128 +
-    the signal, no output)."""
+    the signal, no output); ``when="twice"``: mid-session, SIGHUP then ``sig`` delivered together (sent while the
+    process is stopped; Python runs the handlers in signal-number order): the second interrupts at once, no output.
+    """
     name = signal.Signals(sig).name
 
     def build(work: Path, b: Base, db3: Path) -> Case:
@@ -798,15 +800,25 @@ def live_signal_case(sig: int, outputs: str, when: str) -> Callable[[Path, Base,
         outs = [save] + ([rrd] if outputs == "save+rrd" else [])
         argv = ["live", "--file", db3, "--save", save, *(["--rrd", rrd] if rrd in outs else []),
                 "--detector", "depth", "--weights", b.weights, "--cache", work / "cache", "--quiet"]
+        def recording() -> bool:
+            return any(work.glob(".rec.*/rgb/*.png"))
+
+        if when == "twice":
+            def two(pid: int) -> bool:
+                if not recording():
+                    return False
+                for first in (signal.SIGSTOP, signal.SIGHUP, sig):
+                    os.kill(pid, first)
+                return True  # then SIGCONT: both arrive at once
+            two.takes_pid = True
+            return Case("", argv, None, rf"\({name}\)", outs, code=128 + sig, line="interrupted", when=two,
+                        send=signal.SIGCONT)
         if when == "start":
             def loading(pid: int) -> bool:  # massviz.cli's handlers are in (SIGINT's is Python's from the start)
                 return handles_signal(pid, signal.SIGTERM)
             loading.takes_pid = True
             return Case("", argv, None, rf"\({name}\)" if sig != signal.SIGINT else "$", outs, code=128 + sig,
                         line="interrupted", when=loading, send=sig)
-
-        def recording() -> bool:
-            return any(work.glob(".rec.*/rgb/*.png"))
 
         def complete(case: Case, run: Run) -> None:
             from massviz.io.recording import open_recording
@@ -829,6 +841,8 @@ def live_signal_case(sig: int, outputs: str, when: str) -> Callable[[Path, Base,
 LIVE_SIGNAL_CASES = {f"signal-live-{o}-{signal.Signals(s).name}-{w}": live_signal_case(s, o, w)
                      for w in ("session", "start") for o in ("save", "save+rrd")
                      for s in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT)}
+LIVE_SIGNAL_CASES.update({f"signal-live-{o}-SIGHUP+SIGTERM-twice": live_signal_case(signal.SIGTERM, o, "twice")
+                          for o in ("save", "save+rrd")})
 
 
 @pytest.mark.slow
