@@ -16,9 +16,10 @@ EPILOG = """examples:
 Per processed frame: detect, features, predict, update the K nearest so far, and log the frame's stages at once
 (/camera/*, /patches/<rank>, /predictions/running_estimate, /latency/<stage> in ms; entity tree in the README).
 When the detector is slower than the camera, massviz takes the newest frame and drops the others: the drops are
-counted in /log and in the summary; nothing queues. Ctrl-C, --duration or the end of a --file ends the session: the
-trace goes to the trace cache, --save writes the processed frames as a massviz recording folder, and the last line
-prints the estimate. Needs pyrealsense2: pip install 'massviz[realsense]'.
+counted in /log and in the summary; nothing queues. Ctrl-C (or SIGTERM/SIGHUP), --duration or the end of a --file
+ends the session: the trace goes to the trace cache, --save writes the processed frames as a massviz recording
+folder, and the last line prints the estimate; a second Ctrl-C interrupts at once and writes nothing. Needs
+pyrealsense2: pip install 'massviz[realsense]'.
 """ + PIPELINE_HELP
 
 
