@@ -762,9 +762,10 @@ def test_train_signal_leaves_no_run_folder(sig, base, patch_set, tmp_path):
 
 
 # ================================================================================= slow: signals during live --save
-#: the frames of the cup sample a live case plays (the container comes nearest in 19..29), three times over, at
-#: 10 fps: real-time playback takes 3.6 s, so a signal sent once the first frame is saved arrives mid-session.
-LIVE_FRAMES = list(range(18, 30)) * 3
+#: the frames of the cup sample a live case plays (the container comes nearest in 19..29), eight times over, at
+#: 10 fps: real-time playback takes 9.6 s, so a signal sent once the first frame is saved arrives mid-session even
+#: on loaded cores (with 3.6 s, a load of 9 on 2 cores once let the file end first).
+LIVE_FRAMES = list(range(18, 30)) * 8
 
 
 @pytest.fixture(scope="module")
