@@ -80,10 +80,25 @@ class Terminated(KeyboardInterrupt):
 CLEANUP_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
 
 
-def _terminate(signum, frame):
-    for sig in CLEANUP_SIGNALS:  # a second signal must not interrupt the clean-up of the first
+def terminate(signum, frame):
+    """The handler of :data:`CLEANUP_SIGNALS`: raise :class:`Terminated` (further such signals are ignored from
+    here on, so they cannot interrupt the clean-up of the first)."""
+    for sig in CLEANUP_SIGNALS:
         signal.signal(sig, signal.SIG_IGN)
     raise Terminated(signum)
+
+
+def interrupt_behind(err: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C or :class:`Terminated` that ``err`` was raised from or while handling, if any: a native module
+    (pybind11's, e.g. pyrealsense2) turns an interrupt raised during its import into ``ImportError("initialization
+    failed")``, which a caller may turn into its own error in turn."""
+    seen = set()
+    while err is not None and id(err) not in seen:
+        if isinstance(err, KeyboardInterrupt):
+            return err
+        seen.add(id(err))
+        err = err.__cause__ or err.__context__
+    return None
 
 
 @contextlib.contextmanager
@@ -94,7 +109,7 @@ def _signals_end_like_ctrl_c():
         return
     previous = {sig: signal.getsignal(sig) for sig in CLEANUP_SIGNALS}
     for sig in CLEANUP_SIGNALS:
-        signal.signal(sig, _terminate)
+        signal.signal(sig, terminate)
     try:
         yield
     finally:
@@ -154,8 +169,14 @@ def _run(parser: argparse.ArgumentParser, argv) -> int:
     try:
         from massviz.commands._common import check_int_options
 
-        check_int_options(args)
-        return int(args.func(args) or 0)
+        try:
+            check_int_options(args)
+            return int(args.func(args) or 0)
+        except Exception as err:  # an interrupt turned into another error on its way out is still an interrupt
+            stop = interrupt_behind(err)
+            if stop is None:
+                raise
+            raise stop from None
     except MassvizError as err:
         print(error_line(args.command, err), file=sys.stderr)
         return 2

@@ -16,9 +16,10 @@ EPILOG = """examples:
 Per processed frame: detect, features, predict, update the K nearest so far, and log the frame's stages at once
 (/camera/*, /patches/<rank>, /predictions/running_estimate, /latency/<stage> in ms; entity tree in the README).
 When the detector is slower than the camera, massviz takes the newest frame and drops the others: the drops are
-counted in /log and in the summary; nothing queues. Ctrl-C, --duration or the end of a --file ends the session: the
-trace goes to the trace cache, --save writes the processed frames as a massviz recording folder, and the last line
-prints the estimate. Needs pyrealsense2: pip install 'massviz[realsense]'.
+counted in /log and in the summary; nothing queues. Ctrl-C (or SIGTERM/SIGHUP), --duration or the end of a --file
+ends the session: the trace goes to the trace cache, --save writes the processed frames as a massviz recording
+folder, and the last line prints the estimate; a second Ctrl-C interrupts at once and writes nothing. Needs
+pyrealsense2: pip install 'massviz[realsense]'.
 """ + PIPELINE_HELP
 
 
@@ -166,12 +167,14 @@ def run_session(args, pipeline, stream, name: str) -> int:
 
                 logger = LiveLogger(name=name, k=fp.selection.k, threshold=fp.selection.threshold,
                                     intrinsics=info.intrinsics, rrd=args.rrd, spawn=args.spawn, connect=connect)
-        except BaseException:
-            stream.stop()
+            print(f"massviz live: {stream.description}; Ctrl-C ends the session", file=sys.stderr)
+            result = run_live(stream, fp, logger=logger, duration=args.duration, save=args.save,
+                              progress=not args.quiet, name=name, source=stream.description)
+        except BaseException as err:  # (a signal too) run_live ends the stream and logger itself; before it starts,
+            stream.stop()  # this does (both idempotent)
+            if logger is not None:
+                logger.abort(err)
             raise
-        print(f"massviz live: {stream.description}; Ctrl-C ends the session", file=sys.stderr)
-        result = run_live(stream, fp, logger=logger, duration=args.duration, save=args.save, progress=not args.quiet,
-                          name=name, source=stream.description)
         trace, stats = result.trace, result.stats
         cached = _cache(pipeline, trace, result, args, stream)
     finally:

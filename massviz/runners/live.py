@@ -9,9 +9,10 @@ arrive (``massviz live``).
 librealsense's threads hand each colour+depth pair to a one-slot buffer (``LatestSlot``) that keeps only the newest:
 when the detector is slower than the camera, the frames that arrive meanwhile are dropped and counted, and nothing
 queues (memory stays flat however long the session). The main thread takes the newest pair, aligns and copies it
-(``read``), runs ``FramePipeline.step`` (detect, features, predict, the K nearest so far) and logs the frame. Ctrl-C
-(first press), ``duration`` or the end of a file ends the session cleanly: the trace is finished, ``save`` writes
-the processed frames as a massviz recording folder (so ``massviz log`` and notebooks replay the session exactly).
+(``read``), runs ``FramePipeline.step`` (detect, features, predict, the K nearest so far) and logs the frame. Ctrl-C,
+SIGTERM or SIGHUP (the first one), ``duration`` or the end of a file ends the session cleanly: the trace is
+finished, ``save`` writes the processed frames as a massviz recording folder (so ``massviz log`` and notebooks replay
+the session exactly). A second signal interrupts at once and leaves no output.
 """
 from __future__ import annotations
 
@@ -134,11 +135,15 @@ class FolderWriter:
             raise MassvizError("exists and is not an empty folder; --save needs a new folder", self.path)
         self._ctx = atomic_dir(self.path)
         self.tmp = self._ctx.__enter__()
-        self._folder = FolderFrameWriter(self.tmp, compression=1)  # the folder format's writer; level 1: fast
         self._queue: queue.Queue = queue.Queue(maxsize=queue_size)
         self.error: BaseException | None = None
         self._thread = threading.Thread(target=self._work, name="massviz-save", daemon=True)
-        self._thread.start()
+        try:  # a signal or an error from here on: the temporary folder goes
+            self._folder = FolderFrameWriter(self.tmp, compression=1)  # the folder format's writer; level 1: fast
+            self._thread.start()
+        except BaseException as err:
+            self.abort(err)
+            raise
 
     def write(self, frame) -> None:
         if self.error is not None:
@@ -185,25 +190,35 @@ class FolderWriter:
 
 
 class _StopFlag:
-    """Ctrl-C ends the session after the current frame (a second Ctrl-C interrupts at once)."""
+    """Ctrl-C, SIGTERM or SIGHUP ends the session after the current frame, as the end of a file does (the outputs
+    are written); a second one interrupts at once, as ``massviz.cli`` ends any command (nothing half-written is left).
+    """
 
     def __init__(self):
         self.reason = ""
-        self._old = None
+        self._old: dict = {}
 
     def __enter__(self):
         if threading.current_thread() is threading.main_thread():
-            self._old = signal.signal(signal.SIGINT, self._handle)
+            from massviz.cli import CLEANUP_SIGNALS
+
+            for sig in (signal.SIGINT, *CLEANUP_SIGNALS):
+                self._old[sig] = signal.signal(sig, self._handle)
         return self
 
     def _handle(self, signum, frame):
-        if self.reason == "interrupted":
-            raise KeyboardInterrupt
-        self.reason = "interrupted"
+        if self.reason:
+            if signum == signal.SIGINT:
+                raise KeyboardInterrupt
+            from massviz.cli import terminate
+
+            terminate(signum, frame)
+        self.reason = "interrupted" if signum == signal.SIGINT else f"interrupted ({signal.Signals(signum).name})"
 
     def __exit__(self, *exc):
-        if self._old is not None:
-            signal.signal(signal.SIGINT, self._old)
+        for sig, old in self._old.items():
+            if signal.getsignal(sig) == self._handle:  # not when massviz.cli has since set it (a clean-up runs)
+                signal.signal(sig, old)
 
 
 def run_live(stream, frame_pipeline, *, logger=None, duration: float | None = None, save: str | Path | None = None,
@@ -214,11 +229,9 @@ def run_live(stream, frame_pipeline, *, logger=None, duration: float | None = No
     frames; ``save``: folder for the processed frames. The stream is stopped and the logger closed on return."""
     stats = LiveStats()
     slot = LatestSlot()
-    writer = FolderWriter(save) if save is not None else None
     info = stream.info
     fp = frame_pipeline
-    total = None
-    bar = tqdm(total=total, desc=f"live {name}", unit="frame", file=sys.stderr, disable=not progress, leave=False)
+    writer = bar = None
     started = time.perf_counter()
     last_arrival = started
     seen_dropped = 0
@@ -227,7 +240,10 @@ def run_live(stream, frame_pipeline, *, logger=None, duration: float | None = No
         slot.put((c, d, time.perf_counter()))
 
     trace = None
-    try:
+    try:  # from here on, however the session ends (an error, a signal), the stream, writer and logger are ended
+        writer = FolderWriter(save) if save is not None else None
+        bar = tqdm(total=None, desc=f"live {name}", unit="frame", file=sys.stderr, disable=not progress,
+                   leave=False)
         warm_up(fp, info)
         with _StopFlag() as flag:
             stream.start(sink)
@@ -324,7 +340,8 @@ def run_live(stream, frame_pipeline, *, logger=None, duration: float | None = No
                 logger.abort(err)
         raise
     finally:
-        bar.close()
+        if bar is not None:
+            bar.close()
 
 
 def warm_up(fp, info) -> None:

@@ -52,13 +52,17 @@ class LiveLogger:
         self.out = Output(rrd=rrd, spawn=spawn, connect=connect, stream=stream)
         self.rrd = self.out.rrd
         self.rec = self.out.stream
-        self.rec.send_recording_name(f"massviz live {name}")
-        size = None if intrinsics is None else (int(intrinsics.width), int(intrinsics.height))
-        self.rec.send_blueprint(default_blueprint(k, has_3d=intrinsics is not None, image_size=size),
-                                make_active=True, make_default=True)
-        log_annotation_context(self.rec, k)
-        self.rec.log("/predictions/running_estimate", rr.SeriesLines(
-            names="running estimate (K nearest so far)", colors=RUNNING_COLOUR, widths=2), static=True)
+        try:  # an error or a signal from here on: nothing is left at the .rrd path
+            self.rec.send_recording_name(f"massviz live {name}")
+            size = None if intrinsics is None else (int(intrinsics.width), int(intrinsics.height))
+            self.rec.send_blueprint(default_blueprint(k, has_3d=intrinsics is not None, image_size=size),
+                                    make_active=True, make_default=True)
+            log_annotation_context(self.rec, k)
+            self.rec.log("/predictions/running_estimate", rr.SeriesLines(
+                names="running estimate (K nearest so far)", colors=RUNNING_COLOUR, widths=2), static=True)
+        except BaseException as err:
+            self.out.close(err)
+            raise
         self._t0_ms: float | None = None
         self.frames = 0
         self._held: dict[int, tuple] = {}  # trace index -> (detections, index, patch, flag) of the K nearest so far

@@ -42,18 +42,22 @@ class Output:
         sinks = []
         if self.rrd is not None:
             self._tmp = self._stack.enter_context(atomic_path(self.rrd))
-            try:
-                check_room(self._tmp)  # Rerun's file sink hangs when its first write fails (a full disk): fail here
-            except OSError as err:
-                self._abandon(err)
-                raise MassvizError(f"cannot write ({err.strerror or err})", self.rrd) from None
-            sinks.append(rr.FileSink(os.fspath(self._tmp)))
-        if spawn:
-            rr.spawn(connect=False)
-            sinks.append(rr.GrpcSink())
-        if connect:
-            sinks.append(rr.GrpcSink(connect))
-        self.stream.set_sinks(*sinks)
+        try:  # an error or a signal from here on: the temporary .rrd goes
+            if self._tmp is not None:
+                try:
+                    check_room(self._tmp)  # Rerun's file sink hangs when its first write fails (a full disk)
+                except OSError as err:
+                    raise MassvizError(f"cannot write ({err.strerror or err})", self.rrd) from None
+                sinks.append(rr.FileSink(os.fspath(self._tmp)))
+            if spawn:
+                rr.spawn(connect=False)
+                sinks.append(rr.GrpcSink())
+            if connect:
+                sinks.append(rr.GrpcSink(connect))
+            self.stream.set_sinks(*sinks)
+        except BaseException as err:
+            self._abandon(err)
+            raise
 
     def flush(self, what: str = "the recording") -> None:
         """Deliver what was logged; an unreachable viewer (the gRPC sink reports it here) is one clear line."""
