@@ -7,6 +7,7 @@ import contextlib
 import os
 import sys
 import uuid
+from datetime import timedelta
 from pathlib import Path
 
 import rerun as rr
@@ -15,6 +16,14 @@ from massviz.errors import MassvizError
 from massviz.io.atomic import atomic_path, check_room
 
 APPLICATION_ID = "massviz"
+
+
+def file_batcher() -> rr.ChunkBatcherConfig:
+    """The batching of a stream that only writes an .rrd file: flushed by size (Rerun's default thresholds) and at
+    the end, never by time, so the same data gives the same chunks."""
+    config = rr.ChunkBatcherConfig.DEFAULT()
+    config.flush_tick = timedelta(days=1)
+    return config
 
 
 class Output:
@@ -38,7 +47,11 @@ class Output:
         if stream is not None:
             self.stream = stream
             return
-        self.stream = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id or str(uuid.uuid4()))
+        # a file alone: chunks cut by size, not by a clock tick (Rerun's default flushes every few ms, so the chunking
+        # — and an .rrd's size, ±10 % — depended on how busy the machine was); a viewer keeps the low-latency default
+        batcher = file_batcher() if (self.rrd is not None and not spawn and not connect) else None
+        self.stream = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id or str(uuid.uuid4()),
+                                         batcher_config=batcher)
         sinks = []
         if self.rrd is not None:
             self._tmp = self._stack.enter_context(atomic_path(self.rrd))
