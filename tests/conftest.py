@@ -21,9 +21,10 @@ from support import sample_cache as _fill_sample_cache
 
 
 #: a test that uses one of these fixtures (directly or through another) gets the marker (and ``slow``): the module
-#: need not say it again; ``sample_cache`` runs the pipeline over the samples once per session
+#: need not say it again; ``sample_cache`` runs the pipeline over the samples once per session, ``cold``
+#: (test_scale) a first ``massviz sweep`` over a dataset
 MARK_BY_FIXTURE = {"browser": "browser", "ray_address": "ray", "executed": "notebook", "lab": "notebook",
-                   "sample_cache": "slow"}
+                   "sample_cache": "slow", "cold": "slow"}
 #: markers that imply ``slow`` (so ``-m "not slow"`` leaves them out)
 SLOW_KINDS = ("browser", "ray", "notebook")
 

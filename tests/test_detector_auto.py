@@ -70,6 +70,7 @@ def test_maskrcnn_cache_file_name_is_torchvisions():
     assert MaskRCNN_ResNet50_FPN_Weights.COCO_V1.url.rsplit("/", 1)[1] == MASKRCNN_COCO_FILE
 
 
+@pytest.mark.slow  # more than ~3 s on 2 idle cores (a massviz subprocess or a pipeline run)
 def test_cli_quiet_still_says_which_detector_auto_chose(tmp_path, shared_dir):
     import os
     import subprocess

@@ -642,6 +642,7 @@ def test_formula_ids_are_neutralised_in_csvs(base, tmp_path):
     assert csv_cell("=1+2") == "'=1+2" and csv_cell("-1") == "-1" and csv_cell("@x") == "'@x" and csv_cell(7) == 7
 
 
+@pytest.mark.slow  # more than ~3 s on 2 idle cores (a massviz subprocess or a pipeline run)
 def test_cache_memo_nested_deep_is_recomputed(base, tmp_path):
     """A digest memo of the cache nested 100,000 deep (or with a 5,000-digit integer) is dropped and rewritten."""
     work = tmp_path / "w"
@@ -658,6 +659,7 @@ def test_cache_memo_nested_deep_is_recomputed(base, tmp_path):
     assert run.peak_mb < MEM_BOUND_MB
 
 
+@pytest.mark.slow  # more than ~3 s on 2 idle cores (a massviz subprocess or a pipeline run)
 def test_deflate_bomb_in_the_cache_is_dropped(base, tmp_path):
     """A cache entry replaced by a 300 MB deflate bomb: dropped and recomputed within the memory bound."""
     work = tmp_path / "w"

@@ -43,6 +43,7 @@ def _count(colours: np.ndarray, colour) -> int:
     return int((np.abs(colours - np.asarray(colour)) < 1e-3).all(axis=1).sum())
 
 
+@pytest.mark.slow  # more than ~3 s on 2 idle cores (a massviz subprocess or a pipeline run)
 def test_point_cloud_figure_colours_by_the_palette(cup):
     """A chosen patch's mask in the chosen colour, a flagged one in the flagged colour (not magenta as well)."""
     from massviz.views import plots
