@@ -14,6 +14,7 @@ Location: ``--cache PATH``, else env ``MASSVIZ_CACHE_DIR``, else the user cache 
 from __future__ import annotations
 
 import functools
+import glob
 import hashlib
 import json
 import os
@@ -64,8 +65,26 @@ class TraceCache:
         digest = hashlib.sha1(key.encode()).hexdigest()[:16]
         return self.dir / f"{safe_filename(recording.id, 60)}-{digest}"
 
+    def _may_hold(self, recording: Recording) -> bool:
+        """False when no entry of this recording's id exists (``<id>-<16 hex>``): then every lookup misses, whatever
+        the recording's content key, which is not computed (reading every frame file to hash it) to find that."""
+        pattern = glob.escape(safe_filename(recording.id, 60)) + "-" + "[0-9a-f]" * 16
+        return any(True for _ in self.dir.glob(pattern))
+
+    def watch(self, recording: Recording) -> None:
+        """Before a run of ``recording`` whose trace is not cached: the content key ``save`` needs is then computed
+        from the bytes the run reads (``Recording.watch_digests``, where the format has it), not by reading each
+        frame file again; files the run does not read (a video, a RealSense file, frames skipped by the stride)
+        are hashed by ``save``."""
+        watch = getattr(recording, "watch_digests", None)
+        if watch is not None:
+            watch()
+
     def lookup(self, recording: Recording, detector_info: dict, stride: int, threshold: float) -> Path | None:
-        """Path of the cached trace made at the largest threshold <= ``threshold``, or None."""
+        """Path of the cached trace made at the largest threshold <= ``threshold``, or None (at once, without the
+        content key, when no entry of the recording's id exists)."""
+        if not self._may_hold(recording):
+            return None
         entry = self.entry(recording, detector_info, stride)
         best = None
         for p in entry.glob("t*.npz") if entry.is_dir() else []:
