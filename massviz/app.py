@@ -145,13 +145,13 @@ def process(recording, detector, model, *, selection: Selection | None = None, k
         # the key is the frames' content: the recording's path, meta and intrinsics are today's, not the cached run's
         return annotate(dataclasses.replace(trace, recording=recording.info(), events=events,
                                             timings={**trace.timings, **timings}))
-    if cache is not None:
-        cache.watch(recording)  # its content key from the bytes the run reads: each frame file read once
+    # the content key of the bytes the run reads (each frame file read once), not of a second read
+    read = cache.watch(recording) if cache is not None else None
     # the cached trace holds every detection (no exclusions): they are applied to the trace returned
     trace = annotate(run(recording, detector, model, selection=selection.replace(exclude=()), progress=progress,
                          batch=batch, prefetch=prefetch, on_frame=on_frame))
     if cache is not None:
-        cache.save(trace, recording, info)
+        cache.save(trace, recording, info, known=read)
     if exclude is not None:
         trace = trace.reselect(exclude=exclude)
     return trace

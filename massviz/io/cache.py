@@ -59,8 +59,14 @@ class TraceCache:
                                "--cache DIR)", self.root) from None
         return self
 
-    def entry(self, recording: Recording, detector_info: dict, stride: int) -> Path:
-        key = json.dumps({"recording": recording.fingerprint(self.hasher), "detector": detector_info,
+    def entry(self, recording: Recording, detector_info: dict, stride: int, known: dict | None = None) -> Path | None:
+        """The entry folder of this recording's content, detector settings and stride. ``known``: the digests of
+        the bytes a run read (:meth:`watch`): the entry of the content that run processed; None when a file
+        changed while the run read it."""
+        fingerprint = recording.fingerprint(self.hasher, known=known) if known else recording.fingerprint(self.hasher)
+        if fingerprint is None:
+            return None
+        key = json.dumps({"recording": fingerprint, "detector": detector_info,
                           "stride": stride}, sort_keys=True, default=str)
         digest = hashlib.sha1(key.encode()).hexdigest()[:16]
         return self.dir / f"{safe_filename(recording.id, 60)}-{digest}"
@@ -71,14 +77,13 @@ class TraceCache:
         pattern = glob.escape(safe_filename(recording.id, 60)) + "-" + "[0-9a-f]" * 16
         return any(True for _ in self.dir.glob(pattern))
 
-    def watch(self, recording: Recording) -> None:
-        """Before a run of ``recording`` whose trace is not cached: the content key ``save`` needs is then computed
-        from the bytes the run reads (``Recording.watch_digests``, where the format has it), not by reading each
-        frame file again; files the run does not read (a video, a RealSense file, frames skipped by the stride)
-        are hashed by ``save``."""
+    def watch(self, recording: Recording) -> dict | None:
+        """Before a run of ``recording`` whose trace is not cached: the digests of the frame files the run reads,
+        filled as it reads them (``watch_digests``, where the format has it), to pass to ``save(known=)``: the
+        trace is keyed by the bytes it was computed from, without reading each frame file again. Files the run
+        does not read (a video, a RealSense file, frames skipped by the stride) are hashed by ``save``."""
         watch = getattr(recording, "watch_digests", None)
-        if watch is not None:
-            watch()
+        return watch() if watch is not None else None
 
     def lookup(self, recording: Recording, detector_info: dict, stride: int, threshold: float) -> Path | None:
         """Path of the cached trace made at the largest threshold <= ``threshold``, or None (at once, without the
@@ -131,10 +136,15 @@ class TraceCache:
             index = load_index(path)
         return index if index is not None and index.detect_threshold <= threshold + 1e-9 else None
 
-    def save(self, trace: Trace, recording: Recording, detector_info: dict) -> Path | None:
-        """Write the trace's entry; a file system refusal at this point (the folder was checked writable before
-        the work) is a warning, not a failure: the result stands, it is only not cached."""
-        entry = self.entry(recording, detector_info, trace.stride)
+    def save(self, trace: Trace, recording: Recording, detector_info: dict, known: dict | None = None) -> Path | None:
+        """Write the trace's entry (``known``: see :meth:`watch`); a file system refusal at this point (the folder
+        was checked writable before the work) is a warning, not a failure: the result stands, it is only not
+        cached. So is a frame file that changed while the run read it (no content key)."""
+        entry = self.entry(recording, detector_info, trace.stride, known)
+        if entry is None:
+            print(f"massviz: warning: {recording.path}: a frame file changed while it was read; the result is not "
+                  "cached", file=sys.stderr)
+            return None
         path = entry / f"t{float(trace.detect_threshold)!r}.npz"  # exact: t0.4.npz, t0.40005.npz
         try:
             if path.is_dir():

@@ -54,23 +54,32 @@ class FileHasher:
         return self.store / f"{hashlib.sha1(group.encode()).hexdigest()[:20]}.json"
 
     def digests(self, paths, group: str, known: dict | None = None, read: bool = True) -> list[str] | None:
-        """The digest of each of ``paths``: remembered (in memory, or in ``store`` under ``group``) while the file's
-        identity is unchanged, else from ``known`` (``{absolute path: (identity, digest)}``: digests of bytes a
-        reader read already, ``massviz.io.formats.common.read_bytes``) when its identity is the file's now, else
-        the file is read and hashed. ``read`` False: None instead of reading any file (the key is not known
-        without reading)."""
+        """The digest of each of ``paths``. ``known`` (``{absolute path: (identity, digest) or None}``): the digests
+        of the bytes a run read (``massviz.io.formats.common.read_bytes``), used first, so the key is of what the
+        run processed; remembered only while the file's identity is the one read (a file changed since is hashed
+        again next time); None for a file that changed while it was read: no key (None returned). Else the digest
+        remembered (in memory, or in ``store`` under ``group``) while the file's identity is unchanged, else the file
+        is read and hashed; ``read`` False: None instead of reading any file."""
         memo = self._memo_path(group)
         disk = read_memo(memo) if memo is not None else {}
+        known = known or {}
         out, changed = [], False
         for p in paths:
             key = os.path.abspath(p)
             ident = identity(os.stat(p))
-            with self._lock:
-                remembered = self._memory.get(key)
-            candidates = (remembered, tuple(disk[key]) if isinstance(disk.get(key), list) and len(disk[key]) == 2
-                          else None, (known or {}).get(key))
-            digest = next((c[1] for c in candidates if c is not None and c[0] == ident and isinstance(c[1], str)),
-                          None)
+            if key in known:
+                if known[key] is None:
+                    return None
+                read_ident, digest = known[key]
+                if read_ident != ident:  # changed since the run read it: the key is of what the run read
+                    out.append(digest)
+                    continue
+            else:
+                with self._lock:
+                    remembered = self._memory.get(key)
+                on_disk = tuple(disk[key]) if isinstance(disk.get(key), list) and len(disk[key]) == 2 else None
+                digest = next((c[1] for c in (remembered, on_disk)
+                               if c is not None and c[0] == ident and isinstance(c[1], str)), None)
             if digest is None:
                 if not read:
                     return None
@@ -78,9 +87,8 @@ class FileHasher:
                 if identity(os.stat(p)) != ident:  # written while read: do not remember a moving target
                     out.append(digest)
                     continue
-            if remembered is None or remembered != (ident, digest):
-                with self._lock:
-                    self._memory[key] = (ident, digest)
+            with self._lock:
+                self._memory[key] = (ident, digest)
             if disk.get(key) != [ident, digest]:
                 disk[key] = [ident, digest]
                 changed = True

@@ -141,7 +141,7 @@ class LocatedRecording:
     def info(self) -> RecordingInfo:
         return self.recording_info
 
-    def fingerprint(self, hasher=None, read: bool = True) -> str:
+    def fingerprint(self, hasher=None, read: bool = True, known: dict | None = None) -> str:
         return self._fingerprint
 
     @property

@@ -53,19 +53,18 @@ class RecordingBase:
     def video_file(self) -> Path | None:
         return None
 
-    def fingerprint(self, hasher=None, read: bool = True) -> str | None:
+    def fingerprint(self, hasher=None, read: bool = True, known: dict | None = None) -> str | None:
         """The content key of the recording's frames: a digest of each input file's *bytes* (BLAKE2b), so any edit
         changes it, even one that keeps the size and sets the modification time back. ``hasher``
         (``massviz.io.filehash.FileHasher``, the trace cache's) remembers each file's digest by (path, size, mtime,
-        ctime, inode), so a dataset is hashed once, not on every run; after ``watch_digests`` the digests of the
-        frame files this recording read are taken from the bytes it read (each file read once). ``read`` False:
-        None when a file would have to be read to know the key."""
+        ctime, inode), so a dataset is hashed once, not on every run. ``known``: the digests of the bytes a run
+        read (``watch_digests``), which the key is then of (each file read once). ``read`` False: None when a file
+        would have to be read to know the key; also None when a file changed while the run read it."""
         from massviz.io.filehash import FileHasher
 
         hasher = hasher or FileHasher()
         files = self.input_files()
-        digests = hasher.digests(files, group=str(Path(self.path).resolve()), known=self._watched(),
-                                 read=read)
+        digests = hasher.digests(files, group=str(Path(self.path).resolve()), known=known, read=read)
         if digests is None:
             return None
         root = self.path.parent if self.path.is_file() else self.path
@@ -79,11 +78,12 @@ class RecordingBase:
             h.update(f"{name}|{digest}\n".encode())
         return h.hexdigest()
 
-    def watch_digests(self) -> None:
-        """From now on, each frame file this recording reads gives its content digest from the bytes read
-        (``read_bytes(digests=)``), for ``fingerprint``: the trace cache keys a run it did not find by the bytes
-        the run read, instead of reading every file once more to hash it."""
-        self.__dict__.setdefault("_digests", {})
+    def watch_digests(self) -> dict:
+        """A new dict that, from now on, gets the content digest of each frame file this recording reads, from the
+        bytes read (``read_bytes(digests=)``), for ``fingerprint(known=)``: the trace cache keys a run it did not
+        find by the bytes the run read, instead of reading every file once more to hash it."""
+        self.__dict__["_digests"] = digests = {}
+        return digests
 
     def _watched(self) -> dict | None:
         """The dict ``read_bytes`` fills after ``watch_digests``, else None."""
@@ -157,7 +157,7 @@ def read_bytes(path: Path, what: str, *, keep: bool = False, digests: dict | Non
     refused at once). ``keep``: the file is read to check a recording when it is opened; its bytes are kept
     (bounded) for the frame loop's read. ``digests``: a dict that gets ``{absolute path: (identity, BLAKE2b
     digest of the bytes read)}`` (``massviz.io.filehash``), so that the trace cache's content key needs no second
-    read of the file; nothing is added when the file changed while it was read."""
+    read of the file; ``{absolute path: None}`` when the file changed while it was read (a mix of two versions)."""
     from massviz.io.filehash import bytes_digest, identity
     from massviz.io.untrusted import read_bounded
 
@@ -172,8 +172,8 @@ def read_bytes(path: Path, what: str, *, keep: bool = False, digests: dict | Non
             _KEPT[str(path)] = (ident, data)
             while len(_KEPT) > _KEEP_AT_MOST:
                 _KEPT.popitem(last=False)
-    if digests is not None and ident is not None:
-        digests[os.path.abspath(path)] = (ident, bytes_digest(data))
+    if digests is not None:  # None: changed while read, the bytes have no key
+        digests[os.path.abspath(path)] = (ident, bytes_digest(data)) if ident is not None else None
     return data
 
 
