@@ -2,9 +2,11 @@
 
 Entries are keyed by the recording's content fingerprint (a BLAKE2b digest of the bytes of every RGB and depth file,
 ``Recording.fingerprint``; each file's digest is remembered in ``hashes/`` by its path, size, mtime, ctime and inode,
-so only new or changed files are read again), the detector's name and settings (except its threshold; a replay
-source or detector weights by their content too) and the stride. Inside an entry one file per detection threshold: detections made at threshold t serve every
-threshold >= t, so a lookup takes the entry with the largest t <= the threshold asked for.
+so only new or changed files are read again; a run that found no entry keys its trace by the digests of the bytes it
+read, ``watch``/``save(known=)``, so a cold cache reads each frame file once), the detector's name and settings
+(except its threshold; a replay source or detector weights by their content too) and the stride. Inside an entry
+one file per detection threshold: detections made at threshold t serve every threshold >= t, so a lookup takes the
+entry with the largest t <= the threshold asked for.
 
 An entry that cannot be decoded (truncated, garbage, not a file) is dropped and recomputed, never fatal; a cache
 that cannot be written is found before any work (``check_writable``).

@@ -45,15 +45,15 @@ MAX_INDEX = 2**31 - 1
 
 # ------------------------------------------------------------------------------------------------- bounded reads
 def read_bounded(path: str | Path, limit: int, what: str, error=DataError, *, hint: str = "",
-                 with_stat: bool = False):
+                 with_stats: bool = False):
     """The bytes of the untrusted file ``path``, at most ``limit``: the size is checked from the open file before
     anything is read (a sparse 2 TiB file is refused at once) and at most ``limit + 1`` bytes are read (a file that
     grows past the bound while read is refused too). ``error`` naming ``path`` for any failure, in one line: missing
     or unreadable (``cannot read WHAT (reason)``), a directory, too big (``hint``: added to the bound, e.g. what such
     files usually weigh). The one bounded read of massviz: frame files, JSON, calibration pickles.
 
-    ``with_stat``: (bytes, ``os.stat_result`` of the file read), the stat None when the file changed while it was
-    read (its size, times or inode differ before and after: the bytes may be a mix of two versions)."""
+    ``with_stats``: (bytes, ``os.stat_result`` of the open file before and after it was read): the caller can
+    tell a file that changed while it was read (the bytes may be a mix of two versions)."""
     path = Path(path)
     try:
         with open(path, "rb") as fh:
@@ -62,18 +62,14 @@ def read_bounded(path: str | Path, limit: int, what: str, error=DataError, *, hi
                 raise error(f"{what} is {before.st_size} bytes (at most {limit}{'; ' + hint if hint else ''}); not "
                             "read", path)
             data = fh.read(limit + 1)
-            after = os.fstat(fh.fileno()) if with_stat else None
+            after = os.fstat(fh.fileno()) if with_stats else None
     except IsADirectoryError:
         raise error(f"{what} is a directory, not a file", path) from None
     except OSError as err:
         raise error(f"cannot read {what} ({err.strerror or err})", path) from None
     if len(data) > limit:
         raise error(f"{what} is larger than {limit} bytes; not read", path)
-    if not with_stat:
-        return data
-    from massviz.io.filehash import identity
-
-    return data, (after if identity(before) == identity(after) else None)
+    return (data, before, after) if with_stats else data
 
 
 # ------------------------------------------------------------------------------------------------------- pickles

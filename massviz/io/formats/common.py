@@ -165,8 +165,8 @@ def read_bytes(path: Path, what: str, *, keep: bool = False, digests: dict | Non
     if kept is not None:
         data, ident = kept
     else:
-        data, st = read_bounded(path, MAX_FRAME_FILE_BYTES, what, RecordingError, with_stat=True)
-        ident = identity(st) if st is not None else None
+        data, before, after = read_bounded(path, MAX_FRAME_FILE_BYTES, what, RecordingError, with_stats=True)
+        ident = identity(after) if identity(before) == identity(after) else None  # None: changed while read
         check_image_size(path, RecordingError, what, data=data)
         if keep and ident is not None:
             _KEPT[str(path)] = (ident, data)
