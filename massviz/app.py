@@ -11,6 +11,7 @@ there.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 from dataclasses import dataclass
@@ -146,10 +147,11 @@ def process(recording, detector, model, *, selection: Selection | None = None, k
         return annotate(dataclasses.replace(trace, recording=recording.info(), events=events,
                                             timings={**trace.timings, **timings}))
     # the content key of the bytes the run reads (each frame file read once), not of a second read
-    read = cache.watch(recording) if cache is not None else None
-    # the cached trace holds every detection (no exclusions): they are applied to the trace returned
-    trace = annotate(run(recording, detector, model, selection=selection.replace(exclude=()), progress=progress,
-                         batch=batch, prefetch=prefetch, on_frame=on_frame))
+    with cache.watch(recording) if cache is not None else contextlib.nullcontext() as read:
+        # the cached trace holds every detection (no exclusions): they are applied to the trace returned
+        trace = run(recording, detector, model, selection=selection.replace(exclude=()), progress=progress,
+                    batch=batch, prefetch=prefetch, on_frame=on_frame)
+    trace = annotate(trace)
     if cache is not None:
         cache.save(trace, recording, info, known=read)
     if exclude is not None:

@@ -198,9 +198,13 @@ def test_the_key_of_the_bytes_a_run_read_is_the_key_of_the_files(cold_cup, tmp_p
     hashed = open_recording(cold_cup).fingerprint(FileHasher())  # every file read and hashed
     rec = open_recording(cold_cup)
     cache = TraceCache(tmp_path / "cache")
-    read = cache.watch(rec)
-    for _ in rec.frames(stride=stride):
+    with cache.watch(rec) as read:
+        for _ in rec.frames(stride=stride):
+            pass
+    assert len(read) == 2 * len(range(0, rec.num_frames, stride))  # an RGB and a depth file per frame read
+    for _ in rec.frames(stride=stride):  # outside the block nothing is watched
         pass
+    assert len(read) == 2 * len(range(0, rec.num_frames, stride))
     if stride == 1:
         _no_hashing(monkeypatch)  # every frame file was read by the run: none is read again
     assert rec.fingerprint(cache.hasher, known=read) == hashed
@@ -216,9 +220,9 @@ def test_a_file_changed_after_or_while_the_run_read_it_is_never_keyed_by_its_new
 
     rec = open_recording(cold_cup)
     cache = TraceCache(tmp_path / "cache")
-    read = cache.watch(rec)
-    for _ in rec.frames():
-        pass
+    with cache.watch(rec) as read:
+        for _ in rec.frames():
+            pass
     as_read = rec.fingerprint(FileHasher(), known=read)
     depth = cold_cup / "depth" / "000030.png"
     st = depth.stat()

@@ -15,6 +15,7 @@ Location: ``--cache PATH``, else env ``MASSVIZ_CACHE_DIR``, else the user cache 
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import glob
 import hashlib
@@ -79,13 +80,14 @@ class TraceCache:
         pattern = glob.escape(safe_filename(recording.id, 60)) + "-" + "[0-9a-f]" * 16
         return any(True for _ in self.dir.glob(pattern))
 
-    def watch(self, recording: Recording) -> dict | None:
-        """Before a run of ``recording`` whose trace is not cached: the digests of the frame files the run reads,
-        filled as it reads them (``watch_digests``, where the format has it), to pass to ``save(known=)``: the
-        trace is keyed by the bytes it was computed from, without reading each frame file again. Files the run
-        does not read (a video, a RealSense file, frames skipped by the stride) are hashed by ``save``."""
+    def watch(self, recording: Recording):
+        """``with cache.watch(recording) as read:`` around a run of ``recording`` whose trace is not cached: the
+        digests of the frame files the run reads, filled as it reads them (``watch_digests``, where the format has
+        it; else None), to pass to ``save(known=read)``: the trace is keyed by the bytes it was computed from,
+        without reading each frame file again. Files the run does not read (a video, a RealSense file, frames
+        skipped by the stride) are hashed by ``save``."""
         watch = getattr(recording, "watch_digests", None)
-        return watch() if watch is not None else None
+        return watch() if watch is not None else contextlib.nullcontext()
 
     def lookup(self, recording: Recording, detector_info: dict, stride: int, threshold: float) -> Path | None:
         """Path of the cached trace made at the largest threshold <= ``threshold``, or None (at once, without the

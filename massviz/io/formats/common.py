@@ -8,6 +8,7 @@ import json
 import math
 import os
 from collections import OrderedDict
+from contextlib import contextmanager
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -78,12 +79,17 @@ class RecordingBase:
             h.update(f"{name}|{digest}\n".encode())
         return h.hexdigest()
 
-    def watch_digests(self) -> dict:
-        """A new dict that, from now on, gets the content digest of each frame file this recording reads, from the
-        bytes read (``read_bytes(digests=)``), for ``fingerprint(known=)``: the trace cache keys a run it did not
-        find by the bytes the run read, instead of reading every file once more to hash it."""
+    @contextmanager
+    def watch_digests(self):
+        """``with rec.watch_digests() as digests:`` a dict that, inside the block, gets the content digest of each
+        frame file this recording reads, from the bytes read (``read_bytes(digests=)``), for
+        ``fingerprint(known=)``: the trace cache keys a run it did not find by the bytes the run read, instead of
+        reading every file once more to hash it."""
         self.__dict__["_digests"] = digests = {}
-        return digests
+        try:
+            yield digests
+        finally:
+            self.__dict__.pop("_digests", None)
 
     def _watched(self) -> dict | None:
         """The dict ``read_bytes`` fills after ``watch_digests``, else None."""
