@@ -251,3 +251,33 @@ def test_a_lookup_without_an_entry_of_the_recording_computes_no_key(cold_cup, tm
     (cache.dir / "cup_handover-0123456789abcdef").mkdir()  # an entry of this id: the key decides (hashed)
     with pytest.raises(AssertionError, match="read again to hash it"):
         cache.lookup(rec, {"name": "depth"}, 1, 0.5)
+
+
+def test_a_recording_opened_for_a_run_is_remembered_after_it_from_the_bytes_read(cold_cup, tmp_path, monkeypatch):
+    from massviz.io.cache import TraceCache
+    from massviz.io.identity import LocatedRecording, locate, open_remembered, settle
+
+    cache = TraceCache(tmp_path / "cache")
+    _no_hashing(monkeypatch)  # on a cold cache, nothing is read to hash it: before, during or after the run
+    rec = open_remembered(cold_cup, cache.root, defer=True)
+    assert locate(cold_cup, cache.root) is None  # its fingerprint would need every frame file read: not yet
+    with cache.watch(rec) as read:
+        for _ in rec.frames():
+            pass
+    key = cache.entry(rec, {"name": "depth"}, 1, read)  # what save does after the run
+    settle(rec, cache.hasher)
+    found = locate(cold_cup, cache.root)
+    assert isinstance(found, LocatedRecording) and found.fingerprint() == rec.fingerprint(cache.hasher, read=False)
+    assert cache.entry(found, {"name": "depth"}, 1) == key  # a warm run finds the entry the cold run wrote
+
+    # a file changed during the run: the recording is not remembered as it was opened
+    other = TraceCache(tmp_path / "cache2")
+    again = open_remembered(cold_cup, other.root, defer=True)
+    with other.watch(again) as read:
+        for _ in again.frames():
+            pass
+    other.entry(again, {}, 1, read)
+    assert again.fingerprint(other.hasher, read=False) is not None  # known without reading: settle could write
+    (cold_cup / "meta.json").write_text((cold_cup / "meta.json").read_text() + " ")
+    settle(again, other.hasher)
+    assert locate(cold_cup, other.root) is None

@@ -16,7 +16,9 @@ under ``located/<sha1(path)>.json``, with the identity (size, mtime, ctime, inod
 ``locate(path)`` stats them all and gives back a :class:`LocatedRecording` only when every identity is unchanged
 (any difference, a missing file, an unreadable memo: None, and the caller opens the recording as before).
 A user can set a file's mtime back but not its ctime, which every write changes; the fingerprint is still the
-files' bytes, hashed once (``massviz.io.filehash``).
+files' bytes, hashed once (``massviz.io.filehash``). A command about to process the recording opens it with
+``open_remembered(defer=True)``: on a cold cache the fingerprint is then not computed by reading every frame
+file up front; :func:`settle` writes the memo after the run, from the digests of the bytes the run read.
 
 The same is done for what a pipeline's options resolve to (the detector's cache settings and the mass CNN's
 ``weights_id``): ``remember_pipeline`` / ``remembered_pipeline``, keyed by the options and checked against the
