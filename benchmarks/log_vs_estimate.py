@@ -1,11 +1,12 @@
 """`massviz log` against `massviz estimate` on an uncached 1280x720 recording, for this checkout and another revision.
 
-    python benchmarks/log_vs_estimate.py --before 4a221be --runs 2
+    python benchmarks/log_vs_estimate.py --before 4a221be --runs 2 [--cache cold]
 
 The recording is assembled in a temporary folder from the 8 real frames of ``../shared/ccm_real/618`` (1280x720 RGB
 PNG + 16-bit depth PNG, the frontal camera's intrinsics from its calibration pickle), repeated to ``--frames``
-frames. Both commands run with ``--detector depth --no-cache`` (nothing comes from the trace cache) and the paper's
-weights from ``../shared``; ``log`` writes an .rrd. The other revision is checked out into a temporary git worktree
+frames. Both commands run with ``--detector depth --no-cache`` (nothing comes from the trace cache; ``--cache cold``:
+with a new, empty trace cache per run, which keys the trace by the frames' content) and the paper's weights from
+``../shared``; ``log`` writes an .rrd. The other revision is checked out into a temporary git worktree
 and run through PYTHONPATH, so both use the same interpreter and packages; runs alternate (before/after,
 estimate/log) so that machine noise hits all alike. Prints the median wall time of each and log / estimate.
 """
@@ -62,6 +63,8 @@ def main() -> int:
     ap.add_argument("--before", default="4a221be", help="git revision to compare with (default: 4a221be)")
     ap.add_argument("--runs", type=int, default=2, help="runs of each command per revision (default: 2)")
     ap.add_argument("--frames", type=int, default=32, help="frames of the recording (default: 32)")
+    ap.add_argument("--cache", choices=["none", "cold"], default="none",
+                    help="none (default): --no-cache; cold: a new, empty --cache folder for every run")
     args = ap.parse_args()
     for need in (SOURCE, WEIGHTS):
         if not need.exists():
@@ -73,18 +76,20 @@ def main() -> int:
         subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(before), args.before],
                        check=True, capture_output=True)
         try:
-            common = ["--detector", "depth", "--no-cache", "--weights", WEIGHTS, "--quiet"]
+            common = ["--detector", "depth", "--weights", WEIGHTS, "--quiet"]
             commands = {"estimate": ["estimate", rec, "--out", tmp / "out.csv", *common],
                         "log": ["log", rec, "--rrd", tmp / "out.rrd", *common]}
             times: dict[tuple[str, str], list[float]] = {}
-            for _ in range(args.runs):
+            for n in range(args.runs):
                 for name, src in (("before", before), ("after", ROOT)):
                     for cmd, argv in commands.items():
-                        times.setdefault((name, cmd), []).append(run(src, argv, tmp))
+                        cache = ["--no-cache"] if args.cache == "none" else ["--cache", tmp / f"cache-{name}-{cmd}-{n}"]
+                        times.setdefault((name, cmd), []).append(run(src, [*argv, *cache], tmp))
         finally:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(before)],
                            capture_output=True)
-    print(f"recording: {args.frames} frames of 1280x720 (ccm_real/618 repeated); --detector depth --no-cache; "
+    cache = "--no-cache" if args.cache == "none" else "a cold --cache"
+    print(f"recording: {args.frames} frames of 1280x720 (ccm_real/618 repeated); --detector depth, {cache}; "
           f"{args.runs} runs each, median wall seconds; {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f}")
     print(f"{'revision':<10} {'estimate':>9} {'log':>9} {'log/estimate':>13}")
     for name, label in (("before", args.before), ("after", "this")):

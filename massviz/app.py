@@ -11,6 +11,7 @@ there.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 from dataclasses import dataclass
@@ -145,11 +146,14 @@ def process(recording, detector, model, *, selection: Selection | None = None, k
         # the key is the frames' content: the recording's path, meta and intrinsics are today's, not the cached run's
         return annotate(dataclasses.replace(trace, recording=recording.info(), events=events,
                                             timings={**trace.timings, **timings}))
-    # the cached trace holds every detection (no exclusions): they are applied to the trace returned
-    trace = annotate(run(recording, detector, model, selection=selection.replace(exclude=()), progress=progress,
-                         batch=batch, prefetch=prefetch, on_frame=on_frame))
+    # the content key of the bytes the run reads (each frame file read once), not of a second read
+    with cache.watch(recording) if cache is not None else contextlib.nullcontext() as read:
+        # the cached trace holds every detection (no exclusions): they are applied to the trace returned
+        trace = run(recording, detector, model, selection=selection.replace(exclude=()), progress=progress,
+                    batch=batch, prefetch=prefetch, on_frame=on_frame)
+    trace = annotate(trace)
     if cache is not None:
-        cache.save(trace, recording, info)
+        cache.save(trace, recording, info, known=read)
     if exclude is not None:
         trace = trace.reselect(exclude=exclude)
     return trace

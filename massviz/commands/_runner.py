@@ -66,8 +66,10 @@ def open_dataset(args):
     tasks, failed, recordings = [], [], {}
     for i, path in enumerate(paths):
         try:
-            # unchanged since last opened (file identities): no frame decoded (massviz.io.identity)
-            rec = open_remembered(path, cache_root(args), allow_partial=getattr(args, "allow_partial", False))
+            # unchanged since last opened (file identities): no frame decoded (massviz.io.identity); else opened,
+            # and remembered after the run when that needs the frame files read (run_tasks: each read once)
+            rec = open_remembered(path, cache_root(args), allow_partial=getattr(args, "allow_partial", False),
+                                  defer=True)
         except MassvizError as err:
             if on_error == "stop":
                 raise
@@ -84,6 +86,23 @@ def run_tasks(args, command: str, pipeline, tasks, failed, on_error, collect, de
     """Run the tasks on --engine; write --report (also when the run stops on a failure); failed recordings are
     listed on stderr. Returns the outcomes in input order. ``recordings``: the ones ``open_dataset`` opened (by
     task index): the local engine processes them as opened, without opening them again."""
+    try:
+        return _run_tasks(args, command, pipeline, tasks, failed, on_error, collect, desc, recordings)
+    finally:
+        _settle(pipeline, recordings)
+
+
+def _settle(pipeline, recordings: dict | None) -> None:
+    """Remember the recordings ``open_dataset`` opened but could not remember before their frames were read
+    (``massviz.io.identity.settle``; with the trace cache's digests, which the run filled: no file read)."""
+    from massviz.io.identity import settle
+
+    cache = getattr(pipeline, "cache", None)
+    for rec in (recordings or {}).values():
+        settle(rec, cache.hasher if cache is not None else None)
+
+
+def _run_tasks(args, command: str, pipeline, tasks, failed, on_error, collect, desc: str, recordings):
     from massviz.runners.dataset import RunStopped, portable_options, run_dataset, write_report
 
     stats: dict = {}

@@ -42,8 +42,9 @@ class Recording(Protocol):
     def input_files(self) -> list[Path]:
         """Every file the frames are read from (the content key hashes their bytes)."""
 
-    def fingerprint(self, hasher=None) -> str:
-        """Content key of the frames (a digest of the input files' bytes)."""
+    def fingerprint(self, hasher=None, read: bool = True, known: dict | None = None) -> str | None:
+        """Content key of the frames (a digest of the input files' bytes; ``known``: of the bytes a run read);
+        ``read`` False: None when a file would have to be read to know it."""
 
     def info(self) -> RecordingInfo:
         """What a trace keeps of this recording."""

@@ -54,8 +54,6 @@ def _load_json(path: Path) -> tuple[Detections, list[Path]]:
     """The detections of a replay JSON file (full-box masks left as None: made after the box is checked against
     the frame) and the mask files it names."""
     try:
-        if path.stat().st_size > MAX_REPLAY_JSON_BYTES:
-            raise ValueError(f"the file is larger than {MAX_REPLAY_JSON_BYTES} bytes")
         data = load_json(path, "replay detections file", DataError, MAX_REPLAY_JSON_BYTES)
         rows = data["detections"] if isinstance(data, dict) else None
         if not isinstance(rows, list):

@@ -2,9 +2,11 @@
 
 Entries are keyed by the recording's content fingerprint (a BLAKE2b digest of the bytes of every RGB and depth file,
 ``Recording.fingerprint``; each file's digest is remembered in ``hashes/`` by its path, size, mtime, ctime and inode,
-so only new or changed files are read again), the detector's name and settings (except its threshold; a replay
-source or detector weights by their content too) and the stride. Inside an entry one file per detection threshold: detections made at threshold t serve every
-threshold >= t, so a lookup takes the entry with the largest t <= the threshold asked for.
+so only new or changed files are read again; a run that found no entry keys its trace by the digests of the bytes it
+read, ``watch``/``save(known=)``, so a cold cache reads each frame file once), the detector's name and settings
+(except its threshold; a replay source or detector weights by their content too) and the stride. Inside an entry
+one file per detection threshold: detections made at threshold t serve every threshold >= t, so a lookup takes the
+entry with the largest t <= the threshold asked for.
 
 An entry that cannot be decoded (truncated, garbage, not a file) is dropped and recomputed, never fatal; a cache
 that cannot be written is found before any work (``check_writable``).
@@ -13,7 +15,9 @@ Location: ``--cache PATH``, else env ``MASSVIZ_CACHE_DIR``, else the user cache 
 """
 from __future__ import annotations
 
+import contextlib
 import functools
+import glob
 import hashlib
 import json
 import os
@@ -58,14 +62,38 @@ class TraceCache:
                                "--cache DIR)", self.root) from None
         return self
 
-    def entry(self, recording: Recording, detector_info: dict, stride: int) -> Path:
-        key = json.dumps({"recording": recording.fingerprint(self.hasher), "detector": detector_info,
+    def entry(self, recording: Recording, detector_info: dict, stride: int, known: dict | None = None) -> Path | None:
+        """The entry folder of this recording's content, detector settings and stride. ``known``: the digests of
+        the bytes a run read (:meth:`watch`): the entry of the content that run processed; None when a file
+        changed while the run read it."""
+        fingerprint = recording.fingerprint(self.hasher, known=known) if known else recording.fingerprint(self.hasher)
+        if fingerprint is None:
+            return None
+        key = json.dumps({"recording": fingerprint, "detector": detector_info,
                           "stride": stride}, sort_keys=True, default=str)
         digest = hashlib.sha1(key.encode()).hexdigest()[:16]
         return self.dir / f"{safe_filename(recording.id, 60)}-{digest}"
 
+    def _may_hold(self, recording: Recording) -> bool:
+        """False when no entry of this recording's id exists (``<id>-<16 hex>``): then every lookup misses, whatever
+        the recording's content key, which is not computed (reading every frame file to hash it) to find that."""
+        pattern = glob.escape(safe_filename(recording.id, 60)) + "-" + "[0-9a-f]" * 16
+        return any(True for _ in self.dir.glob(pattern))
+
+    def watch(self, recording: Recording):
+        """``with cache.watch(recording) as read:`` around a run of ``recording`` whose trace is not cached: the
+        digests of the frame files the run reads, filled as it reads them (``watch_digests``, where the format has
+        it; else None), to pass to ``save(known=read)``: the trace is keyed by the bytes it was computed from,
+        without reading each frame file again. Files the run does not read (a video, a RealSense file, frames
+        skipped by the stride) are hashed by ``save``."""
+        watch = getattr(recording, "watch_digests", None)
+        return watch() if watch is not None else contextlib.nullcontext()
+
     def lookup(self, recording: Recording, detector_info: dict, stride: int, threshold: float) -> Path | None:
-        """Path of the cached trace made at the largest threshold <= ``threshold``, or None."""
+        """Path of the cached trace made at the largest threshold <= ``threshold``, or None (at once, without the
+        content key, when no entry of the recording's id exists)."""
+        if not self._may_hold(recording):
+            return None
         entry = self.entry(recording, detector_info, stride)
         best = None
         for p in entry.glob("t*.npz") if entry.is_dir() else []:
@@ -112,10 +140,15 @@ class TraceCache:
             index = load_index(path)
         return index if index is not None and index.detect_threshold <= threshold + 1e-9 else None
 
-    def save(self, trace: Trace, recording: Recording, detector_info: dict) -> Path | None:
-        """Write the trace's entry; a file system refusal at this point (the folder was checked writable before
-        the work) is a warning, not a failure: the result stands, it is only not cached."""
-        entry = self.entry(recording, detector_info, trace.stride)
+    def save(self, trace: Trace, recording: Recording, detector_info: dict, known: dict | None = None) -> Path | None:
+        """Write the trace's entry (``known``: see :meth:`watch`); a file system refusal at this point (the folder
+        was checked writable before the work) is a warning, not a failure: the result stands, it is only not
+        cached. So is a frame file that changed while the run read it (no content key)."""
+        entry = self.entry(recording, detector_info, trace.stride, known)
+        if entry is None:
+            print(f"massviz: warning: {recording.path}: a frame file changed while it was read; the result is not "
+                  "cached", file=sys.stderr)
+            return None
         path = entry / f"t{float(trace.detect_threshold)!r}.npz"  # exact: t0.4.npz, t0.40005.npz
         try:
             if path.is_dir():

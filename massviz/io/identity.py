@@ -16,7 +16,9 @@ under ``located/<sha1(path)>.json``, with the identity (size, mtime, ctime, inod
 ``locate(path)`` stats them all and gives back a :class:`LocatedRecording` only when every identity is unchanged
 (any difference, a missing file, an unreadable memo: None, and the caller opens the recording as before).
 A user can set a file's mtime back but not its ctime, which every write changes; the fingerprint is still the
-files' bytes, hashed once (``massviz.io.filehash``).
+files' bytes, hashed once (``massviz.io.filehash``). A command about to process the recording opens it with
+``open_remembered(defer=True)``: on a cold cache the fingerprint is then not computed by reading every frame
+file up front; :func:`settle` writes the memo after the run, from the digests of the bytes the run read.
 
 The same is done for what a pipeline's options resolve to (the detector's cache settings and the mass CNN's
 ``weights_id``): ``remember_pipeline`` / ``remembered_pipeline``, keyed by the options and checked against the
@@ -29,14 +31,13 @@ import hashlib
 import json
 import os
 import sys
-import tempfile
 import threading
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from massviz.core.types import RecordingInfo
-from massviz.io.filehash import identity
+from massviz.io.filehash import identity, read_memo, write_memo
 
 LOCATE_FORMAT = 1
 #: files under these are code, not data (module imports while a pipeline is built)
@@ -122,29 +123,6 @@ def _unchanged(recorded: dict) -> bool:
     return True
 
 
-def _read_json(path: Path) -> dict | None:
-    try:
-        if path.stat().st_size > (64 << 20):
-            return None
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError, RecursionError):
-        return None
-    return data if isinstance(data, dict) else None
-
-
-def _write_json(path: Path, doc: dict) -> None:
-    tmp = None
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(doc, fh)
-        os.replace(tmp, path)
-    except OSError:  # a memo is an optimisation: the recording is opened the slow way next time
-        if tmp is not None:
-            Path(tmp).unlink(missing_ok=True)
-
-
 # -- recordings ------------------------------------------------------------------------------------------------------
 @dataclass
 class LocatedRecording:
@@ -165,7 +143,7 @@ class LocatedRecording:
     def info(self) -> RecordingInfo:
         return self.recording_info
 
-    def fingerprint(self, hasher=None) -> str:
+    def fingerprint(self, hasher=None, read: bool = True, known: dict | None = None) -> str:
         return self._fingerprint
 
     @property
@@ -180,8 +158,8 @@ def _memo_path(cache_root: Path, path: str | Path, allow_partial: bool) -> Path:
 
 def locate(path: str | Path, cache_root: str | Path, allow_partial: bool = False) -> LocatedRecording | None:
     """The recording at ``path`` as last opened, when none of its files and folders changed since; else None."""
-    memo = _read_json(_memo_path(cache_root, path, allow_partial))
-    if memo is None or memo.get("format") != LOCATE_FORMAT or memo.get("path") != str(Path(path).resolve()):
+    memo = read_memo(_memo_path(cache_root, path, allow_partial))
+    if memo.get("format") != LOCATE_FORMAT or memo.get("path") != str(Path(path).resolve()):
         return None
     if not _unchanged(memo.get("depends", {})):
         return None
@@ -195,9 +173,14 @@ def locate(path: str | Path, cache_root: str | Path, allow_partial: bool = False
         return None
 
 
-def open_remembered(path: str | Path, cache_root: str | Path | None, *, allow_partial: bool = False, hasher=None):
+def open_remembered(path: str | Path, cache_root: str | Path | None, *, allow_partial: bool = False, hasher=None,
+                    defer: bool = False):
     """``locate(path)`` when the recording is unchanged since it was last opened, else ``open_recording(path)``
-    (which checks it) and remember what it found. ``cache_root`` None: always ``open_recording``."""
+    (which checks it) and remember what it found. ``cache_root`` None: always ``open_recording``.
+
+    ``defer``: the recording is about to be processed. When its content fingerprint would need its frame files
+    read (their digests are not remembered: a cold cache), it is not computed now; :func:`settle` remembers the
+    recording after the run, from the digests of the bytes the run read (each frame file read once)."""
     from massviz.io.recording import open_recording
 
     if cache_root is None:
@@ -208,16 +191,15 @@ def open_remembered(path: str | Path, cache_root: str | Path | None, *, allow_pa
     with capture_reads() as reads:
         rec = open_recording(path, allow_partial=allow_partial)
     try:
-        remember(path, rec, reads, cache_root, allow_partial, hasher)
+        remember(path, rec, reads, cache_root, allow_partial, hasher, defer=defer)
     except Exception:  # noqa: BLE001 - remembering is an optimisation; the recording is open and checked
         pass
     return rec
 
 
-def remember(path, rec, reads: dict, cache_root, allow_partial: bool, hasher=None) -> None:
-    """Write ``located/<key>.json`` for ``rec`` (opened from ``path`` while ``reads`` were captured)."""
-    from massviz.io.filehash import FileHasher
-
+def remember(path, rec, reads: dict, cache_root, allow_partial: bool, hasher=None, *, defer: bool = False) -> None:
+    """Write ``located/<key>.json`` for ``rec`` (opened from ``path`` while ``reads`` were captured). ``defer``:
+    when the fingerprint needs a file read, keep what was found on ``rec`` for :func:`settle` instead."""
     code = _code_roots() + (os.path.abspath(cache_root),)
     files = {os.path.abspath(p) for p in [*map(str, rec.input_files()), *reads["files"]]}
     files = {p for p in files if _is_data(p, code) and os.path.isfile(p)}
@@ -228,14 +210,41 @@ def remember(path, rec, reads: dict, cache_root, allow_partial: bool, hasher=Non
     before = _identities(files, dirs)
     if before is None:
         return
-    fingerprint = rec.fingerprint(hasher or FileHasher(Path(cache_root) / "hashes"))
-    if _identities(files, dirs) != before:  # changed while read: remember nothing
-        return
+    pending = {"path": path, "files": files, "dirs": dirs, "before": before, "cache_root": cache_root,
+               "allow_partial": allow_partial}
+    if not _remember_now(rec, pending, hasher, read=not defer):
+        rec.__dict__["_remember_later"] = pending
+
+
+def settle(rec, hasher=None) -> None:
+    """Remember the recording ``open_remembered(defer=True)`` opened, now that a run has read its frame files
+    (their digests are remembered by the trace cache): no frame file is read here; nothing is remembered when
+    one is still unknown (the run failed) or when a file or folder changed since the recording was opened."""
+    pending = getattr(rec, "__dict__", {}).pop("_remember_later", None)
+    if pending is not None:
+        try:
+            _remember_now(rec, pending, hasher, read=False)
+        except Exception:  # noqa: BLE001 - remembering is an optimisation
+            pass
+
+
+def _remember_now(rec, pending: dict, hasher, read: bool) -> bool:
+    """Write the memo of ``pending`` (what ``remember`` found); False when the fingerprint is not known without
+    reading a file (``read`` False). Nothing is written when a file or folder changed since ``before``."""
+    from massviz.io.filehash import FileHasher
+
+    fingerprint = rec.fingerprint(hasher or FileHasher(Path(pending["cache_root"]) / "hashes"), read=read)
+    if fingerprint is None:
+        return False
+    if _identities(pending["files"], pending["dirs"]) != pending["before"]:  # changed since opened: remember nothing
+        return True
+    path, allow_partial = pending["path"], pending["allow_partial"]
     doc = {"format": LOCATE_FORMAT, "path": str(Path(path).resolve()), "recording_path": str(rec.path),
            "id": rec.id, "kind": rec.kind, "config_id": rec.config_id, "num_frames": int(rec.num_frames),
            "info": rec.info().to_dict(), "fingerprint": fingerprint, "notes": [str(n) for n in rec.notes],
-           "depends": before}
-    _write_json(_memo_path(cache_root, path, allow_partial), json.loads(json.dumps(doc, default=str)))
+           "depends": pending["before"]}
+    write_memo(_memo_path(pending["cache_root"], path, allow_partial), json.loads(json.dumps(doc, default=str)))
+    return True
 
 
 # -- pipelines -------------------------------------------------------------------------------------------------------
@@ -254,18 +263,18 @@ def remember_pipeline(cache_root, key: dict, resolved: dict, reads: dict) -> Non
     if depends is None:
         return
     doc = {"format": LOCATE_FORMAT, "key": key, "resolved": resolved, "depends": depends}
-    _write_json(_pipeline_memo(cache_root, key), json.loads(json.dumps(doc, default=str)))
+    write_memo(_pipeline_memo(cache_root, key), json.loads(json.dumps(doc, default=str)))
 
 
 def remembered_pipeline(cache_root, key: dict) -> dict | None:
     """What ``remember_pipeline`` remembered for ``key``, when none of the files it read changed; else None."""
-    memo = _read_json(_pipeline_memo(cache_root, key))
-    if memo is None or memo.get("format") != LOCATE_FORMAT or not isinstance(memo.get("resolved"), dict):
+    memo = read_memo(_pipeline_memo(cache_root, key))
+    if memo.get("format") != LOCATE_FORMAT or not isinstance(memo.get("resolved"), dict):
         return None
     if json.loads(json.dumps(key, default=str)) != memo.get("key") or not _unchanged(memo.get("depends", {})):
         return None
     return memo["resolved"]
 
 
-__all__ = ["capture_reads", "LocatedRecording", "locate", "open_remembered", "remember", "remember_pipeline",
+__all__ = ["capture_reads", "LocatedRecording", "locate", "open_remembered", "remember", "settle", "remember_pipeline",
            "remembered_pipeline"]

@@ -10,6 +10,8 @@ One place for the checks every reader makes on what it reads from a file (see RE
   turned into file names only through ``safe_filename``.
 * :func:`number` — a numeric field is finite, in range and integral where it must be, checked where it is read.
 * :func:`check_image_size` — the size an image *declares* in its header is bounded before it is decoded.
+* :func:`read_bounded` — the one bounded file read: the size checked before reading (a sparse 2 TiB file is
+  refused at once), a file growing past the bound while read refused; every reader of an untrusted file uses it.
 * :func:`load_json` / :func:`parse_json` — every JSON file from a dataset or a user: size bounded, nesting depth
   bounded before parsing, integers of more than a few hundred digits refused; any failure one error naming the file.
 * :func:`load_npz_checked` — .npz arrays: declared sizes and the inflated size bounded before anything is inflated.
@@ -39,6 +41,35 @@ MAX_IMAGE_SIDE = 16384
 MAX_IMAGE_PIXELS = 1 << 26  # 67 Mpixel
 #: largest integer a file may give for a frame index or a pixel coordinate.
 MAX_INDEX = 2**31 - 1
+
+
+# ------------------------------------------------------------------------------------------------- bounded reads
+def read_bounded(path: str | Path, limit: int, what: str, error=DataError, *, hint: str = "",
+                 with_stats: bool = False):
+    """The bytes of the untrusted file ``path``, at most ``limit``: the size is checked from the open file before
+    anything is read (a sparse 2 TiB file is refused at once) and at most ``limit + 1`` bytes are read (a file that
+    grows past the bound while read is refused too). ``error`` naming ``path`` for any failure, in one line: missing
+    or unreadable (``cannot read WHAT (reason)``), a directory, too big (``hint``: added to the bound, e.g. what such
+    files usually weigh). The one bounded read of massviz: frame files, JSON, calibration pickles.
+
+    ``with_stats``: (bytes, ``os.stat_result`` of the open file before and after it was read): the caller can
+    tell a file that changed while it was read (the bytes may be a mix of two versions)."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            before = os.fstat(fh.fileno())
+            if before.st_size > limit:
+                raise error(f"{what} is {before.st_size} bytes (at most {limit}{'; ' + hint if hint else ''}); not "
+                            "read", path)
+            data = fh.read(limit + 1)
+            after = os.fstat(fh.fileno()) if with_stats else None
+    except IsADirectoryError:
+        raise error(f"{what} is a directory, not a file", path) from None
+    except OSError as err:
+        raise error(f"cannot read {what} ({err.strerror or err})", path) from None
+    if len(data) > limit:
+        raise error(f"{what} is larger than {limit} bytes; not read", path)
+    return (data, before, after) if with_stats else data
 
 
 # ------------------------------------------------------------------------------------------------------- pickles
@@ -131,13 +162,7 @@ def load_calibration_pickle(path: str | Path, error=MassvizError):
     """Unpickle a CCM calibration file with :class:`RestrictedUnpickler` (latin1 strings, as CCM's Python 2
     files need). Any refusal or malformation raises ``error`` naming ``path``; nothing in the file is executed."""
     path = Path(path)
-    try:
-        size = path.stat().st_size
-        if size > MAX_CALIB_BYTES:
-            raise error(f"calibration pickle is {size} bytes (at most {MAX_CALIB_BYTES}; CCM's are a few KB)", path)
-        data = path.read_bytes()
-    except OSError as err:
-        raise error(f"cannot read calibration pickle ({err.strerror or err})", path) from None
+    data = read_bounded(path, MAX_CALIB_BYTES, "calibration pickle", error, hint="CCM's are a few KB")
     try:
         return RestrictedUnpickler(io.BytesIO(data), encoding="latin1").load()
     except pickle.UnpicklingError as err:
@@ -429,17 +454,7 @@ def load_json(path: str | Path, what: str = "JSON file", error=DataError, max_by
     """The JSON document of the untrusted file ``path`` (see :func:`parse_json`); the size is checked before the
     file is read. ``error`` naming ``path`` for any failure (missing, unreadable, too big, malformed)."""
     path = Path(path)
-    try:
-        with open(path, "rb") as fh:
-            size = os.fstat(fh.fileno()).st_size
-            if size > max_bytes:
-                raise error(f"{what} is {size} bytes; at most {max_bytes} are read", path)
-            data = fh.read(max_bytes + 1)
-    except OSError as err:
-        raise error(f"cannot read {what} ({err.strerror or err})", path) from None
-    if len(data) > max_bytes:
-        raise error(f"{what} is larger than {max_bytes} bytes", path)
-    return parse_json(data, path, what, error)
+    return parse_json(read_bounded(path, max_bytes, what, error), path, what, error)
 
 
 # ---------------------------------------------------------------------------------------------------------- npz
@@ -492,7 +507,7 @@ def load_npz_checked(path: str | Path, max_bytes: int = MAX_NPZ_BYTES) -> dict[s
         return out
 
 
-__all__ = ["MAX_NPZ_RATIO", "MAX_JSON_BYTES", "MAX_JSON_DEPTH", "MAX_JSON_INT_DIGITS", "parse_json", "load_json", "MAX_NPZ_BYTES", "load_npz_checked", "MAX_CALIB_BYTES", "MAX_ID_CHARS", "MAX_IMAGE_SIDE", "MAX_IMAGE_PIXELS", "MAX_INDEX",
+__all__ = ["read_bounded", "MAX_NPZ_RATIO", "MAX_JSON_BYTES", "MAX_JSON_DEPTH", "MAX_JSON_INT_DIGITS", "parse_json", "load_json", "MAX_NPZ_BYTES", "load_npz_checked", "MAX_CALIB_BYTES", "MAX_ID_CHARS", "MAX_IMAGE_SIDE", "MAX_IMAGE_PIXELS", "MAX_INDEX",
            "RestrictedUnpickler", "load_calibration_pickle", "confined", "text_id", "safe_filename", "number",
            "check_image_size", "image_header_size", "png_header_size", "frame_path", "printable", "csv_cell",
            "csv_safe", "json_safe"]

@@ -8,6 +8,7 @@ import json
 import math
 import os
 from collections import OrderedDict
+from contextlib import contextmanager
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -53,25 +54,46 @@ class RecordingBase:
     def video_file(self) -> Path | None:
         return None
 
-    def fingerprint(self, hasher=None) -> str:
+    def fingerprint(self, hasher=None, read: bool = True, known: dict | None = None) -> str | None:
         """The content key of the recording's frames: a digest of each input file's *bytes* (BLAKE2b), so any edit
         changes it, even one that keeps the size and sets the modification time back. ``hasher``
         (``massviz.io.filehash.FileHasher``, the trace cache's) remembers each file's digest by (path, size, mtime,
-        ctime, inode), so a dataset is hashed once, not on every run."""
+        ctime, inode), so a dataset is hashed once, not on every run. ``known``: the digests of the bytes a run
+        read (``watch_digests``), which the key is then of (each file read once). ``read`` False: None when a file
+        would have to be read to know the key; also None when a file changed while the run read it."""
         from massviz.io.filehash import FileHasher
 
         hasher = hasher or FileHasher()
         files = self.input_files()
+        digests = hasher.digests(files, group=str(Path(self.path).resolve()), known=known, read=read)
+        if digests is None:
+            return None
         root = self.path.parent if self.path.is_file() else self.path
         h = hashlib.blake2b(digest_size=16)
         h.update(f"{self.kind}|{self.num_frames}\n".encode())
-        for p, digest in zip(files, hasher.digests(files, group=str(Path(self.path).resolve()))):
+        for p, digest in zip(files, digests):
             try:
                 name = str(p.relative_to(root))
             except ValueError:
                 name = p.name
             h.update(f"{name}|{digest}\n".encode())
         return h.hexdigest()
+
+    @contextmanager
+    def watch_digests(self):
+        """``with rec.watch_digests() as digests:`` a dict that, inside the block, gets the content digest of each
+        frame file this recording reads, from the bytes read (``read_bytes(digests=)``), for
+        ``fingerprint(known=)``: the trace cache keys a run it did not find by the bytes the run read, instead of
+        reading every file once more to hash it."""
+        self.__dict__["_digests"] = digests = {}
+        try:
+            yield digests
+        finally:
+            self.__dict__.pop("_digests", None)
+
+    def _watched(self) -> dict | None:
+        """The dict ``read_bytes`` fills after ``watch_digests``, else None."""
+        return self.__dict__.get("_digests")
 
     def info(self) -> RecordingInfo:
         """What a trace keeps of this recording."""
@@ -116,47 +138,48 @@ MAX_FRAME_FILE_BYTES = 256 << 20
 
 #: frame files read when a recording was opened (its first frame, checked up front), kept until the frame loop reads
 #: them, so that each frame file is opened once; bounded (a dataset opens every recording before the work starts:
-#: the first frames of the last few opened are kept, the others are read again).
-_KEPT: "OrderedDict[str, tuple[int, int, bytes]]" = OrderedDict()
+#: the first frames of the last few opened are kept, the others are read again). path -> (identity, bytes).
+_KEPT: "OrderedDict[str, tuple[list[int], bytes]]" = OrderedDict()
 _KEEP_AT_MOST = 4
 
 
-def _kept(path: Path) -> bytes | None:
+def _kept(path: Path) -> tuple[bytes, list[int]] | None:
+    """The kept bytes of ``path`` and its identity, when the file is unchanged since they were read."""
+    from massviz.io.filehash import identity
+
     entry = _KEPT.pop(str(path), None)
     if entry is None:
         return None
     try:
-        st = os.stat(path)
+        ident = identity(os.stat(path))
     except OSError:
         return None
-    return entry[2] if (st.st_size, st.st_mtime_ns) == entry[:2] else None
+    return (entry[1], ident) if ident == entry[0] else None
 
 
-def read_bytes(path: Path, what: str, *, keep: bool = False) -> bytes:
+def read_bytes(path: Path, what: str, *, keep: bool = False, digests: dict | None = None) -> bytes:
     """A frame file's bytes, read once (its header checked, decoded from memory, and kept for sinks that log them as
-    they are). The size is checked before reading (a sparse 2 TiB file is refused at once). ``keep``: the file is
-    read to check a recording when it is opened; its bytes are kept (bounded) for the frame loop's read."""
-    data = _kept(path)
-    if data is not None:
-        return data
-    try:
-        with open(path, "rb") as fh:
-            size = os.fstat(fh.fileno()).st_size
-            if size > MAX_FRAME_FILE_BYTES:
-                raise RecordingError(f"{what} is {size} bytes (at most {MAX_FRAME_FILE_BYTES}); not read", path)
-            data = fh.read(MAX_FRAME_FILE_BYTES + 1)
-    except IsADirectoryError:
-        raise RecordingError(f"{what} is a directory, not a file", path) from None
-    except OSError as err:
-        raise RecordingError(f"cannot read {what} ({err.strerror or err})", path) from None
-    if len(data) > MAX_FRAME_FILE_BYTES:
-        raise RecordingError(f"{what} is larger than {MAX_FRAME_FILE_BYTES} bytes; not read", path)
-    check_image_size(path, RecordingError, what, data=data)
-    if keep:
-        st = os.stat(path)
-        _KEPT[str(path)] = (st.st_size, st.st_mtime_ns, data)
-        while len(_KEPT) > _KEEP_AT_MOST:
-            _KEPT.popitem(last=False)
+    they are), with ``massviz.io.untrusted.read_bounded`` (the size checked before reading: a sparse 2 TiB file is
+    refused at once). ``keep``: the file is read to check a recording when it is opened; its bytes are kept
+    (bounded) for the frame loop's read. ``digests``: a dict that gets ``{absolute path: (identity, BLAKE2b
+    digest of the bytes read)}`` (``massviz.io.filehash``), so that the trace cache's content key needs no second
+    read of the file; ``{absolute path: None}`` when the file changed while it was read (a mix of two versions)."""
+    from massviz.io.filehash import bytes_digest, identity
+    from massviz.io.untrusted import read_bounded
+
+    kept = _kept(path)
+    if kept is not None:
+        data, ident = kept
+    else:
+        data, before, after = read_bounded(path, MAX_FRAME_FILE_BYTES, what, RecordingError, with_stats=True)
+        ident = identity(after) if identity(before) == identity(after) else None  # None: changed while read
+        check_image_size(path, RecordingError, what, data=data)
+        if keep and ident is not None:
+            _KEPT[str(path)] = (ident, data)
+            while len(_KEPT) > _KEEP_AT_MOST:
+                _KEPT.popitem(last=False)
+    if digests is not None:  # None: changed while read, the bytes have no key
+        digests[os.path.abspath(path)] = (ident, bytes_digest(data)) if ident is not None else None
     return data
 
 
@@ -165,12 +188,12 @@ def _decode(data: bytes, flags: int):
 
 
 def read_rgb(path: Path, width: int | None = None, height: int | None = None, *, with_bytes: bool = False,
-             keep: bool = False):
+             keep: bool = False, digests: dict | None = None):
     """RGB of one frame file (H×W×3 uint8); ``with_bytes``: (rgb, the file's bytes), the file read once.
 
     EXIF orientation is ignored (``cv2.IMREAD_IGNORE_ORIENTATION``): a frame is used as its pixels are stored, so
-    it stays aligned with its depth map."""
-    data = read_bytes(path, "RGB image", keep=keep)
+    it stays aligned with its depth map. ``keep``, ``digests``: see ``read_bytes``."""
+    data = read_bytes(path, "RGB image", keep=keep, digests=digests)
     bgr = _decode(data, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if bgr is None:
         raise RecordingError("cannot read image (missing, empty or not an image)", path)
@@ -180,9 +203,11 @@ def read_rgb(path: Path, width: int | None = None, height: int | None = None, *,
     return (rgb, data) if with_bytes else rgb
 
 
-def read_depth_png(path: Path, width: int, height: int, *, with_bytes: bool = False, keep: bool = False):
-    """Depth of one 16-bit PNG (H×W uint16 mm), checked; ``with_bytes``: (depth, the file's bytes), read once."""
-    data = read_bytes(path, "depth image", keep=keep)
+def read_depth_png(path: Path, width: int, height: int, *, with_bytes: bool = False, keep: bool = False,
+                   digests: dict | None = None):
+    """Depth of one 16-bit PNG (H×W uint16 mm), checked; ``with_bytes``: (depth, the file's bytes), read once.
+    ``keep``, ``digests``: see ``read_bytes``."""
+    data = read_bytes(path, "depth image", keep=keep, digests=digests)
     depth = _decode(data, cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
     if depth is None:
         raise RecordingError("cannot read depth image (missing, empty or not a PNG)", path)

@@ -71,7 +71,8 @@ class FrameFilesRecording(RecordingBase):
         if not 0 <= index < len(self.depth_files):
             raise RecordingError(f"no depth image for frame {index} ({len(self.depth_files)} depth frames)",
                                  self.depth_files[0].parent if self.depth_files else self.path)
-        return read_depth_png(self.depth_files[index], self.width, self.height, with_bytes=True)
+        return read_depth_png(self.depth_files[index], self.width, self.height, with_bytes=True,
+                              digests=self._watched())
 
     def frames(self, stride: int = 1, indices=None) -> Iterator[Frame]:
         """Yield every ``stride``-th frame (or only ``indices``, ascending) as ``Frame`` objects, streamed; frame
@@ -87,7 +88,7 @@ class FrameFilesRecording(RecordingBase):
         if self.rgb_files is not None:
             for i, p in enumerate(self.rgb_files[: last + 1]):
                 if keep(i):
-                    yield i, *read_rgb(p, self.width, self.height, with_bytes=True)
+                    yield i, *read_rgb(p, self.width, self.height, with_bytes=True, digests=self._watched())
             return
         cap = cv2.VideoCapture(str(self.rgb_video))
         try:
