@@ -96,7 +96,7 @@ def test_file_hasher_memo_is_written_through_atomic_path(tmp_path, monkeypatch):
     data.write_bytes(b"abcd")
     assert filehash.FileHasher(store).digests([data], "rec") == [filehash.file_digest(data)]
     assert list(store.iterdir()) == [memo] and json.loads(memo.read_text())[os.path.abspath(data)][1] == digest
-    assert "atomic_path" in filehash.FileHasher._write.__code__.co_names
+    assert "atomic_path" in filehash.write_memo.__code__.co_names
 
 
 def test_fold_batchnorm_is_torchs_fuse_conv_bn_weights():
