@@ -121,3 +121,22 @@ def test_the_chosen_counts_are_the_selections(sample_traces):
                                           original_selection(t, sel, stride))
                     seen.add(int(n))
     assert len(seen) > 2  # not all zeros nor all K
+
+
+def test_the_dataset_tables_numbers_are_the_vectorised_sweeps(indexes, sample_traces):
+    """The dataset browser's per-recording columns (``tables_from_traces``: the trace's own selection, made by the
+    pipeline) are the numbers the sweep, the tuner and the panels compute from the indexes, to the bit."""
+    import math
+
+    from massviz.evaluation.browser import tables_from_traces
+    from massviz.evaluation.sweep import SweepTable
+
+    recordings, _ = tables_from_traces(sample_traces)
+    assert {(t.threshold, t.k, t.stride) for t in sample_traces} == {(0.4, 5, 1)}
+    table = SweepTable(indexes)
+    estimates, chosen = table.estimates(0.4, 5), table.chosen(0.4, 5)
+    for t, est, n in zip(sample_traces, estimates, chosen):
+        row = recordings.loc[t.recording.id]
+        assert row["estimate_g"] == est and row["k"] == n == len(t.selection) and est > 0
+        true = t.ground_truth_mass
+        assert row["rel_error"] == abs(est - true) / true and row["score"] == math.exp(-abs(est - true) / true)
