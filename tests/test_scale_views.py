@@ -140,3 +140,19 @@ def test_the_dataset_tables_numbers_are_the_vectorised_sweeps(indexes, sample_tr
         assert row["estimate_g"] == est and row["k"] == n == len(t.selection) and est > 0
         true = t.ground_truth_mass
         assert row["rel_error"] == abs(est - true) / true and row["score"] == math.exp(-abs(est - true) / true)
+
+
+def test_the_ranking_table_shows_the_worst_recordings_only(indexes, monkeypatch):
+    """At 1,140 recordings the whole ranking is ~180 kB of HTML sent at every slider move: the worst rows only."""
+    from massviz.views.widgets import FailurePanel, Tuner
+
+    tuner = Tuner(indexes, k=5, stride=6)
+    whole = FailurePanel(tuner).ranking_html.value
+    assert whole.count("</tr>") == 1 + 3 and "more" not in whole  # header + every recording
+    monkeypatch.setattr(FailurePanel, "RANKING_ROWS", 2)
+    panel = FailurePanel(tuner)
+    worst = tuner.ranking()["recording"].tolist()
+    html = panel.ranking_html.value
+    assert html.count("</tr>") == 1 + 2 and "… and 1 more" in html
+    assert worst[0] in html and worst[1] in html and worst[2] not in html
+    assert [label.split(". ", 1)[1] for label, _ in panel.recording.options] == worst

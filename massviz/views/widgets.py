@@ -368,6 +368,9 @@ class FailurePanel(TuningPanel):
     """Recordings ranked by error; per recording the chosen patches with why they were chosen, flags, and a
     keep / exclude / exclude-track toggle each; the re-estimate; export of the exclusions."""
 
+    #: rows of the ranking table shown (the worst); the recording picker lists every recording in that order
+    RANKING_ROWS = 25
+
     def __init__(self, tuner: Tuner, recording: int | None = None, export_path: str | Path = "exclusions.json"):
         import ipywidgets as W
 
@@ -428,7 +431,11 @@ class FailurePanel(TuningPanel):
 
         i, tuner = self.i, self.tuner
         ranking = tuner.ranking()
-        self.ranking_html.value = "<b>Recordings ranked by error (worst first)</b>" + _table_html(ranking, "{:.3f}")
+        more = len(ranking) - self.RANKING_ROWS
+        self.ranking_html.value = ("<b>Recordings ranked by error (worst first)</b>"
+                                   + _table_html(ranking.head(self.RANKING_ROWS), "{:.3f}")
+                                   + (f"<small>… and {more} more (the recording picker lists them all, in this "
+                                      "order when the panel was made)</small>" if more > 0 else ""))
         self.estimate.value = estimate_html(tuner.current[i])
         self.score.value = score_html(tuner.report)
         table = self.table(i)
