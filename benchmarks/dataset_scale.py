@@ -1,6 +1,7 @@
 """Every cached operation at dataset scale (issue 24): a synthetic CCM-sized cached dataset of up to 1,140 recordings,
 and at 10 / 100 / 1,140 recordings the CLI sweep of 100 (threshold, K) pairs end to end, the in-process sweep, the
-Tuner's build time and memory, its slider latency, and a warm ``estimate`` of one cached recording.
+Tuner's build time and memory, its slider latency, the failure panel's build time and slider latency, and a warm
+``estimate`` of one cached recording.
 
     MASSVIZ_WEIGHTS=../shared/weights/corsmal_visual/Encoder_pool_aug_158.torch \\
         .venv/bin/python benchmarks/dataset_scale.py [--sizes 10,100,1140] [--out DIR]
@@ -210,6 +211,16 @@ def measure(root: Path, cache: Path, n: int, env: dict) -> dict:
             c0 = time.process_time()
             lat.append((1000 * panel.set(**change), 1000 * (time.process_time() - c0)))
         res["slider"] = "panel"
+        from massviz.views.widgets import FailurePanel
+
+        loads = []
+        t0, c0 = time.perf_counter(), time.process_time()
+        failures = FailurePanel(Tuner(indexes, k=5, threshold=0.4))  # ranking over all, the worst one shown
+        res["failure_panel_s"] = (time.perf_counter() - t0, time.process_time() - c0)
+        for change in ({"k": 6}, {"threshold": 0.6}):
+            c0 = time.process_time()
+            loads.append((1000 * failures.set(**change), 1000 * (time.process_time() - c0)))
+        res["failure_slider_ms"] = loads
     except ImportError:  # no ipywidgets: the Tuner's update and the shown recording, without widgets
         for change in ({"k": 6}, {"k": 3}, {"threshold": 0.6}, {"threshold": 0.4}, {"stride": 2}, {"stride": 1}):
             t0, c0 = time.perf_counter(), time.process_time()
@@ -243,15 +254,18 @@ def main(argv=None) -> int:
               f"wall, {CPU['last']:.2f} s CPU (goal <= 1 s); load {load()}")
         print("every figure: wall (CPU) — the CPU time is what the load changes least")
         print("| recordings | CLI sweep 100 pairs (s) | read indexes (s) | in-process sweep (s) | Tuner build (s) | "
-              "Tuner memory (MB) | process RSS (MB) | slider moves (ms) | load |")
-        print("|---|---|---|---|---|---|---|---|---|")
+              "Tuner memory (MB) | process RSS (MB) | slider moves (ms) | FailurePanel build (s) | its slider moves "
+              "(ms) | load |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|")
         for n in sizes:
             root = out if n == len(paths) else subset(out, paths, n)
             r = measure(root, cache, n, env)
             w = lambda v: f"{v[0]:.2f} ({v[1]:.2f})"  # noqa: E731
             print(f"| {n} | {r['cli_sweep_s']:.2f} ({r['cli_sweep_cpu_s']:.2f}) | {w(r['read_indexes_s'])} | "
                   f"{w(r['sweep_in_process_s'])} | {w(r['tuner_build_s'])} | {r['tuner_mb']:.0f} | {r['rss_mb']:.0f} | "
-                  f"{', '.join(f'{a:.0f} ({b:.0f})' for a, b in r['slider_ms'])} ({r['slider']}) | {load()} |",
+                  f"{', '.join(f'{a:.0f} ({b:.0f})' for a, b in r['slider_ms'])} ({r['slider']}) | "
+                  f"{w(r['failure_panel_s']) if 'failure_panel_s' in r else '-'} | "
+                  f"{', '.join(f'{a:.0f} ({b:.0f})' for a, b in r.get('failure_slider_ms', []))} | {load()} |",
                   flush=True)
         print(f"peak RSS of this process: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
     finally:

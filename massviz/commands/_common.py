@@ -54,7 +54,7 @@ def add_pipeline_args(p: argparse.ArgumentParser, selection: bool = True) -> Non
     g.add_argument("--replay", metavar="PATH", help="with --detector replay: a saved trace (.npz) or detections JSON")
     g.add_argument("--batch", type=int, metavar="N",
                    help="frames per detector forward (Mask R-CNN, NanoDet; default: 1 on a CPU, 4 on CUDA for Mask "
-                   "R-CNN); results are identical")
+                   "R-CNN), their patches predicted by the mass CNN together; results are identical")
     g.add_argument("--precision", choices=PRECISIONS, default="fp32",
                    help="Mask R-CNN arithmetic: fp32 (default, the paper's), bf16 (CPUs with bfloat16 support, "
                    "CUDA; the mass CNN runs in bf16 too) or fp16 (CUDA; the mass CNN stays fp32). Reduced "

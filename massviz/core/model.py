@@ -211,6 +211,10 @@ class MassNet(nn.Module):
         ``pool(bn(relu(conv(x))))`` = ``bn(relu(s * pool(conv_s(x))))`` with s = ±1 per channel: the same numbers.
         Only valid with the norms' running statistics (not in training mode, where they come from the batch).
         """
+        return self._head(self._trunk_eval(images), features)
+
+    def _trunk_eval(self, images: torch.Tensor) -> torch.Tensor:
+        """The convolution blocks of ``forward_eval`` (the pooled maps the head reads)."""
         if self.training:
             raise RuntimeError("MassNet.forward_eval needs eval mode (BatchNorm running statistics)")
         x = images
@@ -221,7 +225,7 @@ class MassNet(nn.Module):
                 w = w.contiguous(memory_format=torch.channels_last)
             v = self.pool(F.conv2d(x, w, conv.bias * s, conv.stride, conv.padding))
             x = bn(F.relu_(v.mul_(s.view(1, -1, 1, 1).to(v.dtype))))  # ±1: exact in any dtype
-        return self._head(x, features)
+        return x
 
     def set_precision(self, precision: str) -> "MassNet":
         """``"fp32"`` (default) or ``"bf16"`` for :meth:`predict` (bf16: CPUs with bfloat16 support or CUDA; the
@@ -238,13 +242,32 @@ class MassNet(nn.Module):
     @torch.no_grad()
     def predict(self, patches: Sequence[np.ndarray], features, batch_size: int = 16) -> np.ndarray:
         """Grams (float32, shape (N,)) for N RGB crops (H×W×3 uint8) and their raw ``[a, b, d_mm]`` features."""
+        return self.predict_groups([(patches, features)], batch_size)[0]
+
+    @torch.no_grad()
+    def predict_groups(self, groups: Sequence[tuple[Sequence[np.ndarray], np.ndarray]],
+                       batch_size: int = 16) -> list[np.ndarray]:
+        """``[predict(patches, features) for patches, features in groups]`` (e.g. one group per frame), bit for bit,
+        with the convolutions of every group's patches run together, ``batch_size`` rows a call.
+
+        Bit for bit because a row of the convolution blocks does not depend on the other rows of its call as long as
+        the call has two rows or more (measured on this CPU's oneDNN kernels, fp32 and bf16, 1 and 2 threads: rows
+        computed with 2 ... 96 others are equal; a call of ONE row takes another kernel and differs by ~2e-6). So a
+        patch ``predict`` would send alone (a group's last call of one row) is sent alone here too; the others go in
+        calls of ``batch_size`` (never leaving one row alone); the head (linear layers, whose rows do depend on the
+        call's size) then runs on each group's own calls of ``batch_size``, exactly as ``predict`` calls it."""
         if self.ranges is None:
             raise WeightsError("MassNet.predict needs normalisation ranges (load with massviz.io.checkpoint.load_checkpoint)")
-        feats = self.ranges.normalise_features(features)
-        if len(patches) != len(feats):
-            raise ValueError(f"{len(patches)} patches but {len(feats)} feature rows")
-        if len(feats) == 0:
-            return np.zeros(0, dtype=np.float32)
+        feats, spans = [], []
+        for patches, features in groups:
+            f = self.ranges.normalise_features(features)
+            if len(patches) != len(f):
+                raise ValueError(f"{len(patches)} patches but {len(f)} feature rows")
+            feats.append(f)
+            # predict's calls: rows [i, i + batch_size) of this group
+            spans.append([(i, min(i + batch_size, len(f))) for i in range(0, len(f), batch_size)])
+        if not any(len(f) for f in feats):
+            return [np.zeros(0, dtype=np.float32) for _ in groups]
         was_training = self.training
         self.eval()
         device = next(self.parameters()).device
@@ -255,19 +278,46 @@ class MassNet(nn.Module):
         threads, wanted = torch.get_num_threads(), _model_threads()
         if wanted and wanted != threads:
             torch.set_num_threads(wanted)  # the detector keeps its own (restored below)
+
+        def images(rows):
+            batch = preprocess_patches([groups[g][0][r] for g, r in rows]).to(device)
+            return batch.contiguous(memory_format=torch.channels_last)
+
+        def autocast():
+            return torch.autocast(device.type, dtype=torch.bfloat16, enabled=self.precision == "bf16")
+
         try:
+            alone = [(g, a) for g, sp in enumerate(spans) for a, b in sp if b - a == 1]
+            together = [(g, r) for g, sp in enumerate(spans) for a, b in sp if b - a > 1 for r in range(a, b)]
+            maps = {}
+            for rows in [[row] for row in alone] + _calls(together, batch_size):
+                x = images(rows)
+                with autocast():
+                    for row, m in zip(rows, self._trunk_eval(x)):
+                        maps[row] = m
             out = []
-            for i in range(0, len(feats), batch_size):
-                images = preprocess_patches(patches[i:i + batch_size]).to(device)
-                images = images.contiguous(memory_format=torch.channels_last)
-                with torch.autocast(device.type, dtype=torch.bfloat16, enabled=self.precision == "bf16"):
-                    y = self.forward_eval(images, torch.from_numpy(feats[i:i + batch_size]).to(device))
-                out.append(y[:, 0].float().cpu().numpy())
+            for g, sp in enumerate(spans):
+                parts = []
+                for a, b in sp:
+                    x = torch.stack([maps[(g, r)] for r in range(a, b)])
+                    with autocast():
+                        y = self._head(x, torch.from_numpy(feats[g][a:b]).to(device))
+                    parts.append(y[:, 0].float().cpu().numpy())
+                out.append(self.ranges.denormalise_mass(np.concatenate(parts)) if parts else
+                           np.zeros(0, dtype=np.float32))
         finally:
             self.train(was_training)
             if torch.get_num_threads() != threads:
                 torch.set_num_threads(threads)
-        return self.ranges.denormalise_mass(np.concatenate(out))
+        return out
+
+
+def _calls(rows: list, size: int) -> list[list]:
+    """``rows`` cut into calls of ``size`` rows, the last one taking a lone last row (never a call of one row)."""
+    calls = [rows[i:i + size] for i in range(0, len(rows), size)]
+    if len(calls) > 1 and len(calls[-1]) == 1:
+        calls[-2] += calls.pop()
+    return calls
 
 
 __all__ = ["PATCH_SIZE", "N_PARAMETERS", "RANGE_KEYS", "Ranges", "square_pad", "preprocess_patch",

@@ -48,13 +48,20 @@ from massviz.core.types import Detections, Frame, RecordingInfo
 KEEP_PATCHES = 32
 
 
+def _model_inputs(rgb: np.ndarray, dets: Detections) -> tuple[list, list, np.ndarray | None]:
+    """(every detection's patch, the detections the mass CNN predicts: finite d and a non-empty box, their
+    ``[a, b, d]`` rows or None when there are none)."""
+    patches = [crop(rgb, box) for box in dets.xyxy]
+    ok = [i for i in range(len(dets)) if np.isfinite(dets.d[i]) and patches[i].size]
+    feats = np.stack([dets.a[ok], dets.b[ok], dets.d[ok]], axis=1) if ok else None
+    return patches, ok, feats
+
+
 def predict_detections(model, rgb: np.ndarray, dets: Detections) -> tuple[np.ndarray, list]:
     """Mass prediction (g) for every detection with a finite d and a non-empty box; NaN for the others."""
     pred = np.full(len(dets), np.nan, dtype=np.float32)
-    patches = [crop(rgb, box) for box in dets.xyxy]
-    ok = [i for i in range(len(dets)) if np.isfinite(dets.d[i]) and patches[i].size]
+    patches, ok, feats = _model_inputs(rgb, dets)
     if ok:
-        feats = np.stack([dets.a[ok], dets.b[ok], dets.d[ok]], axis=1)
         pred[ok] = model.predict([patches[i] for i in ok], feats)
         if not np.isfinite(pred[ok]).all():  # weights whose numbers are finite but overflow on this input
             from massviz.errors import WeightsError
@@ -263,12 +270,49 @@ class FramePipeline:
                      measurements=measurements)
 
 
-def detect_in_batches(frames, detector: Detector, batch: int = 1):
+class _GroupPredictor:
+    """The mass CNN as ``FramePipeline.step`` sees it when ``run`` detects N frames at once (``batch`` > 1): the
+    first ``predict`` of a group predicts the patches of all its frames in one ``predict_groups`` call (the
+    convolutions of N frames' patches together); each frame's own ``predict`` then takes its rows. The same numbers
+    as one ``predict`` per frame (``MassNet.predict_groups``' contract), and checked: a call whose patches or
+    features are not the ones expected is predicted on its own. The group's prediction time is charged to the
+    predict stage of its first frame with detections. Anything else is the model's (``weights_id`` ...)."""
+
+    def __init__(self, model):
+        self._model = model
+        self._group: list = []
+        self._ready: list = []
+
+    def __getattr__(self, name):
+        return getattr(self._model, name)
+
+    def expect(self, frames, detections) -> None:
+        """The next frames ``step`` will run, with their detector output (``detect_in_batches``' ``on_group``)."""
+        self._group, self._ready = list(zip(frames, detections)), []
+
+    def predict(self, patches, features, batch_size: int = 16):
+        if self._group:  # the first call of a group: every frame's inputs as step makes them (features are cheap)
+            inputs = [_model_inputs(frame.rgb, compute_features(raw, frame.depth)) for frame, raw in self._group]
+            groups = [([p[i] for i in ok], f) for p, ok, f in inputs if ok]
+            self._group = []
+            self._ready = list(zip(groups, self._model.predict_groups(groups, batch_size))) if groups else []
+        if self._ready:
+            (want_patches, want_features), pred = self._ready.pop(0)
+            if (len(want_patches) == len(patches) and np.array_equal(want_features, features)
+                    and all(a.shape == b.shape and np.array_equal(a, b) for a, b in zip(want_patches, patches))):
+                return pred
+            self._ready = []  # out of step with the frames: predict on its own from here
+        return self._model.predict(patches, features, batch_size)
+
+
+def detect_in_batches(frames, detector: Detector, batch: int = 1, on_group=None):
     """``(frame, detections, read seconds, detect seconds)`` for each frame of the iterable ``frames``.
 
     ``batch`` 1: detections are None (``FramePipeline.step`` runs the detector itself). ``batch`` N > 1: N frames are
     read, then detected in one call of the detector's ``detect_batch`` (frame by frame when it has none); each frame
-    is charged 1/N of that call's time. Either way the caller runs ``step(frame, detections=...)`` frame by frame.
+    is charged 1/N of that call's time; ``on_group(frames, detections)`` is called with the N frames and their
+    detections before the first is yielded. Either way the caller runs ``step(frame, detections=...)`` frame by
+    frame.
     """
     if batch < 1:
         raise ValueError("batch must be >= 1")
@@ -292,6 +336,8 @@ def detect_in_batches(frames, detector: Detector, batch: int = 1):
         t2 = time.perf_counter()
         dets = detect_batch(group) if detect_batch is not None else [detector.detect(f) for f in group]
         share = (time.perf_counter() - t2) / len(group)
+        if on_group is not None:
+            on_group(group, dets)
         for frame, d, r in zip(group, dets, reads):
             yield frame, d, r, share
 
@@ -302,16 +348,19 @@ def run(recording, detector: Detector, model, *, selection: Selection | None = N
     """Run the pipeline over ``recording`` (a loop over ``FramePipeline.step``) and select as ``selection`` says
     (``k=``/``stride=``: shorthand, see ``FramePipeline``).
 
-    ``batch``: frames per detector call (``detect_in_batches``); ``prefetch``: frames read ahead in a background
-    thread (``massviz.core.prefetch.Prefetcher``, at least ``batch``; 0 reads in this thread). Neither changes the
-    result; the ``read`` timing is then the time spent waiting for frames.
+    ``batch``: frames per detector call (``detect_in_batches``), and per mass CNN call (the patches of those frames
+    predicted together, ``MassNet.predict_groups``, when the model has it); ``prefetch``: frames read ahead in a
+    background thread (``massviz.core.prefetch.Prefetcher``, at least ``batch``; 0 reads in this thread). Neither
+    changes the result (bit for bit); the ``read`` timing is then the time spent waiting for frames.
 
     ``on_frame(frame, result)``: a read-only observer called after each frame's step with the ``Frame`` (its arrays
     and, when the format has them, the bytes the reader read) and the ``FrameResult``, e.g. a sink logging each frame
     as it is processed so that no frame is read twice (``massviz log``). It must not change either; its time is not
     charged to any stage. ``measure``: the measure stage (``FramePipeline``).
     """
-    fp = FramePipeline(detector, model, selection=resolve_selection(selection, k, stride), recording=recording.info(),
+    grouped = _GroupPredictor(model) if batch > 1 and hasattr(model, "predict_groups") else None
+    fp = FramePipeline(detector, model if grouped is None else grouped,
+                       selection=resolve_selection(selection, k, stride), recording=recording.info(),
                        keep_patches=keep_patches, measure=measure)
     stride = fp.stride
     total = math.ceil(recording.num_frames / stride)
@@ -321,7 +370,8 @@ def run(recording, detector: Detector, model, *, selection: Selection | None = N
     if prefetch > 0:
         frames = Prefetcher(frames, size=max(int(prefetch), int(batch)))
     try:  # the bar is cleared before any error is reported, so the error line stands alone
-        for frame, dets, read_s, detect_s in detect_in_batches(frames, detector, batch):
+        for frame, dets, read_s, detect_s in detect_in_batches(frames, detector, batch,
+                                                               None if grouped is None else grouped.expect):
             result = fp.step(frame, detections=dets, read_seconds=read_s, detect_seconds=detect_s)
             if on_frame is not None:
                 on_frame(frame, result)

@@ -206,20 +206,25 @@ def chosen_table(trace: Trace, extra: Sequence[int] = ()) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def rank_by_error(traces: Sequence[Trace]) -> pd.DataFrame:
+def rank_by_error(traces: Sequence[Trace], estimates: Sequence[float] | None = None,
+                  chosen: Sequence[int] | None = None) -> pd.DataFrame:
     """Recordings with known ground truth ranked by relative error ε = |estimate − true| / true, worst first (not
     estimated first of all): ``position`` (in ``traces``), ``recording``, ``class``, ``true_g``, ``estimate_g``,
-    ``eps``, ``k``."""
+    ``eps``, ``k``. ``estimates``/``chosen`` (the estimate and the number of chosen patches per trace) replace the
+    traces' own; with both given, ``traces`` may be selection indexes (only their recording and ground truth are
+    read)."""
     rows = []
     for pos, t in enumerate(traces):
-        true = t.ground_truth_mass
+        gt = t.ground_truth
+        true = None if gt is None else gt.mass_g
         if true is None or true <= 0:
             continue
-        est = float(t.estimate)
+        est = float(t.estimate if estimates is None else estimates[pos])
         eps = abs(est - true) / true if est >= 0 else np.inf
-        cls = (t.ground_truth.cls if t.ground_truth is not None else None) or ""
+        cls = (gt.cls if gt is not None else None) or ""
         rows.append({"position": pos, "recording": recording_id(t), "class": cls, "true_g": true,
-                     "estimate_g": est if est >= 0 else np.nan, "eps": eps, "k": len(t.selection)})
+                     "estimate_g": est if est >= 0 else np.nan, "eps": eps,
+                     "k": len(t.selection) if chosen is None else int(chosen[pos])})
     table = pd.DataFrame(rows, columns=["position", "recording", "class", "true_g", "estimate_g", "eps", "k"])
     return table.sort_values("eps", ascending=False, kind="stable").reset_index(drop=True)
 

@@ -108,6 +108,15 @@ class SweepTable:
             self._by_threshold[key] = (rec, rank, self._pred[keep])
         return self._by_threshold[key]
 
+    def chosen(self, threshold: float, k: int, stride: int = 1) -> np.ndarray:
+        """Number of patches chosen per trace (0 when not estimated): ``len(retune(trace, k=, threshold=,
+        stride=).selection)``."""
+        self._check(threshold)
+        if int(k) < 1:
+            raise ValueError("k must be >= 1")
+        rec, _, _ = self._ranked(threshold, stride)
+        return np.minimum(np.bincount(rec, minlength=len(self.traces)), int(k))
+
     def estimates(self, threshold: float, k: int, stride: int = 1) -> np.ndarray:
         """Estimate per trace (grams, -1 when not estimated) — equal to ``trace.reselect(k, threshold).estimate``
         (``stride`` > 1: to ``retune(trace, k=, threshold=, stride=).estimate``)."""

@@ -92,21 +92,32 @@ def score_estimates(traces: Sequence[Trace], estimates: Sequence[float], ann: pd
     return score_from_estimates(values, ann, class_of or default_class_of)
 
 
-def retuned_estimate(trace: Trace, *, k: int, threshold: float, stride: int = 1, exclude=()) -> float:
-    """``retune(trace, k=, threshold=, stride=, exclude=).estimate`` without making the trace (no flags analysis):
-    what a slider needs for every recording but the one shown."""
+def retuned_selection(trace: Trace, *, k: int, threshold: float, stride: int = 1, exclude=()) -> np.ndarray:
+    """``original_selection(trace, retune(trace, k=, threshold=, stride=, exclude=), stride)`` (indices into
+    ``trace.detections``, nearest first) without making the trace (no flags analysis); ``trace`` may be a selection
+    index (``massviz.io.cache.TraceIndex``): only its detections' columns are read."""
     if threshold < trace.detect_threshold - 1e-9:
-        return retune(trace, k=k, threshold=threshold, stride=stride, exclude=exclude).estimate  # its error
+        full = retune(trace, k=k, threshold=threshold, stride=stride, exclude=exclude)  # its error
+        return original_selection(trace, full, stride)
     dets = trace.detections
     excluded = np.asarray(exclude, dtype=np.int64).reshape(-1)
     if int(stride) == 1:
-        return estimate_mass(dets.pred, select_k_nearest(dets.d, dets.score, int(k), float(threshold), excluded))
+        return select_k_nearest(dets.d, dets.score, int(k), float(threshold), excluded)
     keep = kept_indices(trace, stride)
     renumber = np.full(len(dets), -1, dtype=np.int64)
     renumber[keep] = np.arange(len(keep))
     ex = renumber[excluded]
-    sel = select_k_nearest(dets.d[keep], dets.score[keep], int(k), float(threshold), ex[ex >= 0])
-    return estimate_mass(dets.pred[keep], sel)
+    return keep[select_k_nearest(dets.d[keep], dets.score[keep], int(k), float(threshold), ex[ex >= 0])]
+
+
+def retuned_estimate(trace: Trace, *, k: int, threshold: float, stride: int = 1, exclude=()) -> float:
+    """``retune(trace, k=, threshold=, stride=, exclude=).estimate`` without making the trace (no flags analysis):
+    what a slider needs for every recording but the one shown (the same predictions in the same order as
+    ``retune``'s, so the same value to the bit)."""
+    if threshold < trace.detect_threshold - 1e-9:
+        return retune(trace, k=k, threshold=threshold, stride=stride, exclude=exclude).estimate  # its error
+    return estimate_mass(trace.detections.pred,
+                         retuned_selection(trace, k=k, threshold=threshold, stride=stride, exclude=exclude))
 
 
 def index_recordings(recordings, options=None, *, progress: bool = False, **kwargs) -> list:
@@ -140,5 +151,5 @@ def index_recordings(recordings, options=None, *, progress: bool = False, **kwar
     return out
 
 
-__all__ = ["index_recordings", "kept_indices", "subsample", "retune", "retuned_estimate", "original_selection", "score_traces",
+__all__ = ["index_recordings", "kept_indices", "subsample", "retune", "retuned_estimate", "retuned_selection", "original_selection", "score_traces",
            "score_estimates"]

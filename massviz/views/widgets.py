@@ -10,7 +10,8 @@
   flagged (``trace.flags`` via ``massviz.evaluation.failures.chosen_table``), a keep / exclude / exclude-track toggle
   per patch ("exclude track" excludes every detection of that patch's object track, ``detections.track``, in one
   action), the re-estimate, and an export of the exclusions to the JSON file ``massviz estimate --exclude`` reads
-  (notebook 03).
+  (notebook 03). The ranking comes from the estimates every update computes (``Tuner.ranking``): over selection
+  indexes only the recording on screen has its full trace read.
 
 Patch tiles are outlined in the palette's chosen colour, flagged ones in its flagged colour (``massviz.views.palette``)
 and numbered ★rank (0 = nearest) as in Rerun. ``TuningPanel.set`` also moves the sliders to the values it sets.
@@ -36,7 +37,8 @@ from massviz.evaluation.failures import (Exclusion, chosen_table, exclusion_of, 
                                          track_of)
 from massviz.core.trace import Trace
 from massviz.evaluation.sweep import SweepTable
-from massviz.evaluation.tuning import original_selection, retune, retuned_estimate, score_estimates
+from massviz.core.selection import estimate_mass
+from massviz.evaluation.tuning import original_selection, retune, retuned_selection, score_estimates
 from massviz.views.palette import CHOSEN_HEX, FLAGGED_HEX
 
 MODES = ("keep", "exclude", "exclude track")
@@ -47,7 +49,7 @@ class Tuner:
     """Re-estimation state over many traces (see the module docstring).
 
     ``traces`` are the cached traces (any K; their detections are what counts) or their selection indexes
-    (``massviz.io.cache.TraceIndex``, a few kB each: ``massviz.evaluation.tuning.cached_indexes``); then only the
+    (``massviz.io.cache.TraceIndex``, a few kB each: ``massviz.evaluation.tuning.index_recordings``); then only the
     recordings shown load their full trace (patches, masks; :meth:`full`, the last few kept). Every estimate of a
     slider move is one vectorised re-selection over all recordings (``massviz.evaluation.sweep.SweepTable``); the
     flags are analysed only for the recordings read from ``current``. ``ann``/``class_of``: annotation frame for
@@ -89,7 +91,7 @@ class Tuner:
         else:
             self.modes[i][int(detection)] = mode
         self.current[i] = self._retune(i)
-        self._estimates[i] = float(self.current[i].estimate)
+        self._estimates[i], self._chosen[i] = float(self.current[i].estimate), len(self.current[i].selection)
         self.report = self._score()
 
     def exclusions(self) -> list[Exclusion]:
@@ -115,12 +117,24 @@ class Tuner:
             self.stride = int(stride)
         self.current = _LazyTraces(self._retune, len(self.traces))  # made when read: the shown ones
         estimates = self._table.estimates(self.threshold, self.k, self.stride).tolist()
+        chosen = self._table.chosen(self.threshold, self.k, self.stride).tolist()
         for i, modes in enumerate(self.modes):  # recordings with exclusions: one by one
             if modes:
-                estimates[i] = retuned_estimate(self.traces[i], k=self.k, threshold=self.threshold,
-                                                stride=self.stride, exclude=self.excluded(i))
-        self._estimates = estimates
+                estimates[i], chosen[i] = self._light_retune(i)
+        self._estimates, self._chosen = estimates, chosen
         self.report = self._score()
+
+    def _light_retune(self, i: int) -> tuple[float, int]:
+        """(estimate, number of chosen patches) of recording ``i`` with its exclusions, from its detections' columns
+        (an index is enough: no full trace read, no flags analysis)."""
+        sel = retuned_selection(self.traces[i], k=self.k, threshold=self.threshold, stride=self.stride,
+                                exclude=self.excluded(i))
+        return estimate_mass(self.traces[i].detections.pred, sel), len(sel)
+
+    def ranking(self) -> pd.DataFrame:
+        """Recordings ranked by error, worst first (``massviz.evaluation.failures.rank_by_error`` of ``current``),
+        from the estimates every update computes: no full trace read."""
+        return rank_by_error(self.traces, self._estimates, self._chosen)
 
     def full(self, i: int) -> Trace:
         """The full trace of recording ``i`` (read from the cache when the tuner holds its index)."""
@@ -300,12 +314,8 @@ class TuningPanel:
         self.i = int(change["new"])
         self.refresh()
 
-    def tiles(self, i: int, indices: Sequence[int], captions: Sequence[str]):
-        """One tile (image, caption) per chosen patch. Tiles are kept and only their values change from one update
-        to the next (a new widget is a round trip to the page and a new view to lay out: most of a slider move's
-        time in the browser); a value that did not change is not sent again."""
-        import ipywidgets as W
-
+    def png(self, i: int, detection: int) -> bytes:
+        """PNG of patch ``detection`` of recording ``i`` (its full trace read when the tuner holds its index)."""
         trace = self.tuner.full(i)
         # PatchImages keys PNGs by id(trace): hold the traces whose PNGs are kept (so no id is reused meanwhile),
         # the last few only, dropping the PNGs of a trace let go
@@ -315,6 +325,14 @@ class TuningPanel:
             gone = next(iter(owners))
             owners.pop(gone)
             self.images._png = {key: v for key, v in self.images._png.items() if key[0] != gone}
+        return self.images.png(trace, int(detection))
+
+    def tiles(self, i: int, indices: Sequence[int], captions: Sequence[str]):
+        """One tile (image, caption) per chosen patch. Tiles are kept and only their values change from one update
+        to the next (a new widget is a round trip to the page and a new view to lay out: most of a slider move's
+        time in the browser); a value that did not change is not sent again."""
+        import ipywidgets as W
+
         flagged = {p.rank for p in self.tuner.current[i].flags.flagged}
         pool = self.__dict__.setdefault("_tile_pool", [])
         while len(pool) < len(indices):
@@ -323,7 +341,7 @@ class TuningPanel:
         out = []
         for r, (d, c) in enumerate(zip(indices, captions)):
             box, image, caption = pool[r]
-            png, border = self.images.png(trace, d), _tile_border(r in flagged)
+            png, border = self.png(i, d), _tile_border(r in flagged)
             if image.value != png:
                 image.value = png
             if caption.value != c:
@@ -350,6 +368,9 @@ class FailurePanel(TuningPanel):
     """Recordings ranked by error; per recording the chosen patches with why they were chosen, flags, and a
     keep / exclude / exclude-track toggle each; the re-estimate; export of the exclusions."""
 
+    #: rows of the ranking table shown (the worst); the recording picker lists every recording in that order
+    RANKING_ROWS = 25
+
     def __init__(self, tuner: Tuner, recording: int | None = None, export_path: str | Path = "exclusions.json"):
         import ipywidgets as W
 
@@ -361,7 +382,7 @@ class FailurePanel(TuningPanel):
         self.export_status = W.HTML()
         self.export_button.on_click(lambda _: self.export())
         self.toggles: dict[int, object] = {}
-        ranking = rank_by_error(tuner.current)
+        ranking = tuner.ranking()
         first = int(ranking["position"].iloc[0]) if len(ranking) else 0
         super().__init__(tuner, recording=first if recording is None else recording)
         order = list(ranking["position"]) + [j for j in range(len(tuner.traces)) if j not in set(ranking["position"])]
@@ -379,10 +400,11 @@ class FailurePanel(TuningPanel):
         i = self.i if i is None else int(i)
         cur = self.tuner.current[i]
         table = chosen_table(cur)
+        full = self.tuner.full(i)
         if len(table):
-            table["detection"] = original_selection(self.tuner.traces[i], cur, self.tuner.stride)
+            table["detection"] = original_selection(full, cur, self.tuner.stride)
         excluded = list(self.tuner.modes[i])
-        none = dataclasses.replace(self.tuner.traces[i], selection=np.zeros(0, dtype=np.int64))
+        none = dataclasses.replace(full, selection=np.zeros(0, dtype=np.int64))
         extra = chosen_table(none, extra=excluded).assign(why="not chosen while excluded")
         out = pd.concat([table, extra], ignore_index=True) if len(extra) else table
         out["mode"] = [self.tuner.modes[i].get(int(d), "keep") for d in out["detection"]]
@@ -408,8 +430,12 @@ class FailurePanel(TuningPanel):
         import ipywidgets as W
 
         i, tuner = self.i, self.tuner
-        ranking = rank_by_error(tuner.current)
-        self.ranking_html.value = "<b>Recordings ranked by error (worst first)</b>" + _table_html(ranking, "{:.3f}")
+        ranking = tuner.ranking()
+        more = len(ranking) - self.RANKING_ROWS
+        self.ranking_html.value = ("<b>Recordings ranked by error (worst first)</b>"
+                                   + _table_html(ranking.head(self.RANKING_ROWS), "{:.3f}")
+                                   + (f"<small>… and {more} more (the recording picker lists them all, in this "
+                                      "order when the panel was made)</small>" if more > 0 else ""))
         self.estimate.value = estimate_html(tuner.current[i])
         self.score.value = score_html(tuner.report)
         table = self.table(i)
@@ -435,7 +461,7 @@ class FailurePanel(TuningPanel):
             toggle = W.ToggleButtons(options=list(MODES), value=r.mode, style={"button_width": "auto"})
             toggle.observe(lambda ch, d=int(r.detection): self.set_mode(d, ch["new"]), names="value")
             self.toggles[int(r.detection)] = toggle
-            img = W.Image(value=self.images.png(tuner.traces[i], int(r.detection)), format="png",
+            img = W.Image(value=self.png(i, int(r.detection)), format="png",
                           layout=W.Layout(border=_tile_border(bool(r.flagged), r.rank >= 0)))
             rows.append(W.HBox([img, W.VBox([W.HTML(text), toggle])], layout=W.Layout(margin="4px 0")))
         self.rows.children = rows

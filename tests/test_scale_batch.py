@@ -1,0 +1,121 @@
+"""The mass CNN batches patches across frames (issue 24): ``run(..., batch=N)`` predicts the patches of N frames in
+one ``MassNet.predict_groups`` call, and every prediction and estimate stays bit for bit what one call per frame
+gives (on the samples and CCM 618), because a row of the convolutions does not depend on the other rows of a call of
+two rows or more, and the head runs on each frame's own rows (see ``MassNet.predict_groups``)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from support import samples_and_618
+
+from massviz.core.pipeline import run
+
+#: the frontal camera of CCM recording 618 (as tests/test_scale.py)
+INTR_618 = {"fx": 923.3, "fy": 923.3, "cx": 640.0, "cy": 360.0, "width": 1280, "height": 720}
+
+
+@pytest.fixture(scope="module")
+def model(weights):
+    from massviz.io.checkpoint import load_checkpoint
+
+    return load_checkpoint(weights)
+
+
+def _patches(n_groups: int, seed: int = 0):
+    """Random crops of a sample frame and random features: groups of 0, 1, 2, 16, 17 and 33 patches (a call of
+    one row, a full call, a lone last row)."""
+    from massviz.core.patches import crop
+
+    rng = np.random.default_rng(seed)
+    rgb = rng.integers(0, 256, (360, 640, 3), dtype=np.uint8)
+    out = []
+    sizes = [3, 1, 17, 0, 2, 16, 1, 33, 5, 1, 2, 4]
+    for j in range(n_groups):
+        n = sizes[j % len(sizes)]
+        boxes = [(x, y, x + int(rng.integers(8, 150)), y + int(rng.integers(8, 150)))
+                 for x, y in zip(rng.integers(0, 480, n), rng.integers(0, 200, n))]
+        feats = np.stack([rng.uniform(0.05, 0.3, n), rng.uniform(0.05, 0.3, n), rng.uniform(300, 900, n)], axis=1)
+        out.append(([crop(rgb, np.array(b)) for b in boxes], feats))
+    return out
+
+
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_predict_groups_is_predict_per_group_bit_for_bit(model, precision):
+    import copy
+
+    m = copy.deepcopy(model).set_precision(precision)
+    groups = _patches(14)
+    assert {len(p) for p, _ in groups} >= {1, 17}
+    want = [m.predict(p, f) for p, f in groups]
+    for size in (2, 5, 14):
+        got = [x for s in range(0, len(groups), size) for x in m.predict_groups(groups[s:s + size])]
+        assert len(got) == len(want)
+        for g, w in zip(got, want):
+            assert g.dtype == w.dtype and np.array_equal(g, w)  # equal, not close
+    # the convolutions of one patch alone do differ from in company: why predict_groups keeps lone rows alone
+    p, f = next((p, f) for p, f in groups if len(p) >= 2)
+    alone = np.array([m.predict([p[i]], f[i:i + 1])[0] for i in range(len(p))])
+    print(f"{precision}: one patch per call vs {len(p)} per call: max |diff| {np.abs(alone - m.predict(p, f)).max():.3g} g")
+
+
+def test_a_group_out_of_step_is_predicted_on_its_own(model):
+    from massviz.core.pipeline import _GroupPredictor
+
+    calls = []
+
+    class Spy:
+        weights_id = "spy"
+
+        def predict(self, patches, features, batch_size=16):
+            calls.append("predict")
+            return model.predict(patches, features, batch_size)
+
+        def predict_groups(self, groups, batch_size=16):
+            calls.append(f"groups {len(groups)}")
+            return model.predict_groups(groups, batch_size)
+
+    groups = [g for g in _patches(10, seed=3) if len(g[0])][:3]
+    g = _GroupPredictor(Spy())
+    g._ready = list(zip(groups, model.predict_groups(groups)))
+    assert np.array_equal(g.predict(*groups[0]), model.predict(*groups[0]))
+    assert calls == [] and g.weights_id == "spy"
+    other = (groups[2][0], groups[2][1] + 1.0)  # not the expected frame: the model on its own
+    assert np.array_equal(g.predict(*other), model.predict(*other))
+    assert calls == ["predict"] and g._ready == []
+
+
+@pytest.fixture(scope="module")
+def recordings(tmp_path_factory, shared_dir, samples_dir):
+    from massviz.io.recording import find_recordings, open_recording
+
+    root = samples_and_618(tmp_path_factory.mktemp("batch") / "ds", shared_dir, samples_dir, INTR_618)
+    return [open_recording(p) for p in find_recordings(root)]
+
+
+@pytest.mark.slow
+def test_batched_runs_predict_across_frames_and_equal_batch_1(recordings, model, monkeypatch):
+    from massviz.detect import make_detector
+
+    assert sorted(r.id for r in recordings) == ["618", "box_handover", "cup_handover", "glass_handover"]
+    sizes = []
+    real = type(model).predict_groups
+
+    def counting(self, groups, batch_size=16):
+        sizes.append(len(groups))
+        return real(self, groups, batch_size)
+
+    for rec in recordings:
+        det = make_detector("depth", 0.4, quiet=True)
+        one = run(rec, det, model, k=5, batch=1, prefetch=0)
+        monkeypatch.setattr(type(model), "predict_groups", counting)
+        sizes.clear()
+        four = run(rec, det, model, k=5, batch=4, prefetch=0)
+        monkeypatch.undo()
+        a, b = one.detections, four.detections
+        assert np.isfinite(a.pred).sum() >= 2, rec.id
+        for name in ("frame", "xyxy", "score", "d", "a", "b", "pred"):
+            assert np.array_equal(getattr(a, name), getattr(b, name), equal_nan=True), (rec.id, name)
+        assert np.array_equal(one.selection, four.selection) and one.estimate == four.estimate, rec.id
+        assert max(sizes) > 1, (rec.id, sizes)  # several frames' patches in one call
+        print(f"{rec.id}: {len(one.frames)} frames, {int(np.isfinite(a.pred).sum())} predictions, "
+              f"estimate {one.estimate!r} g; predict calls with batch 4: {len(sizes)} (frames per call {sizes})")
