@@ -73,11 +73,19 @@ def sample_cache(tmp_path_factory, shared_dir: Path, samples_dir: Path) -> Path:
 
     if not (samples_dir / "cup_handover" / "meta.json").is_file():
         pytest.skip("the bundled samples (data_samples/) are missing")
-    root = tmp_path_factory.getbasetemp() / "massviz-sample-traces"
-    if not (root / "complete").is_file():
-        process_recordings(collect_recordings([samples_dir]), detector="depth", weights=str(shared_dir / WEIGHTS),
-                           cache=str(root), quiet=True)
-        (root / "complete").write_text("ok\n")
+    import os
+
+    from filelock import FileLock
+
+    base = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):  # under xdist: one cache for the session's workers, filled once
+        base = base.parent
+    root = base / "massviz-sample-traces"
+    with FileLock(str(base / "massviz-sample-traces.lock")):
+        if not (root / "complete").is_file():
+            process_recordings(collect_recordings([samples_dir]), detector="depth",
+                               weights=str(shared_dir / WEIGHTS), cache=str(root), quiet=True)
+            (root / "complete").write_text("ok\n")
     return root
 
 
