@@ -66,7 +66,7 @@ class TraceCache:
         """The entry folder of this recording's content, detector settings and stride. ``known``: the digests of
         the bytes a run read (:meth:`watch`): the entry of the content that run processed; None when a file
         changed while the run read it."""
-        fingerprint = recording.fingerprint(self.hasher, known=known) if known else recording.fingerprint(self.hasher)
+        fingerprint = recording.fingerprint(self.hasher, known=known)
         if fingerprint is None:
             return None
         key = json.dumps({"recording": fingerprint, "detector": detector_info,
