@@ -43,7 +43,7 @@ def test_k_and_threshold_change_selection_as_reselect_says(sample_traces):
     panel.set(k=12, threshold=0.4)
     assert [t.estimate for t in tuner.current] != before
     assert f"{tuner.current[panel.i].estimate:.1f} g" in panel.estimate.value
-    assert len(panel.patches.children) == len(tuner.selection(panel.i))
+    assert len(panel.shown_tiles()) == len(tuner.selection(panel.i))
 
 
 def test_stride_keeps_every_nth_frame(sample_traces):
@@ -217,9 +217,9 @@ def test_set_moves_the_sliders_and_sliders_move_the_state(sample_traces):
     cup = _pos(sample_traces, "cup_handover")
     panel.set(k=5, threshold=0.4)
     panel.recording.value = cup
-    captions = [tile.children[1].value for tile in panel.patches.children]
+    captions = [tile.children[1].value for tile in panel.shown_tiles()]
     assert captions[0].startswith("<small>★0 ") and "⚑ flagged" in captions[0]
-    assert [FLAGGED_HEX in tile.layout.border for tile in panel.patches.children] == \
+    assert [FLAGGED_HEX in tile.layout.border for tile in panel.shown_tiles()] == \
         [p.flagged for p in tuner.current[cup].flags.patches]
 
 

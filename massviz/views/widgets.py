@@ -327,29 +327,42 @@ class TuningPanel:
             self.images._png = {key: v for key, v in self.images._png.items() if key[0] != gone}
         return self.images.png(trace, int(detection))
 
+    #: tiles made beyond the ones shown, hidden, so that K + 1 (up to this many more) only shows one: a new widget
+    #: is a round trip to the page and a new view to lay out, most of a slider move's time in the browser
+    SPARE_TILES = 4
+
     def tiles(self, i: int, indices: Sequence[int], captions: Sequence[str]):
-        """One tile (image, caption) per chosen patch. Tiles are kept and only their values change from one update
-        to the next (a new widget is a round trip to the page and a new view to lay out: most of a slider move's
-        time in the browser); a value that did not change is not sent again."""
+        """Every tile made so far (image, caption), the first ``len(indices)`` showing the chosen patches and the
+        rest hidden. Tiles are kept and only their values change from one update to the next (also when K grows
+        within the spares: the tile is shown, not made); a value that did not change is not sent again."""
         import ipywidgets as W
 
         flagged = {p.rank for p in self.tuner.current[i].flags.flagged}
         pool = self.__dict__.setdefault("_tile_pool", [])
-        while len(pool) < len(indices):
-            image, caption = W.Image(format="png"), W.HTML()
-            pool.append((W.VBox([image, caption], layout=W.Layout(margin="2px 6px")), image, caption))
-        out = []
-        for r, (d, c) in enumerate(zip(indices, captions)):
-            box, image, caption = pool[r]
-            png, border = self.png(i, d), _tile_border(r in flagged)
+        if len(pool) < len(indices):
+            while len(pool) < len(indices) + self.SPARE_TILES:
+                image, caption = W.Image(format="png"), W.HTML()
+                box = W.VBox([image, caption], layout=W.Layout(margin="2px 6px", display="none"))
+                pool.append((box, image, caption))
+        for r, (box, image, caption) in enumerate(pool):
+            if r >= len(indices):
+                if box.layout.display != "none":
+                    box.layout.display = "none"
+                continue
+            png, border = self.png(i, indices[r]), _tile_border(r in flagged)
             if image.value != png:
                 image.value = png
-            if caption.value != c:
-                caption.value = c
+            if caption.value != captions[r]:
+                caption.value = captions[r]
             if box.layout.border != border:
                 box.layout.border = border
-            out.append(box)
-        return out
+            if box.layout.display is not None:
+                box.layout.display = None
+        return [box for box, _, _ in pool]
+
+    def shown_tiles(self) -> list:
+        """The tiles the page shows (the chosen patches, in rank order); ``patches.children`` also holds the spares."""
+        return [box for box in self.patches.children if box.layout.display != "none"]
 
     def refresh(self) -> None:
         i, tuner = self.i, self.tuner
