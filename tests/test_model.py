@@ -11,6 +11,7 @@ import torch
 from PIL import Image
 from torchvision import transforms
 from torchvision.transforms import InterpolationMode
+from torchvision.transforms import functional as TF
 
 from massviz.io import weights as W
 from massviz.errors import WeightsError
@@ -118,8 +119,17 @@ def test_preprocess_matches_independent_torchvision_pipeline():
         transforms.Resize((112, 112), interpolation=InterpolationMode.BILINEAR),
         transforms.ToTensor(),
     ])
-    for patch in random_patches(0, 6) + [np.full((1, 1, 3), 255, np.uint8)]:
+    rng = np.random.default_rng(7)
+    odd = [rng.integers(0, 256, shape, dtype=np.uint8) for shape in
+           ((1, 37, 3), (301, 2, 3), (113, 111, 3), (720, 1280, 3), (57, 57, 3), (3, 4, 3))]
+    for patch in random_patches(0, 6) + odd + [np.full((1, 1, 3), 255, np.uint8)]:
         h, w, _ = patch.shape
+        # square_pad is torchvision's pad as the original's SquarePad calls it
+        img = Image.fromarray(patch)
+        side = max(h, w)
+        left, top = (side - w) // 2, (side - h) // 2
+        np.testing.assert_array_equal(np.asarray(square_pad(img)), np.asarray(
+            TF.pad(img, [left, top, side - w - left, side - h - top], fill=0, padding_mode="constant")))
         side = max(h, w)
         top, left = (side - h) // 2, (side - w) // 2
         padded = np.zeros((side, side, 3), np.uint8)
@@ -325,3 +335,24 @@ def test_download_failure_says_how_to_run_offline(tmp_path):
     assert list((tmp_path / "c").iterdir()) == []
     with pytest.raises(WeightsError, match="unknown published checkpoint"):
         W.download_published("Encoder_77.torch", tmp_path)
+
+
+def test_a_run_with_the_mass_cnn_does_not_import_torchvision(weights, samples_dir):
+    """Start-up: torchvision's import pulls in ``torch._dynamo`` (2.2 of a command's 4.7 s); the mass CNN's
+    preprocessing calls Pillow directly (held equal to torchvision's transforms above), so only Mask R-CNN (and
+    training) import torchvision."""
+    import subprocess
+    import sys
+
+    code = f"""
+import sys
+import massviz as mv
+pipeline = mv.build_pipeline(detector="depth", weights={str(weights)!r}, stride=9, quiet=True)
+trace = pipeline.process(mv.open_recording({str(samples_dir / "cup_handover")!r}))
+assert trace.estimate > 0 and len(trace.selection), trace.estimate
+print(sorted(m for m in sys.modules if m.split(".")[0] == "torchvision"))
+"""
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                         cwd=Path(__file__).resolve().parents[1])
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.strip().splitlines()[-1] == "[]", run.stdout[-2000:]

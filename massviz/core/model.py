@@ -32,11 +32,8 @@ from typing import Sequence
 import numpy as np
 import torch
 import torch.nn.functional as F
-from PIL import Image
+from PIL import Image, ImageOps
 from torch import nn
-from torchvision import transforms
-from torchvision.transforms import InterpolationMode
-from torchvision.transforms import functional as TF
 
 from massviz.core.types import PRECISIONS
 from massviz.errors import WeightsError
@@ -116,18 +113,16 @@ class Ranges:
 
 
 # ---------------------------------------------------------------------------------------------------- preprocessing
+# The original's transform is torchvision's ``Compose([SquarePad, Resize((112, 112), BILINEAR), ToTensor()])`` on a PIL
+# image; on PIL images those are Pillow's ``ImageOps.expand``, ``Image.resize`` and a uint8 → float /255. They are
+# called here on Pillow directly: importing torchvision (its ``ops`` import ``torch._dynamo``) took 2.2 of a
+# ``massviz`` command's 4.7 s start-up. ``tests/test_model.py`` holds them bit-equal to torchvision's transforms.
 def square_pad(img: Image.Image) -> Image.Image:
     """Zero-pad a PIL image to a square, centred; the odd pixel goes right/bottom (the original's ``SquarePad``)."""
     w, h = img.size
     side = max(w, h)
     left, top = (side - w) // 2, (side - h) // 2
-    return TF.pad(img, [left, top, side - w - left, side - h - top], fill=0, padding_mode="constant")
-
-
-_RESIZE_TO_TENSOR = transforms.Compose([
-    transforms.Resize((PATCH_SIZE, PATCH_SIZE), interpolation=InterpolationMode.BILINEAR),
-    transforms.ToTensor(),
-])
+    return ImageOps.expand(img, border=(left, top, side - w - left, side - h - top), fill=0)
 
 
 def preprocess_patch(rgb: np.ndarray) -> torch.Tensor:
@@ -135,7 +130,9 @@ def preprocess_patch(rgb: np.ndarray) -> torch.Tensor:
     rgb = np.asarray(rgb)
     if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.shape[0] == 0 or rgb.shape[1] == 0:
         raise ValueError(f"patch must be a non-empty H×W×3 uint8 RGB array, got {rgb.dtype} {rgb.shape}")
-    return _RESIZE_TO_TENSOR(square_pad(Image.fromarray(np.ascontiguousarray(rgb))))
+    img = square_pad(Image.fromarray(np.ascontiguousarray(rgb))).resize((PATCH_SIZE, PATCH_SIZE),
+                                                                        Image.Resampling.BILINEAR)
+    return torch.from_numpy(np.array(img, np.uint8)).permute(2, 0, 1).contiguous().float().div(255)
 
 
 def preprocess_patches(patches: Sequence[np.ndarray]) -> torch.Tensor:
