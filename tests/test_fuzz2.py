@@ -66,8 +66,12 @@ def run_massviz(argv, case_dir: Path, *, preexec: Callable | None = None, when: 
     env = {k: v for k, v in os.environ.items() if k not in ("MASSVIZ_DEBUG", "MASSVIZ_WEIGHTS", "RUST_LOG")}
     tmpdir = case_dir / "tmpdir"
     tmpdir.mkdir(exist_ok=True)
+    # torch's own compile cache (``torch._dynamo``, which torchvision imports: Mask R-CNN, training) goes to
+    # $TMPDIR/torchinductor_$USER unless TORCHINDUCTOR_CACHE_DIR says where; it is torch's, not a massviz temporary,
+    # so it goes with the other caches (and is not inherited from this process, whose imports would decide it)
     env.update(TMPDIR=str(tmpdir), HOME=str(case_dir / "home"), PYTHONPATH=str(ROOT),
-               MASSVIZ_CACHE_DIR=str(case_dir / "usercache"), XDG_CACHE_HOME=str(case_dir / "xdg"))
+               MASSVIZ_CACHE_DIR=str(case_dir / "usercache"), XDG_CACHE_HOME=str(case_dir / "xdg"),
+               TORCHINDUCTOR_CACHE_DIR=str(case_dir / "xdg" / "torchinductor"))
     logs = case_dir.parent / f"{case_dir.name}.logs"
     logs.mkdir(exist_ok=True)
     with open(logs / "out", "wb") as fo, open(logs / "err", "wb") as fe:
