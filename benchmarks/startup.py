@@ -5,7 +5,9 @@
 
 ``--estimate`` also times the start-up of a command that runs the mass CNN: ``massviz estimate`` of one frame of
 the bundled ``box_handover`` (depth detector, no cache; weights from $MASSVIZ_WEIGHTS or ../shared), i.e. imports,
-weights, one frame and the CSV. The other revision is checked out into a temporary git worktree and imported through PYTHONPATH, so both use the
+weights, one frame and the CSV.
+
+The other revision is checked out into a temporary git worktree and imported through PYTHONPATH, so both use the
 same interpreter and packages; the runs alternate so that machine noise hits both alike. Prints the median of each
 and their ratio.
 """
@@ -23,7 +25,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def time_help(src: Path, cwd: Path, args=("--help",)) -> float:
+def time_massviz(src: Path, cwd: Path, args) -> float:
+    """Wall seconds of ``python -m massviz ARGS`` importing massviz from ``src``."""
     # cwd outside both checkouts: `python -m` puts the working directory first on sys.path
     env = {**os.environ, "PYTHONPATH": str(src)}
     t0 = time.perf_counter()
@@ -57,8 +60,8 @@ def main(argv=None) -> int:
             times = {(name, which): [] for name in cases for which in ("before", "after")}
             for _ in range(args.runs):
                 for name, case in cases.items():
-                    times[name, "before"].append(time_help(old, Path(tmp), case))
-                    times[name, "after"].append(time_help(ROOT, Path(tmp), case))
+                    times[name, "before"].append(time_massviz(old, Path(tmp), case))
+                    times[name, "after"].append(time_massviz(ROOT, Path(tmp), case))
         finally:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(old)], check=False,
                            capture_output=True)

@@ -366,7 +366,8 @@ STATE_FN = """function panelState(sel) { const p = document.querySelector(sel);
   const html = [...p.querySelectorAll('.widget-html-content')].map(e => e.innerText);
   return {estimate: html.find(t => / · K=\\d+, threshold /.test(t)) || '',
           tables: [...p.querySelectorAll('table')].map(t => t.innerText),
-          tiles: [...p.querySelectorAll('img')].filter(i => i.offsetParent !== null).map(i => i.src.length + ':' + i.src.slice(-64))}; }"""
+          tiles: [...p.querySelectorAll('img')].filter(i => i.offsetParent !== null)  // shown: not the spares
+                  .map(i => i.src.length + ':' + i.src.slice(-64))}; }"""
 PANEL_STATE = f"(sel) => {{ {STATE_FN}; return panelState(sel); }}"
 
 
@@ -439,7 +440,8 @@ def test_notebook_02_sliders_in_the_browser(browser, lab, sample_traces):
                              "s.estimate.includes('stride 2')")
         strided = page.evaluate(PANEL_STATE, PANEL)
         assert strided["tables"][0] != after["tables"][0] and len(strided["tiles"]) == 6, strided
-        slider_change(page, lambda: (stride.focus(), page.keyboard.press("ArrowLeft")), "s.estimate.includes('stride 1')")
+        slider_change(page, lambda: (stride.focus(), page.keyboard.press("ArrowLeft")),
+                      "s.estimate.includes('stride 1')")
 
         # threshold: typed into the slider's readout, on a recording whose chosen patches it changes (the recording
         # picked in the dropdown: every tile's image and caption change)

@@ -124,14 +124,12 @@ def test_preprocess_matches_independent_torchvision_pipeline():
            ((1, 37, 3), (301, 2, 3), (113, 111, 3), (720, 1280, 3), (57, 57, 3), (3, 4, 3))]
     for patch in random_patches(0, 6) + odd + [np.full((1, 1, 3), 255, np.uint8)]:
         h, w, _ = patch.shape
-        # square_pad is torchvision's pad as the original's SquarePad calls it
-        img = Image.fromarray(patch)
-        side = max(h, w)
-        left, top = (side - w) // 2, (side - h) // 2
-        np.testing.assert_array_equal(np.asarray(square_pad(img)), np.asarray(
-            TF.pad(img, [left, top, side - w - left, side - h - top], fill=0, padding_mode="constant")))
         side = max(h, w)
         top, left = (side - h) // 2, (side - w) // 2
+        # square_pad is torchvision's pad as the original's SquarePad calls it
+        img = Image.fromarray(patch)
+        np.testing.assert_array_equal(np.asarray(square_pad(img)), np.asarray(
+            TF.pad(img, [left, top, side - w - left, side - h - top], fill=0, padding_mode="constant")))
         padded = np.zeros((side, side, 3), np.uint8)
         padded[top:top + h, left:left + w] = patch
         expected = reference(Image.fromarray(padded))
