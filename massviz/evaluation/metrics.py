@@ -277,10 +277,11 @@ def _class_rank(name: str) -> tuple[int, str]:
 
 # ----------------------------------------------------------------------------------------------------------- scoring
 def _summary(frame: pd.DataFrame, by: str) -> pd.DataFrame:
-    table = frame.groupby(by).agg(recordings=("s", "size"), estimated=("estimated", "sum"),
-                                  score_pct=("s", "mean"), mean_eps=("eps", "mean"))
-    table["score_pct"] *= 100
-    return table
+    # one cythonised reduction per column: the same table as ``.agg(recordings=("s", "size"), ...)``, whose named
+    # aggregation costs ~10x more (a slider move in the notebook panels re-scores every recording)
+    groups = frame.groupby(by)
+    return pd.DataFrame({"recordings": groups["s"].size(), "estimated": groups["estimated"].sum(),
+                         "score_pct": groups["s"].mean() * 100, "mean_eps": groups["eps"].mean()})
 
 
 def _records(table: pd.DataFrame) -> list[dict]:

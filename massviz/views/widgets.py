@@ -166,7 +166,14 @@ class Tuner:
 
     def patch_table(self, i: int) -> pd.DataFrame:
         """The chosen patches of recording ``i``: rank, detection, frame, class, score, a, b, d_mm, pred_g."""
-        t = self.full(i).table()
+        full = self.full(i)
+        memo = self.__dict__.setdefault("_tables", {})  # {i: (full trace, its table)}: one table per trace read
+        if i not in memo or memo[i][0] is not full:
+            memo.pop(i, None)
+            while len(memo) > self.KEEP_FULL:  # no more full traces held than ``full`` keeps
+                memo.pop(next(iter(memo)))
+            memo[i] = (full, full.table())
+        t = memo[i][1]
         sel = self.selection(i)
         out = t.iloc[sel][["frame", "class", "score", "a", "b", "d_mm", "pred_g"]].copy()
         out.insert(0, "detection", sel)
@@ -374,7 +381,13 @@ class TuningPanel:
                     f"{r.pred_g:.1f} g</small>" + _flag_caption(flags[r.rank]) for r in table.itertuples()]
         self.patches.children = self.tiles(i, table["detection"].tolist(), captions)
         self.predictions.value = _table_html(table)
-        self.score.value = score_html(tuner.report)
+        self.score.value = self._score_html(tuner.report)
+
+    def _score_html(self, report) -> str:
+        """``score_html`` of ``report``, made again only when the report changed (not on a recording switch)."""
+        if getattr(self, "_scored", (None, ""))[0] is not report or report is None:
+            self._scored = (report, score_html(report))
+        return self._scored[1]
 
 
 class FailurePanel(TuningPanel):
@@ -450,7 +463,7 @@ class FailurePanel(TuningPanel):
                                    + (f"<small>… and {more} more (the recording picker lists them all, in this "
                                       "order when the panel was made)</small>" if more > 0 else ""))
         self.estimate.value = estimate_html(tuner.current[i])
-        self.score.value = score_html(tuner.report)
+        self.score.value = self._score_html(tuner.report)
         table = self.table(i)
         rows = []
         self.toggles = {}
