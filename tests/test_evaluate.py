@@ -365,3 +365,23 @@ def test_paper_figure_4(shared_dir, pred, ann, total, per_class, cup_eps):
         assert round(report.per_class.loc[name, "score_pct"], 2) == value
     if cup_eps is not None:
         assert round(report.per_class.loc["cup", "mean_eps"], 3) == cup_eps
+
+
+@pytest.mark.parametrize("n", [1, 3, 40])
+def test_summary_table_equals_pandas_named_aggregation(n):
+    """``_summary`` (one reduction per column, for slider speed) gives the frame pandas' named aggregation gives:
+    values, dtypes, index name and order, with recordings not estimated (NaN ε) and one-recording groups."""
+    import numpy as np
+    import pandas as pd
+
+    from massviz.evaluation.metrics import _summary
+
+    rng = np.random.default_rng(n)
+    frame = pd.DataFrame({"class": rng.choice(["cup", "glass", "box"], n), "container": rng.integers(1, 9, n),
+                          "s": rng.random(n), "estimated": rng.random(n) > 0.3,
+                          "eps": np.where(rng.random(n) > 0.3, rng.random(n), np.nan)})
+    for by in ("class", "container"):
+        want = frame.groupby(by).agg(recordings=("s", "size"), estimated=("estimated", "sum"),
+                                     score_pct=("s", "mean"), mean_eps=("eps", "mean"))
+        want["score_pct"] *= 100
+        pd.testing.assert_frame_equal(_summary(frame, by), want)
