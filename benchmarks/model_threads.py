@@ -22,15 +22,15 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def main(argv=None) -> int:
-    import torch
-
-    from massviz.io.checkpoint import load_checkpoint
-    from massviz.io.weights import resolve_weights
-
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--repeat", type=int, default=40)
     p.add_argument("--patches", default="6,16", help="patches per call (default: 6,16)")
     args = p.parse_args(argv)
+    import torch  # after the arguments: --help does not wait for it
+
+    from massviz.io.checkpoint import load_checkpoint
+    from massviz.io.weights import resolve_weights
+
     os.environ["MASSVIZ_MODEL_THREADS"] = "0"  # predict with torch's setting, the one set below
     reference = ROOT.parent / "shared" / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch"
     weights = os.environ.get("MASSVIZ_WEIGHTS") or str(reference)

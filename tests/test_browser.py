@@ -91,6 +91,34 @@ def server(cmd: list[str], url: str, log: Path, env: dict | None = None):
             proc.wait(5)
 
 
+@contextlib.contextmanager
+def file_server(path: Path):
+    """``path`` served over HTTP on 127.0.0.1 (a free port, any origin may read it) until the block ends; yields its
+    URL."""
+    import functools
+    import http.server
+    import threading
+
+    class Handler(http.server.SimpleHTTPRequestHandler):
+        def end_headers(self):
+            self.send_header("Access-Control-Allow-Origin", "*")  # the viewer's page is on another port
+            super().end_headers()
+
+        def log_message(self, *args):
+            pass
+
+    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0),
+                                            functools.partial(Handler, directory=str(path.parent)))
+    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{httpd.server_address[1]}/{quote(path.name)}"
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
+        thread.join(5)
+
+
 def shot(page, name: str, locator=None) -> np.ndarray:
     """Screenshot (the page, or one element) saved as an artefact; returns it as a BGR array."""
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
@@ -267,11 +295,14 @@ def test_rerun_web_viewer_shows_the_demo_recording(browser, demo_rrd, cup, tmp_p
     expected = expected_views(rec, trace)
     exe = Path(rerun_cli.__file__).parent / "rerun"  # the binary itself: the `rerun` script would leave it running
     web, grpc = free_port(), free_port()
+    # the viewer opens the .rrd by URL from a local file server: ``rerun --serve-web FILE`` (rerun 0.41) keeps one
+    # core busy while it serves a file (a tokio task spinning on ``yield_now``; rerun-io/rerun PR 10944), which
+    # slowed this test and the whole suite; served without a file it idles
     cmd = [str(exe), "--serve-web", "--bind", "127.0.0.1", "--web-viewer-port", str(web), "--port", str(grpc),
-           "--server-memory-limit", "512MiB", str(demo_rrd)]
-    with server(cmd, f"http://127.0.0.1:{web}/", tmp_path / "rerun.log"), \
+           "--server-memory-limit", "512MiB"]
+    with server(cmd, f"http://127.0.0.1:{web}/", tmp_path / "rerun.log"), file_server(demo_rrd) as rrd_url, \
             offline_page(browser, VIEWER) as (page, messages, _):
-        page.goto(f"http://127.0.0.1:{web}/?url={quote(f'rerun+http://127.0.0.1:{grpc}/proxy', safe='')}")
+        page.goto(f"http://127.0.0.1:{web}/?url={quote(rrd_url, safe='')}")
         result = wait_for_viewer(page, "rerun_web_viewer", expected)
     print("rerun web viewer:", result)
     assert not result["failures"], f"{result} (see {ARTIFACTS / 'rerun_web_viewer.png'})"
