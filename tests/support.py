@@ -75,17 +75,32 @@ def sample_cache(tmp_path_factory, shared_dir: Path, samples_dir: Path) -> Path:
         pytest.skip("the bundled samples (data_samples/) are missing")
     import os
 
-    from filelock import FileLock
+    from filelock import FileLock, Timeout
 
     base = tmp_path_factory.getbasetemp()
     if os.environ.get("PYTEST_XDIST_WORKER"):  # under xdist: one cache for the session's workers, filled once
         base = base.parent
     root = base / "massviz-sample-traces"
-    with FileLock(str(base / "massviz-sample-traces.lock")):
-        if not (root / "complete").is_file():
-            process_recordings(collect_recordings([samples_dir]), detector="depth",
-                               weights=str(shared_dir / WEIGHTS), cache=str(root), quiet=True)
-            (root / "complete").write_text("ok\n")
+    root.mkdir(exist_ok=True)
+    # one lock per sample: workers that need the cache at the same time fill it together (each takes a sample no
+    # other worker is processing, then waits for the rest) instead of one filling it while the others wait
+    pending = collect_recordings([samples_dir])
+    for blocking in (False, True):
+        for rec in list(pending):
+            lock = FileLock(str(base / f"massviz-sample-traces.{rec.id}.lock"))
+            try:
+                lock.acquire(timeout=-1 if blocking else 0)
+            except Timeout:
+                continue
+            try:
+                done = root / f"{rec.id}.complete"
+                if not done.is_file():
+                    process_recordings([rec], detector="depth", weights=str(shared_dir / WEIGHTS), cache=str(root),
+                                       quiet=True)
+                    done.write_text("ok\n")
+            finally:
+                lock.release()
+            pending.remove(rec)
     return root
 
 
