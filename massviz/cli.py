@@ -161,8 +161,20 @@ def main(argv: list[str] | None = None) -> int:
             sys.stderr = real_stderr
 
 
+def _interrupted(command: str, err: KeyboardInterrupt) -> int:
+    """``massviz CMD: interrupted`` (with the signal's name unless it was Ctrl-C); returns the exit code 128 + N."""
+    signum = getattr(err, "signum", signal.SIGINT)
+    how = "" if signum == signal.SIGINT else f" ({signal.Signals(signum).name})"
+    print(f"massviz{' ' + command if command else ''}: interrupted{how}", file=sys.stderr)
+    return 128 + int(signum)
+
+
 def _run(parser: argparse.ArgumentParser, argv) -> int:
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except KeyboardInterrupt as err:  # a signal while the arguments are read: the command had not started
+        words = [str(w) for w in (sys.argv[1:] if argv is None else argv) if not str(w).startswith("-")]
+        return _interrupted(words[0] if words else "", err)
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
         return 2
@@ -184,10 +196,7 @@ def _run(parser: argparse.ArgumentParser, argv) -> int:
         sys.stderr.close()
         return 141
     except KeyboardInterrupt as err:
-        signum = getattr(err, "signum", signal.SIGINT)
-        how = "" if signum == signal.SIGINT else f" ({signal.Signals(signum).name})"
-        print(f"massviz {args.command}: interrupted{how}", file=sys.stderr)
-        return 128 + int(signum)
+        return _interrupted(args.command, err)
     except OSError as err:  # a file system refusal the command did not foresee: still one line naming the path
         if os.environ.get("MASSVIZ_DEBUG"):
             raise

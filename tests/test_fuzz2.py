@@ -2,14 +2,16 @@
 outputs that are not regular files, a full disk, signals, terminal escapes, compression bombs, scores and tables,
 trace files from elsewhere, arguments.
 
-Every case runs ``python -m massviz`` as a real subprocess (its peak RSS read with ``os.wait4``, its wall time
-bounded) and is held to the same promise (:func:`check_promise`): the expected exit code, exactly one error line
-naming the right file and saying what is wrong, no traceback / internal error, no non-finite number in stdout,
-stderr or any file written, nothing left in or beside the outputs (no hidden temporaries), nothing written outside
-the case's folder (its TMPDIR stays empty), no raw control character on the terminal, peak memory under
-:data:`MEM_BOUND_MB` and wall time under :data:`TIME_BOUND_S`. Cases are generated per class (parametrised
-generators); the first case of each class runs by default, the others are marked ``slow``. The last tests call the
-library on the same fixtures: only massviz's error types may come out.
+Every case runs ``massviz`` in a process of its own (its peak RSS sampled, its wall time bounded): the first case of
+each class, and every case with a signal or a resource limit, as a real ``python -m massviz`` subprocess; the others
+forked from a server that imported massviz and torch once (``tests/forkserver.py``: the same ``main``, environment,
+folder, files and exit; 2-3 s less per case). Each is held to the same promise (:func:`check_promise`): the expected
+exit code, exactly one error line naming the right file and saying what is wrong, no traceback / internal error, no
+non-finite number in stdout, stderr or any file written, nothing left in or beside the outputs (no hidden
+temporaries), nothing written outside the case's folder (its TMPDIR stays empty), no raw control character on the
+terminal, peak memory under :data:`MEM_BOUND_MB` and wall time under :data:`TIME_BOUND_S`. Cases are generated per
+class (parametrised generators); the first case of each class runs by default, the others are marked ``slow``. The
+last tests call the library on the same fixtures: only massviz's error types may come out.
 """
 from __future__ import annotations
 
@@ -32,6 +34,7 @@ from typing import Callable
 
 import numpy as np
 import pytest
+from forkserver import ForkServer
 
 from test_fuzz import ANN_HEADER, ANN_ROWS, PRED_HEADER, PRED_ROWS, Base, base, copy_sample, csv_text  # noqa: F401
 
@@ -59,10 +62,12 @@ class Run:
 
 
 def run_massviz(argv, case_dir: Path, *, preexec: Callable | None = None, when: Callable[[], bool] | None = None,
-                send: int | None = None, timeout: float = TIME_BOUND_S) -> Run:
+                send: int | None = None, timeout: float = TIME_BOUND_S, forked: ForkServer | None = None) -> Run:
     """``python -m massviz ARGV`` in a subprocess with TMPDIR inside ``case_dir`` (checked empty after) and HOME too;
     its peak RSS (its VmHWM, sampled every 20 ms while it runs) and wall time are measured. With ``send``, the signal
-    is sent as soon as ``when()`` holds (polled), i.e. while the command is writing."""
+    is sent as soon as ``when()`` holds (polled), i.e. while the command is writing. With ``forked`` (and no signal
+    or ``preexec``) the process is forked from that server instead (``tests/forkserver.py``: the same ``main``,
+    environment, folder and files, without the imports)."""
     env = {k: v for k, v in os.environ.items() if k not in ("MASSVIZ_DEBUG", "MASSVIZ_WEIGHTS", "RUST_LOG")}
     tmpdir = case_dir / "tmpdir"
     tmpdir.mkdir(exist_ok=True)
@@ -74,6 +79,8 @@ def run_massviz(argv, case_dir: Path, *, preexec: Callable | None = None, when: 
                TORCHINDUCTOR_CACHE_DIR=str(case_dir / "xdg" / "torchinductor"))
     logs = case_dir.parent / f"{case_dir.name}.logs"
     logs.mkdir(exist_ok=True)
+    if forked is not None and preexec is None and send is None:
+        return _run_forked(forked, argv, case_dir, env, logs, timeout)
     with open(logs / "out", "wb") as fo, open(logs / "err", "wb") as fe:
         t0 = time.monotonic()
         proc = subprocess.Popen([sys.executable, "-m", "massviz", *map(str, argv)], stdout=fo, stderr=fe,
@@ -104,6 +111,27 @@ def run_massviz(argv, case_dir: Path, *, preexec: Callable | None = None, when: 
         timer.cancel()
     return Run(proc.returncode, (logs / "out").read_text(errors="replace"), (logs / "err").read_text(errors="replace"),
                (peak_kb[0] or usage.ru_maxrss) / 1024, seconds, bool(killed))
+
+
+def _run_forked(server: ForkServer, argv, case_dir: Path, env: dict, logs: Path, timeout: float) -> Run:
+    t0 = time.monotonic()
+    pid = server.start(argv, env, case_dir, logs / "out", logs / "err")
+    done, killed, peak_kb = threading.Event(), [], [0]
+
+    def watch():  # VmHWM every 20 ms; the kill after ``timeout``
+        while not done.is_set():
+            peak_kb[0] = max(peak_kb[0], vm_hwm_kb(pid))
+            if time.monotonic() - t0 > timeout and not killed:
+                killed.append(1)
+                os.kill(pid, signal.SIGKILL)
+            done.wait(0.02)
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    code = server.wait()
+    done.set()
+    watcher.join()
+    return Run(code, (logs / "out").read_text(errors="replace"), (logs / "err").read_text(errors="replace"),
+               peak_kb[0] / 1024, time.monotonic() - t0, bool(killed))
 
 
 def vm_hwm_kb(pid: int) -> int:
@@ -595,16 +623,49 @@ PARAMS = [pytest.param(build, id=name, marks=() if i == 0 else pytest.mark.slow)
           for cases in CLASSES.values() for i, (name, build) in enumerate(cases)]
 
 
+@pytest.fixture(scope="module")
+def fork_server():
+    """One fork server per worker for the generated cases after the first of each class (``tests/forkserver.py``)."""
+    env = {k: v for k, v in os.environ.items() if k not in ("MASSVIZ_DEBUG", "MASSVIZ_WEIGHTS", "RUST_LOG")}
+    env["PYTHONPATH"] = str(ROOT)
+    server = ForkServer(env)
+    yield server
+    server.close()
+
+
 @pytest.mark.parametrize("build", PARAMS)
 def test_hostile_input_round_two(build, base, tmp_path, request):
+    """The first case of each class runs as a real ``python -m massviz`` subprocess; the others (marked slow) are
+    forked from a server that imported massviz and torch once, unless they need a signal or a resource limit."""
     work = tmp_path / "w"
     work.mkdir()
     (work / "home").mkdir()
     case = build(work, base)
     case.name = request.node.callspec.id
     before = snapshot(work, tuple(work / w for w in ("cache", "usercache", "xdg", "home", "tmpdir")) + tuple(case.writes))
-    run = run_massviz(case.argv, work, preexec=case.preexec, when=case.when, send=case.send)
+    forked = request.getfixturevalue("fork_server") if request.node.get_closest_marker("slow") else None
+    run = run_massviz(case.argv, work, preexec=case.preexec, when=case.when, send=case.send, forked=forked)
     check_promise(case, run, work, before)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("cls", ["1-json", "2-checkpoint", "11-trace"])
+def test_a_forked_run_equals_a_subprocess_run(cls, base, fork_server, tmp_path):
+    """The fork server is held to what it stands in for: the same case (the second of a class) run both ways gives
+    the same exit code, stdout, stderr and files."""
+    name, build = CLASSES[cls][1]
+    runs, trees = [], []
+    for how in ("subprocess", "forked"):
+        work = tmp_path / how / "w"
+        work.mkdir(parents=True)
+        (work / "home").mkdir()
+        case = build(work, base)
+        run = run_massviz(case.argv, work, forked=fork_server if how == "forked" else None)
+        runs.append((run.code, run.stdout.replace(str(work), "W"), run.stderr.replace(str(work), "W")))
+        trees.append({k: v[:2] for k, v in snapshot(work, (work / "usercache", work / "xdg")).items()})
+    assert runs[0] == runs[1], (name, runs)
+    assert trees[0] == trees[1], name
+    assert runs[0][0] != 0 and runs[0][2].strip(), (name, runs[0])  # a hostile case: it failed, and said so
 
 
 def test_enough_generated_cases():
@@ -885,6 +946,23 @@ def test_signal_during_a_native_import_is_an_interrupt(monkeypatch, tmp_path, ca
     err = capsys.readouterr().err
     assert code == 128 + signal.SIGTERM and err.strip() == "massviz live: interrupted (SIGTERM)", (code, err)
     assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_signal_while_the_arguments_are_read_is_an_interrupt(sig, monkeypatch, capsys):
+    """A signal that comes while argparse reads the arguments (a "-start" live case hit it: a traceback from
+    argparse): one "interrupted" line naming the command, exit 128 + the signal."""
+    import argparse
+
+    from massviz import cli
+
+    def parse_args(self, *args, **kwargs):
+        raise cli.Terminated(sig)
+
+    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_args)
+    code = cli.main(["--quiet", "live", "--file", "x.db3"])
+    err = capsys.readouterr().err
+    assert code == 128 + sig and err.strip() == f"massviz live: interrupted ({signal.Signals(sig).name})", (code, err)
 
 
 # ============================================================================================= the library, too
