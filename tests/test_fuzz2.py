@@ -15,6 +15,7 @@ last tests call the library on the same fixtures: only massviz's error types may
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -61,6 +62,12 @@ class Run:
     killed: bool = False
 
 
+def clean_env() -> dict:
+    """This process's environment without the variables that change what a command prints or which weights it
+    loads (the case's own are added by the caller)."""
+    return {k: v for k, v in os.environ.items() if k not in ("MASSVIZ_DEBUG", "MASSVIZ_WEIGHTS", "RUST_LOG")}
+
+
 def run_massviz(argv, case_dir: Path, *, preexec: Callable | None = None, when: Callable[[], bool] | None = None,
                 send: int | None = None, timeout: float = TIME_BOUND_S, forked: ForkServer | None = None) -> Run:
     """``python -m massviz ARGV`` in a subprocess with TMPDIR inside ``case_dir`` (checked empty after) and HOME too;
@@ -68,7 +75,7 @@ def run_massviz(argv, case_dir: Path, *, preexec: Callable | None = None, when: 
     is sent as soon as ``when()`` holds (polled), i.e. while the command is writing. With ``forked`` (and no signal
     or ``preexec``) the process is forked from that server instead (``tests/forkserver.py``: the same ``main``,
     environment, folder and files, without the imports)."""
-    env = {k: v for k, v in os.environ.items() if k not in ("MASSVIZ_DEBUG", "MASSVIZ_WEIGHTS", "RUST_LOG")}
+    env = clean_env()
     tmpdir = case_dir / "tmpdir"
     tmpdir.mkdir(exist_ok=True)
     # torch's own compile cache (``torch._dynamo``, which torchvision imports: Mask R-CNN, training) goes to
@@ -85,9 +92,7 @@ def run_massviz(argv, case_dir: Path, *, preexec: Callable | None = None, when: 
         t0 = time.monotonic()
         proc = subprocess.Popen([sys.executable, "-m", "massviz", *map(str, argv)], stdout=fo, stderr=fe,
                                 stdin=subprocess.DEVNULL, cwd=case_dir, env=env, preexec_fn=preexec)
-        killed = []
-        timer = threading.Timer(timeout, lambda: (killed.append(1), proc.kill()))
-        timer.start()
+        watch = Watch(proc.pid, t0, timeout)
         if send is not None:
             def signal_when_ready():
                 while proc.returncode is None and time.monotonic() - t0 < timeout:
@@ -97,41 +102,46 @@ def run_massviz(argv, case_dir: Path, *, preexec: Callable | None = None, when: 
                     time.sleep(0.05)
             sender = threading.Thread(target=signal_when_ready, daemon=True)
             sender.start()
-        peak_kb = [0]
-
-        def sample_peak():  # VmHWM: this process's own high-water mark (ru_maxrss after exec keeps the forking
-            while proc.returncode is None:  # parent's, i.e. pytest's, peak: 1.5 GB in the full suite)
-                peak_kb[0] = max(peak_kb[0], vm_hwm_kb(proc.pid))
-                time.sleep(0.02)
-        sampler = threading.Thread(target=sample_peak, daemon=True)
-        sampler.start()
         _, status, usage = os.wait4(proc.pid, 0)
         proc.returncode = os.waitstatus_to_exitcode(status)
         seconds = time.monotonic() - t0
-        timer.cancel()
+        watch.stop()
     return Run(proc.returncode, (logs / "out").read_text(errors="replace"), (logs / "err").read_text(errors="replace"),
-               (peak_kb[0] or usage.ru_maxrss) / 1024, seconds, bool(killed))
+               (watch.peak_kb or usage.ru_maxrss) / 1024, seconds, watch.killed)
 
 
 def _run_forked(server: ForkServer, argv, case_dir: Path, env: dict, logs: Path, timeout: float) -> Run:
     t0 = time.monotonic()
-    pid = server.start(argv, env, case_dir, logs / "out", logs / "err")
-    done, killed, peak_kb = threading.Event(), [], [0]
-
-    def watch():  # VmHWM every 20 ms; the kill after ``timeout``
-        while not done.is_set():
-            peak_kb[0] = max(peak_kb[0], vm_hwm_kb(pid))
-            if time.monotonic() - t0 > timeout and not killed:
-                killed.append(1)
-                os.kill(pid, signal.SIGKILL)
-            done.wait(0.02)
-    watcher = threading.Thread(target=watch, daemon=True)
-    watcher.start()
+    watch = Watch(server.start(argv, env, case_dir, logs / "out", logs / "err"), t0, timeout)
     code = server.wait()
-    done.set()
-    watcher.join()
+    watch.stop()
     return Run(code, (logs / "out").read_text(errors="replace"), (logs / "err").read_text(errors="replace"),
-               peak_kb[0] / 1024, time.monotonic() - t0, bool(killed))
+               watch.peak_kb / 1024, time.monotonic() - t0, watch.killed)
+
+
+class Watch:
+    """While a case's process ``pid`` runs: its VmHWM sampled every 20 ms (``peak_kb``: its own high-water mark;
+    ru_maxrss after exec keeps the forking parent's, i.e. pytest's, peak: 1.5 GB in the full suite), and SIGKILL
+    once ``timeout`` s have passed since ``t0`` (``killed``). ``stop()`` once the process has been waited for."""
+
+    def __init__(self, pid: int, t0: float, timeout: float):
+        self.peak_kb, self.killed = 0, False
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(pid, t0, timeout), daemon=True)
+        self._thread.start()
+
+    def _run(self, pid: int, t0: float, timeout: float) -> None:
+        while not self._done.is_set():
+            self.peak_kb = max(self.peak_kb, vm_hwm_kb(pid))
+            if not self.killed and time.monotonic() - t0 > timeout:
+                self.killed = True
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGKILL)
+            self._done.wait(0.02)
+
+    def stop(self) -> None:
+        self._done.set()
+        self._thread.join()
 
 
 def vm_hwm_kb(pid: int) -> int:
@@ -626,9 +636,7 @@ PARAMS = [pytest.param(build, id=name, marks=() if i == 0 else pytest.mark.slow)
 @pytest.fixture(scope="module")
 def fork_server():
     """One fork server per worker for the generated cases after the first of each class (``tests/forkserver.py``)."""
-    env = {k: v for k, v in os.environ.items() if k not in ("MASSVIZ_DEBUG", "MASSVIZ_WEIGHTS", "RUST_LOG")}
-    env["PYTHONPATH"] = str(ROOT)
-    server = ForkServer(env)
+    server = ForkServer({**clean_env(), "PYTHONPATH": str(ROOT)})
     yield server
     server.close()
 
