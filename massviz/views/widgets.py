@@ -142,9 +142,7 @@ class Tuner:
         if isinstance(t, Trace):
             return t
         if i not in self._full:
-            while len(self._full) >= self.KEEP_FULL:
-                self._full.pop(next(iter(self._full)))
-            self._full[i] = t.full_trace()
+            _keep_last(self._full, i, t.full_trace, self.KEEP_FULL)
         return self._full[i]
 
     def _retune(self, i: int) -> Trace:
@@ -169,16 +167,22 @@ class Tuner:
         full = self.full(i)
         memo = self.__dict__.setdefault("_tables", {})  # {i: (full trace, its table)}: one table per trace read
         if i not in memo or memo[i][0] is not full:
-            memo.pop(i, None)
-            while len(memo) > self.KEEP_FULL:  # no more full traces held than ``full`` keeps
-                memo.pop(next(iter(memo)))
-            memo[i] = (full, full.table())
+            _keep_last(memo, i, lambda: (full, full.table()), self.KEEP_FULL)  # no more traces than ``full`` keeps
         t = memo[i][1]
         sel = self.selection(i)
         out = t.iloc[sel][["frame", "class", "score", "a", "b", "d_mm", "pred_g"]].copy()
         out.insert(0, "detection", sel)
         out.insert(0, "rank", np.arange(len(sel)))
         return out.reset_index(drop=True)
+
+
+def _keep_last(items: dict, key, make, n: int) -> None:
+    """``items[key] = make()``, first dropping the oldest entries (before ``make`` runs: the memory they hold goes
+    first) so that at most ``n`` are kept."""
+    items.pop(key, None)
+    while len(items) >= n:
+        items.pop(next(iter(items)))
+    items[key] = make()
 
 
 class _LazyTraces(Sequence):
