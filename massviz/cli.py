@@ -12,6 +12,7 @@ temporary files on the way out; exit code 128 + the signal), and everything writ
 """
 from __future__ import annotations
 
+import _thread
 import argparse
 import importlib
 import contextlib
@@ -21,6 +22,7 @@ import re
 import signal
 import sys
 import threading
+import time
 
 from massviz import __version__
 from massviz.errors import MassvizError
@@ -88,6 +90,46 @@ def terminate(signum, frame):
     raise Terminated(signum)
 
 
+#: the frames of Python's import machinery: a signal handled while one of them runs waits until it is done.
+_IMPORT_FRAMES = ("<frozen importlib._bootstrap>", "<frozen importlib._bootstrap_external>")
+_deferred: list[int] = []  # the signal waiting for the main thread's import to end (at most one)
+
+
+def _importing(frame) -> bool:
+    while frame is not None:
+        if frame.f_code.co_filename in _IMPORT_FRAMES:
+            return True
+        frame = frame.f_back
+    return False
+
+
+def end_like_ctrl_c(signum, frame):
+    """The handler of SIGINT and :data:`CLEANUP_SIGNALS` while a command runs: ``KeyboardInterrupt`` (SIGINT) or
+    :func:`terminate`, raised where the main thread is, unless it is importing a module. An exception raised
+    there does not reach massviz as itself: numpy's C extension turns it into "Importing the numpy C-extensions
+    failed", pybind11 into ``ImportError("initialization failed")`` (and the module cannot be imported again in
+    that process), and in one of importlib's weakref callbacks it is printed as "Exception ignored" and lost. So
+    during an import the signal waits: a thread watches the main thread's frames and hands the signal back
+    (``_thread.interrupt_main``) within 10 ms of the import's end."""
+    if _importing(frame):
+        if not _deferred:
+            _deferred.append(signum)
+            threading.Thread(target=_deliver_after_import, name="massviz-deferred-signal", daemon=True).start()
+        return
+    if signum == signal.SIGINT:
+        raise KeyboardInterrupt
+    terminate(signum, frame)
+
+
+def _deliver_after_import() -> None:
+    main = threading.main_thread()
+    while main.is_alive() and _importing(sys._current_frames().get(main.ident)):
+        time.sleep(0.01)
+    signum = _deferred.pop()
+    if main.is_alive():
+        _thread.interrupt_main(signum)  # runs the main thread's handler for signum (which may defer it again)
+
+
 def interrupt_behind(err: BaseException) -> KeyboardInterrupt | None:
     """The Ctrl-C or :class:`Terminated` that ``err`` was raised from or while handling, if any: a native module
     (pybind11's, e.g. pyrealsense2) turns an interrupt raised during its import into ``ImportError("initialization
@@ -103,14 +145,18 @@ def interrupt_behind(err: BaseException) -> KeyboardInterrupt | None:
 
 @contextlib.contextmanager
 def _signals_end_like_ctrl_c():
-    """SIGTERM/SIGHUP raise :class:`Terminated` while the command runs (main thread only; restored after)."""
+    """SIGTERM/SIGHUP raise :class:`Terminated` and SIGINT ``KeyboardInterrupt`` while the command runs, not in the
+    middle of an import (:func:`end_like_ctrl_c`; main thread only; the previous handlers are restored after)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = {sig: signal.getsignal(sig) for sig in CLEANUP_SIGNALS}
-    for sig in CLEANUP_SIGNALS:
-        signal.signal(sig, terminate)
-    try:
+    previous = {}
+    try:  # a Ctrl-C while they go in: the ones already in come out again
+        for sig in (signal.SIGINT, *CLEANUP_SIGNALS):
+            if signal.getsignal(sig) == signal.SIG_IGN:  # nohup's SIGHUP, a background job's SIGINT: stay ignored
+                continue
+            previous[sig] = signal.getsignal(sig)
+            signal.signal(sig, end_like_ctrl_c)
         yield
     finally:
         for sig, handler in previous.items():
@@ -149,13 +195,14 @@ def error_line(command: str, message) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    _quiet_native_logs()
-    parser = build_parser()
     real_stderr = sys.stderr
-    sys.stderr = EscapingStream(real_stderr)
     try:
+        _quiet_native_logs()
+        sys.stderr = EscapingStream(real_stderr)
         with _signals_end_like_ctrl_c():
-            return _run(parser, argv)
+            return _run(build_parser(), argv)
+    except KeyboardInterrupt as err:  # before the command started (its parser built, the handlers going in) or
+        return _interrupted(_command_word(argv), err)  # after it ended (the handlers coming out): nothing to undo
     finally:
         if isinstance(sys.stderr, EscapingStream) and sys.stderr.raw is real_stderr:
             sys.stderr = real_stderr
@@ -169,12 +216,18 @@ def _interrupted(command: str, err: KeyboardInterrupt) -> int:
     return 128 + int(signum)
 
 
+def _command_word(argv) -> str:
+    """The command named on the command line (the first word that is not an option), "" if none: for the
+    "interrupted" line when a signal comes before argparse has said which command it is."""
+    words = [str(w) for w in (sys.argv[1:] if argv is None else argv) if not str(w).startswith("-")]
+    return words[0] if words else ""
+
+
 def _run(parser: argparse.ArgumentParser, argv) -> int:
     try:
         args = parser.parse_args(argv)
     except KeyboardInterrupt as err:  # a signal while the arguments are read: the command had not started
-        words = [str(w) for w in (sys.argv[1:] if argv is None else argv) if not str(w).startswith("-")]
-        return _interrupted(words[0] if words else "", err)
+        return _interrupted(_command_word(argv), err)
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
         return 2

@@ -992,6 +992,127 @@ def test_signal_while_the_arguments_are_read_is_an_interrupt(sig, monkeypatch, c
     assert code == 128 + sig and err.strip() == f"massviz live: interrupted ({signal.Signals(sig).name})", (code, err)
 
 
+@pytest.mark.parametrize("where", ["parser", "handlers-in", "handlers-out"])
+def test_ctrl_c_before_or_after_the_command_is_an_interrupt(where, monkeypatch, capsys):
+    """A Ctrl-C while ``main`` builds the parser or puts the SIGTERM/SIGHUP handlers in (the "-start" live case
+    hit it: a traceback from ``signal.signal``, exit -2) or takes them out: one line naming the command, exit 130,
+    and the handlers that were there before are back."""
+    from massviz import cli
+
+    signals = (signal.SIGINT, *cli.CLEANUP_SIGNALS)
+    before = {sig: signal.getsignal(sig) for sig in signals}
+    real_signal, calls = signal.signal, []
+
+    def interrupted_signal(sig, handler):
+        calls.append(sig)
+        out = real_signal(sig, handler)
+        # the 2nd of the three going in, or the 1st coming out; after the handler changed: the worst moment
+        if (where == "handlers-in" and len(calls) == 2) or (where == "handlers-out" and len(calls) == 4):
+            raise KeyboardInterrupt
+        return out
+
+    def interrupted_parser():
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli.signal, "signal", interrupted_signal)
+    if where == "parser":
+        monkeypatch.setattr(cli, "build_parser", interrupted_parser)
+    else:
+        monkeypatch.setattr(cli, "_run", lambda parser, argv: 0)
+    try:
+        code = cli.main(["--quiet", "score", "x.csv"])
+    except KeyboardInterrupt:  # not pytest's own Ctrl-C: the failure this test is for
+        code = "KeyboardInterrupt escaped"
+    err = capsys.readouterr().err
+    monkeypatch.undo()
+    assert code == 130 and err == "massviz score: interrupted\n", (code, err)
+    if where == "handlers-in":
+        assert {sig: signal.getsignal(sig) for sig in signals} == before
+    for sig, handler in before.items():
+        signal.signal(sig, handler)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_during_an_import_waits_for_its_end(sig, monkeypatch, tmp_path):
+    """While a command runs, a signal that comes in the middle of an import is raised once the import is done
+    (numpy turns an exception raised inside its import into "Importing the numpy C-extensions failed", pybind11
+    into "initialization failed", importlib's weakref callbacks print and drop it): the module is whole, the
+    interrupt still ends the command, with its signal."""
+    import importlib
+
+    from massviz import cli
+
+    name = f"slow_import_for_signal_{int(sig)}"
+    (tmp_path / f"{name}.py").write_text(
+        "import os, signal, time\n"
+        f"os.kill(os.getpid(), {int(sig)})\n"
+        "t = time.monotonic()\n"
+        "while time.monotonic() - t < 0.3:\n"
+        "    sum(range(1000))  # Python code runs: the handler is called here\n"
+        "complete = True\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, name, raising=False)
+    seen = {}
+
+    def command(parser, argv):
+        t = time.monotonic()
+        try:
+            seen["imported"] = importlib.import_module(name).complete
+            t = time.monotonic()
+            while time.monotonic() - t < 5:
+                time.sleep(0.001)
+        except KeyboardInterrupt as err:
+            seen["raised"] = type(err).__name__, time.monotonic() - t
+            raise
+        return 0
+
+    monkeypatch.setattr(cli, "_run", command)
+    try:
+        code = cli.main(["score", "x.csv"])
+    except KeyboardInterrupt:
+        code = "escaped"
+    assert seen.get("imported") is True, seen
+    assert code == 128 + sig and seen["raised"][0] == ("Terminated" if sig != signal.SIGINT else "KeyboardInterrupt")
+    assert seen["raised"][1] < 1.0, seen  # handed back soon after the import (10 ms polls)
+
+
+def test_an_ignored_hangup_stays_ignored(monkeypatch):
+    """``nohup massviz ...``: SIGHUP is ignored when massviz starts; it stays ignored while the command runs."""
+    from massviz import cli
+
+    previous = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        during = {}
+        monkeypatch.setattr(cli, "_run", lambda parser, argv: during.setdefault("hup", signal.getsignal(signal.SIGHUP))
+                            and 0)
+        assert cli.main(["score", "x.csv"]) == 0
+        assert during["hup"] == signal.SIG_IGN and signal.getsignal(signal.SIGHUP) == signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGHUP, previous)
+
+
+def test_ctrl_c_while_the_command_line_is_imported_is_an_interrupt(monkeypatch, capsys):
+    """``python -m massviz`` and the ``massviz`` script (both ``massviz.__main__.run``): a Ctrl-C while
+    ``massviz.cli`` itself is imported is one line and exit 130, not a traceback."""
+    import importlib.abc
+
+    from massviz.__main__ import run
+
+    class Interrupted(importlib.abc.MetaPathFinder):
+        def find_spec(self, name, path=None, target=None):
+            if name == "massviz.cli":
+                raise KeyboardInterrupt
+            return None
+
+    monkeypatch.delitem(sys.modules, "massviz.cli")
+    monkeypatch.setattr(sys, "meta_path", [Interrupted(), *sys.meta_path])
+    try:
+        code = run()
+    except KeyboardInterrupt:
+        code = "KeyboardInterrupt escaped"
+    assert (code, capsys.readouterr().err) == (130, "massviz: interrupted\n")
+
+
 # ============================================================================================= the library, too
 def _library_calls(work: Path, b: Base):
     """(what, callable) on the same hostile fixtures through the API."""

@@ -203,16 +203,16 @@ class _StopFlag:
             from massviz.cli import CLEANUP_SIGNALS
 
             for sig in (signal.SIGINT, *CLEANUP_SIGNALS):
-                self._old[sig] = signal.signal(sig, self._handle)
+                if signal.getsignal(sig) != signal.SIG_IGN:  # nohup's SIGHUP stays ignored
+                    self._old[sig] = signal.signal(sig, self._handle)
         return self
 
     def _handle(self, signum, frame):
         if self.reason:
-            if signum == signal.SIGINT:
-                raise KeyboardInterrupt
-            from massviz.cli import terminate
+            from massviz.cli import end_like_ctrl_c
 
-            terminate(signum, frame)
+            end_like_ctrl_c(signum, frame)  # KeyboardInterrupt or Terminated (once an import under way is done)
+            return
         self.reason = "interrupted" if signum == signal.SIGINT else f"interrupted ({signal.Signals(signum).name})"
 
     def __exit__(self, *exc):
