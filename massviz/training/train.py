@@ -270,8 +270,9 @@ def read_index(patches: str | Path) -> pd.DataFrame:
                         "id >= -1", path)
     table["container_id"] = ids.fillna(-1).astype(np.int64)
     if "flagged" in table.columns:  # patch sets made before massviz flagged patches have no such column
-        flagged = table["flagged"].fillna(False).map({True: True, False: False, "True": True, "False": False,
-                                                      1: True, 0: False})  # empty: not flagged
+        given = table["flagged"].astype(object)  # an all-empty column is float64 NaN: no False filled into it
+        flagged = given.where(given.notna(), False).map({True: True, False: False, "True": True, "False": False,
+                                                         1: True, 0: False})  # empty: not flagged
         if flagged.isna().any():
             i = int(np.flatnonzero(flagged.isna().to_numpy())[0])
             raise DataError(f"row {i + 1}, column 'flagged': {table['flagged'].iloc[i]!r} is not True or False", path)
