@@ -59,8 +59,9 @@ if [ "$job" = demo ]; then
   echo "setup: open it with: .venv/bin/rerun out/cup_handover.rrd" >&2
 else
   set +e
-  # two workers (pytest-xdist; 2 cores in CI): the browser/notebook and the Ray tests each keep to one worker
-  .venv/bin/python -m pytest -q -p no:cacheprovider -n 2 --dist loadgroup
+  # two workers (pytest-xdist; 2 cores in CI), a test file whole on one: its module fixtures (the Ray cluster, a
+  # JupyterLab, the executed notebooks, dozens of CLI runs) are made once
+  .venv/bin/python -m pytest -q -p no:cacheprovider -n 2 --dist loadfile
   rc=$?
   set -e
   if [ "$rc" = 5 ]; then echo "setup: pytest collected no tests: the suite is missing" >&2; exit 1; fi

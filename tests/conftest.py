@@ -29,13 +29,6 @@ MARK_BY_FIXTURE = {"browser": "browser", "ray_address": "ray", "executed": "note
 SLOW_KINDS = ("browser", "ray", "notebook")
 
 
-#: under pytest-xdist (``-n 2``, ``--dist loadgroup``: the README's test command), the tests that use one of these
-#: fixtures run on one worker, so that it starts once (Chromium and the JupyterLab servers, the local Ray cluster,
-#: the executed notebooks); the groups themselves are spread over the workers
-XDIST_GROUP = {"browser": "browser", "ray_address": "ray", "executed": "notebooks"}
-
-
-@pytest.hookimpl(tryfirst=True)  # before xdist's own hook, which reads the groups
 def pytest_collection_modifyitems(config, items):
     for item in items:
         for fixture, marker in MARK_BY_FIXTURE.items():
@@ -43,9 +36,6 @@ def pytest_collection_modifyitems(config, items):
                 item.add_marker(marker)
         if any(item.get_closest_marker(kind) for kind in SLOW_KINDS) and not item.get_closest_marker("slow"):
             item.add_marker("slow")
-        group = next((g for fixture, g in XDIST_GROUP.items() if fixture in item.fixturenames), None)
-        if group is not None:
-            item.add_marker(pytest.mark.xdist_group(group))
 
 
 #: seconds a process started by the suite may take to exit after the last fixture ended it
