@@ -143,6 +143,18 @@ def interrupt_behind(err: BaseException) -> KeyboardInterrupt | None:
     return None
 
 
+def install_handlers(handler, previous: dict) -> None:
+    """Put ``handler`` in for SIGINT and :data:`CLEANUP_SIGNALS`, each one's previous handler recorded in ``previous``
+    before it is replaced (an interrupt half-way leaves a complete record of what to restore). A signal ignored when
+    massviz started (nohup's SIGHUP, a background job's SIGINT) stays ignored."""
+    for sig in (signal.SIGINT, *CLEANUP_SIGNALS):
+        current = signal.getsignal(sig)
+        if current == signal.SIG_IGN:
+            continue
+        previous[sig] = current
+        signal.signal(sig, handler)
+
+
 @contextlib.contextmanager
 def _signals_end_like_ctrl_c():
     """SIGTERM/SIGHUP raise :class:`Terminated` and SIGINT ``KeyboardInterrupt`` while the command runs, not in the
@@ -152,11 +164,7 @@ def _signals_end_like_ctrl_c():
         return
     previous = {}
     try:  # a Ctrl-C while they go in: the ones already in come out again
-        for sig in (signal.SIGINT, *CLEANUP_SIGNALS):
-            if signal.getsignal(sig) == signal.SIG_IGN:  # nohup's SIGHUP, a background job's SIGINT: stay ignored
-                continue
-            previous[sig] = signal.getsignal(sig)
-            signal.signal(sig, end_like_ctrl_c)
+        install_handlers(end_like_ctrl_c, previous)
         yield
     finally:
         for sig, handler in previous.items():
@@ -224,10 +232,7 @@ def _command_word(argv) -> str:
 
 
 def _run(parser: argparse.ArgumentParser, argv) -> int:
-    try:
-        args = parser.parse_args(argv)
-    except KeyboardInterrupt as err:  # a signal while the arguments are read: the command had not started
-        return _interrupted(_command_word(argv), err)
+    args = parser.parse_args(argv)  # a signal while the arguments are read: ``main`` says "interrupted"
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
         return 2

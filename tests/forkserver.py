@@ -1,9 +1,9 @@
 """A fork server for running ``massviz`` many times in a test: one process imports massviz, torch and OpenCV once,
 then forks one child per command. The child is a fresh process as far as a command can tell: it gets the request's
 environment, working folder, stdin (/dev/null), stdout and stderr files and argv, runs :func:`massviz.cli.main`
-(what ``python -m massviz`` runs) and exits as the interpreter does (the exit code, atexit handlers, flushes) without
-tearing down the modules it did not import itself. What it does not repeat is the 1-3 s of imports (torch is most of
-it), the point of it: the hostile-input tests run ~140 commands.
+(what ``python -m massviz`` runs once it has imported it) and exits as the interpreter does (the exit code, atexit
+handlers, flushes) without tearing down the modules it did not import itself. What it does not repeat is the 1-3 s of
+imports (torch is most of it), the point of it: the hostile-input tests run ~140 commands.
 
 Protocol (the test's side is :class:`ForkServer`): one JSON request per line on the server's stdin
 (``argv``, ``env``, ``cwd``, ``stdout``, ``stderr``: paths); the server answers on its reply pipe with one line

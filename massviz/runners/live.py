@@ -200,11 +200,9 @@ class _StopFlag:
 
     def __enter__(self):
         if threading.current_thread() is threading.main_thread():
-            from massviz.cli import CLEANUP_SIGNALS
+            from massviz.cli import install_handlers
 
-            for sig in (signal.SIGINT, *CLEANUP_SIGNALS):
-                if signal.getsignal(sig) != signal.SIG_IGN:  # nohup's SIGHUP stays ignored
-                    self._old[sig] = signal.signal(sig, self._handle)
+            install_handlers(self._handle, self._old)  # nohup's SIGHUP stays ignored
         return self
 
     def _handle(self, signum, frame):
