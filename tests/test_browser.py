@@ -168,9 +168,16 @@ def record_timing(key: str, value) -> None:
 # ------------------------------------------------------------------------------------------------------ fixtures
 
 
+#: console.debug does nothing in the test pages: Rerun's web viewer (0.41) logs its shader compiler's (naga's) DEBUG
+#: lines to the console, ~25,000 while it loads the demo, and each one crossed to this process as a Playwright event:
+#: 11 s of this process's CPU and 10 s of the viewer test's load time. The tests read errors and warnings only.
+QUIET_DEBUG = "console.debug = () => {};"
+
+
 @contextlib.contextmanager
 def offline_page(browser, viewport: dict):
-    """A fresh browser context whose page may only reach this machine; collects console messages."""
+    """A fresh browser context whose page may only reach this machine; collects console messages (not
+    ``console.debug``: ``QUIET_DEBUG``)."""
     ctx = browser.new_context(viewport=viewport, device_scale_factor=1)
     page = ctx.new_page()
     page.set_default_timeout(60_000)
@@ -186,6 +193,7 @@ def offline_page(browser, viewport: dict):
             r.abort()
 
     page.route("**/*", route)
+    page.add_init_script(QUIET_DEBUG)
     try:
         yield page, messages, blocked
     finally:
