@@ -4,7 +4,7 @@ worker process that dies, reports a corrupt recording and leaves nothing half-wr
 Ray is started once for the module (2 CPUs, no dashboard, servers on 127.0.0.1); the CLI runs in this process and
 finds it initialised, so each run only creates its actors (a subprocess joins it by address for the SIGINT test).
 Datasets are small: the three samples (every 4th frame), and 52 recordings of 2 frames made from them in a
-fixture.
+fixture (the byte-identical tests run all 52; the fault and timing tests the first ``N_SMALL``).
 """
 from __future__ import annotations
 
@@ -25,6 +25,7 @@ from massviz.runners.dataset import EXIT_SOME_FAILED, FAULT_ENV, REPORT_FORMAT
 
 SAMPLES = ("box_handover", "cup_handover", "glass_handover")
 N_SYNTHETIC = 52
+N_SMALL = 12  # the fault, interrupt and execution-time tests: enough recordings for both workers, fewer runs
 FRAMES = 2
 
 
@@ -91,6 +92,14 @@ def replay_json(tmp_path_factory) -> Path:
     return path
 
 
+def first(synthetic: Path, root: Path, n: int = N_SMALL) -> Path:
+    """A dataset of the first ``n`` synthetic recordings (linked)."""
+    root.mkdir()
+    for i in range(n):
+        (root / f"syn_{i:03d}").symlink_to(synthetic / f"syn_{i:03d}")
+    return root
+
+
 def run(*argv) -> int:
     return main([str(a) for a in argv])
 
@@ -145,7 +154,7 @@ def test_synthetic_dataset_byte_identical(detector, synthetic, weights, replay_j
 def test_measured_execution_time_comes_from_the_trace(synthetic, weights, replay_json, ray_address, tmp_path):
     """With the default --exec-time measured, a run on either engine over traces the other engine made writes the
     same bytes: 'Execution time' is the time recorded in the trace, not this run's."""
-    args = [synthetic, "--weights", weights, "--cache", tmp_path / "cache", "--quiet",
+    args = [first(synthetic, tmp_path / "data"), "--weights", weights, "--cache", tmp_path / "cache", "--quiet",
             *detector_args("replay", replay_json)]
     assert run("estimate", *args, "--engine", "ray", "--out", tmp_path / "ray.csv") == 0
     assert run("estimate", *args, "--out", tmp_path / "local.csv") == 0
@@ -198,18 +207,19 @@ def report(path: Path) -> dict:
 def test_worker_killed_mid_run(synthetic, weights, replay_json, ray_address, tmp_path, monkeypatch):
     """The worker process that gets syn_010 dies (os._exit) after reading a frame; Ray restarts it and retries the
     recording; every row equals the local run's."""
-    args = [synthetic, "--weights", weights, "--quiet", "--exec-time", "none", *detector_args("replay", replay_json)]
+    args = [first(synthetic, tmp_path / "data"), "--weights", weights, "--quiet", "--exec-time", "none",
+            *detector_args("replay", replay_json)]
     assert run("estimate", *args, "--cache", tmp_path / "c-local", "--out", tmp_path / "local.csv") == 0
     monkeypatch.setenv(FAULT_ENV, "syn_010")
     assert run("estimate", *args, "--cache", tmp_path / "c-ray", "--engine", "ray", "--report", tmp_path / "r.json",
                "--out", tmp_path / "ray.csv") == 0
     assert (tmp_path / "ray.csv").read_bytes() == (tmp_path / "local.csv").read_bytes()
     doc = report(tmp_path / "r.json")
-    assert doc["counts"] == {"done": N_SYNTHETIC, "cached": 0, "failed": 0, "not run": 0}
+    assert doc["counts"] == {"done": N_SMALL, "cached": 0, "failed": 0, "not run": 0}
     workers = [e["worker"] for e in doc["recordings"]]
     killed = workers[10]
     assert len(set(workers)) == 3  # two actors, one of them restarted once (a new process)
-    assert workers.count(killed) < N_SYNTHETIC
+    assert workers.count(killed) < N_SMALL
 
 
 def corrupt_dataset(synthetic: Path, root: Path) -> Path:
@@ -266,10 +276,11 @@ def test_sigint_leaves_no_csv_and_the_next_run_resumes(synthetic, samples_dir, w
     # the 2-frame recordings, then three whole samples (36 frames each, last in input order): the run is still busy
     # with those when the interrupt comes, however fast the short ones go
     dataset = tmp_path / "dataset"
-    shutil.copytree(synthetic, dataset)
+    for i in range(N_SMALL):
+        shutil.copytree(synthetic / f"syn_{i:03d}", dataset / f"syn_{i:03d}")
     for name in SAMPLES:
         shutil.copytree(samples_dir / name, dataset / f"zz_{name}")
-    total = N_SYNTHETIC + len(SAMPLES)
+    total = N_SMALL + len(SAMPLES)
     synthetic = dataset
     cache, out = tmp_path / "cache", tmp_path / "out"
     out.mkdir()
