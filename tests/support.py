@@ -63,6 +63,21 @@ def started_since(before: set[int]) -> list:
     return [p for p in psutil.Process().children(recursive=True) if p.pid not in before]
 
 
+def session_base(tmp_path_factory) -> Path:
+    """The temporary folder every worker of this session shares (under xdist: the parent of the worker's own)."""
+    base = tmp_path_factory.getbasetemp()
+    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+
+
+def no_other_ray(tmp_path_factory):
+    """A lock across the session's workers, held while a test's Ray cluster is up (``test_runners.ray_address``) and
+    by a test that needs none to be (``ray.init(address="auto")`` also finds a cluster by its processes, so another
+    worker's cluster would be found and joined)."""
+    from filelock import FileLock
+
+    return FileLock(str(session_base(tmp_path_factory) / "massviz-ray-cluster.lock"))
+
+
 def sample_cache(tmp_path_factory, shared_dir: Path, samples_dir: Path) -> Path:
     """The session's trace cache folder of the bundled samples (depth detector, published weights, the paper's
     threshold 0.4 and K = 5, every frame), filled on first use."""
@@ -77,9 +92,7 @@ def sample_cache(tmp_path_factory, shared_dir: Path, samples_dir: Path) -> Path:
 
     from filelock import FileLock, Timeout
 
-    base = tmp_path_factory.getbasetemp()
-    if os.environ.get("PYTEST_XDIST_WORKER"):  # under xdist: one cache for the session's workers, filled once
-        base = base.parent
+    base = session_base(tmp_path_factory)  # under xdist: one cache for the session's workers, filled once
     root = base / "massviz-sample-traces"
     root.mkdir(exist_ok=True)
     # one lock per sample: workers that need the cache at the same time fill it together (each takes a sample no

@@ -16,6 +16,7 @@ import nbformat
 import numpy as np
 import pytest
 from sample_traces import WEIGHTS, sample_cache
+from support import no_other_ray
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -139,13 +140,14 @@ def test_score_per_container_table_has_no_nan(tmp_path):
 
 
 @pytest.mark.slow
-def test_ray_error_names_massviz_option(samples_dir, tmp_path, shared_dir):
+def test_ray_error_names_massviz_option(samples_dir, tmp_path, shared_dir, tmp_path_factory):
     pytest.importorskip("ray")
-    (tmp_path / "raytmp").mkdir()  # no Ray cluster recorded there: "auto" finds none, whatever else runs here
-    run = massviz_cli("estimate", samples_dir, "--detector", "depth", "--engine", "ray", "--ray-address", "auto",
-                      "--out", tmp_path / "x.csv", "--quiet", "--no-cache", cwd=tmp_path,
-                      env_extra={"RAY_TMPDIR": str(tmp_path / "raytmp"),
-                                 "MASSVIZ_WEIGHTS": str(shared_dir / WEIGHTS)})
+    (tmp_path / "raytmp").mkdir()  # no Ray cluster recorded there: "auto" finds none by its files
+    with no_other_ray(tmp_path_factory):  # nor by its processes: no test_runners cluster is up meanwhile
+        run = massviz_cli("estimate", samples_dir, "--detector", "depth", "--engine", "ray", "--ray-address", "auto",
+                          "--out", tmp_path / "x.csv", "--quiet", "--no-cache", cwd=tmp_path,
+                          env_extra={"RAY_TMPDIR": str(tmp_path / "raytmp"),
+                                     "MASSVIZ_WEIGHTS": str(shared_dir / WEIGHTS)})
     assert run.returncode == 2, run.stderr
     [line] = error_lines(run.stderr)
     assert "--ray-address" in line and "`--address`" not in line and "RAY_ADDRESS" not in line, line

@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 import pytest
-from support import end_processes, started_since
+from support import end_processes, no_other_ray, started_since
 
 from massviz.cli import main
 from massviz.runners.dataset import EXIT_SOME_FAILED, FAULT_ENV, REPORT_FORMAT
@@ -30,7 +30,7 @@ FRAMES = 2
 
 
 @pytest.fixture(scope="module")
-def ray_address():
+def ray_address(tmp_path_factory):
     """A local Ray for the whole module: 2 CPUs, no dashboard, bound to 127.0.0.1 (``RAY_ENABLE_WINDOWS_OR_OSX_
     CLUSTER=0`` before the import, as ``massviz.runners.ray_engine`` does for the instances it starts)."""
     from massviz.runners.ray_engine import KEEP_ENV, LOCAL_ONLY_ENV
@@ -41,6 +41,13 @@ def ray_address():
         import ray  # the test extra installs it: missing is a failure in CI
     else:
         ray = pytest.importorskip("ray")
+    with no_other_ray(tmp_path_factory):  # test_new_user's "auto" address must not find this cluster
+        yield from _local_ray(ray)
+
+
+def _local_ray(ray):
+    from massviz.runners.ray_engine import KEEP_ENV
+
     for attempt in (1, 2):  # Ray gives its raylet a hard-coded 30 s to register: a loaded machine may need two tries
         before = {p.pid for p in started_since(set())}
         try:
