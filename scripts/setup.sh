@@ -60,8 +60,9 @@ if [ "$job" = demo ]; then
 else
   set +e
   # two workers (pytest-xdist; 2 cores in CI), a test file whole on one: its module fixtures (the Ray cluster, a
-  # JupyterLab, the executed notebooks, dozens of CLI runs) are made once
-  .venv/bin/python -m pytest -q -p no:cacheprovider -n 2 --dist loadfile
+  # JupyterLab, the executed notebooks, dozens of CLI runs) are made once; files are handed out heaviest first
+  # (tests/conftest.py: heaviest_files_first), not in xdist's most-tests-first order
+  .venv/bin/python -m pytest -q -p no:cacheprovider -n 2 --dist loadfile --no-loadscope-reorder
   rc=$?
   set -e
   if [ "$rc" = 5 ]; then echo "setup: pytest collected no tests: the suite is missing" >&2; exit 1; fi
