@@ -39,17 +39,13 @@ def heaviest_files_first(items) -> None:
     their own order. The README's test command hands files to its two workers in this order
     (``--dist loadfile --no-loadscope-reorder``): xdist's default order, the most tests first, left the browser files
     (2-3 long tests each) for last, and one worker ran them alone for the last ~2 minutes while the other idled."""
-    weight: dict = {}
-    first: dict = {}
-    for i, item in enumerate(items):
-        f = item.nodeid.split("::", 1)[0]
-        first.setdefault(f, i)
+    weight: dict = {}  # file -> weight, in the order the files were collected
+    for item in items:
         kind = ("server" if any(item.get_closest_marker(k) for k in SLOW_KINDS)
                 else "slow" if item.get_closest_marker("slow") else "fast")
-        weight[f] = weight.get(f, 0.0) + WEIGHT[kind]
-    order = {id(item): i for i, item in enumerate(items)}
-    items.sort(key=lambda it: (-weight[it.nodeid.split("::", 1)[0]], first[it.nodeid.split("::", 1)[0]],
-                               order[id(it)]))
+        weight[item.path] = weight.get(item.path, 0.0) + WEIGHT[kind]
+    rank = {f: r for r, f in enumerate(sorted(weight, key=lambda f: -weight[f]))}  # a stable sort: ties keep order
+    items.sort(key=lambda it: rank[it.path])  # stable too: each file's tests keep their order
 
 
 def pytest_collection_modifyitems(config, items):
