@@ -163,3 +163,23 @@ def test_border_cut_and_implausibly_sized_objects_are_not_candidates():
     det = DepthDetector(threshold=0.0)
     assert len(det.detect(Frame(1, np.zeros((120, 160, 3), np.uint8), big))) == 0
     assert det.pop_notes(1) == ["implausibly sized object, 1237×1319 mm (box [40, 20, 115, 100] at 1900 mm)"]
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_closing_near_the_mask_is_the_closing_of_the_whole_image(seed):
+    """``close_near`` (the closing computed on the mask's bounding box grown by the kernel) gives exactly the pixels
+    of OpenCV's closing of the whole image: masks in the middle, at every border and corner, sparse and dense."""
+    from massviz.detect.depth import close_near
+
+    rng = np.random.default_rng(seed)
+    h, w = (270, 480) if seed % 2 else (72, 128)
+    k = 2 * int(round(0.02 * w / 2)) + 1 + 2 * (seed % 3)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+    for _ in range(12):
+        mask = np.zeros((h, w), bool)
+        y, x = rng.integers(-10, h), rng.integers(-10, w)
+        mask[max(0, y):y + rng.integers(1, h // 2), max(0, x):x + rng.integers(1, w // 2)] = True
+        mask &= rng.random((h, w)) < rng.choice([0.2, 0.6, 0.95])  # holes the closing fills, or does not
+        expected = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_CLOSE, kernel) > 0
+        assert np.array_equal(close_near(mask, kernel), expected)
+    assert not close_near(np.zeros((h, w), bool), kernel).any()
