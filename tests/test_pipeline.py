@@ -223,6 +223,24 @@ def test_cache_reuses_detections(rec, fast, tmp_path):
     assert low.calls == N
 
 
+def test_an_empty_box_is_kept_skipped_saved_and_served_from_the_cache(rec, fast, tmp_path):
+    """A box less than a pixel wide or high, cut to integers (random-weight Mask R-CNN makes them), has no pixel: the
+    trace keeps it, skipped for having no depth, and its file loads back, so the cache serves it (it used to be
+    refused on loading, dropped, and the recording detected again on every run)."""
+    dets = {0: [((7, 12, 7, 30), 0.95, None), ((5, 10, 30, 40), 0.9, None)], 1: [((40, 5, 60, 5), 0.8, None)]}
+    cache = TraceCache(tmp_path / "cache")
+    det = ListDetector(dets, threshold=0.4)
+    first = process(rec, det, fast, k=5, cache=cache)
+    empty = [i for i, (x1, y1, x2, y2) in enumerate(first.detections.xyxy) if x1 == x2 or y1 == y2]
+    assert len(empty) == 2 and not np.isfinite(first.detections.d[empty]).any()
+    assert sum("its mask has no depth" in e.message for e in first.events) == 2
+    assert len(first.selection) == 1 and first.estimate > 0
+    again = process(rec, det, fast, k=5, cache=cache)
+    assert det.calls == N and [e for e in again.events if e.kind == "cache"]  # from the cache: no detection again
+    assert again.detections.xyxy.tolist() == first.detections.xyxy.tolist() and again.estimate == first.estimate
+    assert len(list((tmp_path / "cache").rglob("*.npz"))) == 1
+
+
 @pytest.mark.slow
 def test_cache_another_model_repredicts_without_detecting(rec, model, other_model, tmp_path):
     cache = TraceCache(tmp_path / "cache")
