@@ -146,6 +146,9 @@ def process(recording, detector, model, *, selection: Selection | None = None, k
         # the key is the frames' content: the recording's path, meta and intrinsics are today's, not the cached run's
         return annotate(dataclasses.replace(trace, recording=recording.info(), events=events,
                                             timings={**trace.timings, **timings}))
+    if not hasattr(recording, "frames"):  # recognised from its files (massviz.io.identity): only the cache serves it
+        raise MassvizError("its cached trace was found when this run started but could not be read now (removed, or "
+                           "damaged and dropped); run the command again to compute it", recording.path)
     # the content key of the bytes the run reads (each frame file read once), not of a second read
     with cache.watch(recording) if cache is not None else contextlib.nullcontext() as read:
         # the cached trace holds every detection (no exclusions): they are applied to the trace returned

@@ -323,3 +323,37 @@ def test_the_panel_keeps_its_tiles_across_slider_moves(loaded):
     panel.set(k=2, threshold=0.7)
     fresh = TuningPanel(Tuner(indexes, k=2, threshold=0.7))
     assert show(panel) == show(fresh) and len(panel.shown_tiles()) <= 2
+
+
+def test_a_damaged_or_vanished_cached_trace_is_computed_again_or_one_line(samples_dir, weights, tmp_path, capsys,
+                                                                        monkeypatch):
+    """A damaged trace file (its index beside it no longer matches it) is dropped and computed again in the same run;
+    one removed after the warm path found it (another process cleaning the cache) fails that recording with one line
+    saying to run again, and the next run computes it: the same CSV every time."""
+    from massviz.cli import main
+    from massviz.io.cache import TraceCache
+
+    args = ["estimate", str(samples_dir / "box_handover"), "--detector", "depth", "--weights", str(weights),
+            "--cache", str(tmp_path / "cache"), "--stride", "12", "--quiet", "--exec-time", "none", "--out"]
+    assert main([*args, str(tmp_path / "first.csv")]) == 0
+    [npz] = (tmp_path / "cache").rglob("*.npz")
+    npz.write_bytes(npz.read_bytes()[:200])
+    assert main([*args, str(tmp_path / "damaged.csv")]) == 0, capsys.readouterr().err
+    assert (tmp_path / "damaged.csv").read_bytes() == (tmp_path / "first.csv").read_bytes()
+
+    load = TraceCache.load
+
+    def vanishing(self, recording, *a):  # the entry goes after the warm path saw its index
+        for p in Path(self.root).rglob("*.npz"):
+            p.unlink()
+        return load(self, recording, *a)
+
+    monkeypatch.setattr(TraceCache, "load", vanishing)
+    capsys.readouterr()
+    assert main([*args, str(tmp_path / "vanished.csv")]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "box_handover" in err[0] and "run the command again" in err[0], err
+    assert not (tmp_path / "vanished.csv").exists()
+    monkeypatch.setattr(TraceCache, "load", load)
+    assert main([*args, str(tmp_path / "again.csv")]) == 0, capsys.readouterr().err
+    assert (tmp_path / "again.csv").read_bytes() == (tmp_path / "first.csv").read_bytes()
