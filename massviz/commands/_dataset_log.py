@@ -56,7 +56,7 @@ def run_rrd_dir(args) -> int:
     truths = {}
     if args.annotations:
         from massviz.evaluation.metrics import default_class_of, read_annotations
-        from massviz.training.train import annotation_for
+        from massviz.io.patch_set import annotation_for
 
         table = read_annotations(args.annotations)
         for t in tasks:

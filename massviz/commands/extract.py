@@ -43,7 +43,7 @@ def collect_patches(trace, recording, label, *, exclusions=None, skip_flagged: b
     flagged ones left out with ``skip_flagged``), ``warning`` (the flags' line) and ``notes`` (unmatched exclusions)."""
     from massviz.commands._common import flag_warning, unmatched_line
     from massviz.evaluation.failures import exclude_detections
-    from massviz.training.train import patch_files
+    from massviz.io.patch_set import patch_files
 
     notes = []
     if exclusions:
@@ -63,7 +63,7 @@ def run(args) -> int:
     from massviz.commands._runner import exit_status, open_dataset, run_tasks
     from massviz.evaluation.metrics import read_annotations
     from massviz.runners.dataset import Task
-    from massviz.training.train import check_extract, write_patch_set
+    from massviz.io.patch_set import check_extract, write_patch_set
 
     from massviz.io.atomic import check_output_dir
 
