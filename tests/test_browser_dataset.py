@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 import pytest
 from test_browser import ARTIFACTS, BENIGN, find, lab, offline_page, open_and_run, shot  # noqa: F401
-from test_dataset_catalog import dataset, env, massviz  # noqa: F401
+from test_dataset_catalog import env, logged  # noqa: F401
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]  # ~50 s: a dataset of 4 recordings, a server, JupyterLab
 
@@ -33,13 +33,12 @@ HEADER = Path(__file__).parent / "data" / "rerun041_rel_error_header.png"
 
 
 @pytest.fixture(scope="module")
-def served(dataset, env, tmp_path_factory):  # noqa: F811
-    """``massviz log DATASET --rrd-dir OUT`` then ``massviz serve OUT``: (web viewer URL, dataset URL, OUT)."""
+def served(logged, env):  # noqa: F811
+    """``massviz serve OUT`` of ``massviz log DATASET --rrd-dir OUT`` (tests/test_dataset_catalog.py ``logged``): (web
+    viewer URL, dataset URL, OUT)."""
     import psutil
 
-    out = tmp_path_factory.mktemp("served") / "dataset"
-    massviz("log", dataset, "--detector", "depth", "--rrd-dir", out, "--cache", tmp_path_factory.mktemp("c"),
-            "--quiet", env=env)
+    out = logged.out
     proc = subprocess.Popen([sys.executable, "-m", "massviz", "serve", str(out)], cwd=ROOT, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     try:

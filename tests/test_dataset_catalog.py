@@ -8,15 +8,17 @@ import functools
 import math
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pandas as pd
 import pytest
-from support import run_massviz, samples_and_618
+from support import run_massviz, samples_and_618, session_base
 
 pytestmark = pytest.mark.slow  # a dataset of 4 recordings, servers, subprocesses of massviz
 
@@ -35,23 +37,42 @@ def env(weights):
     return {**os.environ, "MASSVIZ_WEIGHTS": str(weights)}
 
 
-@pytest.fixture(scope="module")
-def dataset(tmp_path_factory, shared_dir, samples_dir) -> Path:
-    """The samples and CCM 618 as one folder of massviz recordings (frames linked, not copied)."""
-    root = tmp_path_factory.mktemp("dataset") / "ds"
-    return samples_and_618(root, shared_dir, samples_dir, INTR_618)
+@pytest.fixture(scope="session")
+def logged(tmp_path_factory, shared_dir, samples_dir, weights) -> SimpleNamespace:
+    """The samples and CCM 618 as one folder of massviz recordings (``dataset``: frames linked, not copied), logged
+    with ``massviz log DATASET --rrd-dir OUT --cache CACHE`` (``out``, ``cache``, the command's ``stderr``) once per
+    session: under xdist the first worker to need it logs it, the other waits for it (tests/test_browser_dataset.py
+    serves the same OUT). Tests only read OUT; the trace cache is this module's (its extract and log runs use it)."""
+    from filelock import FileLock
+
+    root = session_base(tmp_path_factory) / "massviz-logged-dataset"
+    done = SimpleNamespace(dataset=root / "ds", out=root / "out", cache=root / "cache", log=root / "log.stderr")
+    with FileLock(str(root) + ".lock"):
+        if not done.log.is_file():
+            if root.exists():
+                shutil.rmtree(root)
+            root.mkdir()
+            samples_and_618(done.dataset, shared_dir, samples_dir, INTR_618)
+            run = massviz("log", done.dataset, "--detector", "depth", "--rrd-dir", done.out, "--cache", done.cache,
+                          "--quiet", env={"MASSVIZ_WEIGHTS": str(weights)})
+            done.log.write_text(run.stderr)
+    done.stderr = done.log.read_text()
+    return done
 
 
 @pytest.fixture(scope="module")
-def cache(tmp_path_factory) -> Path:
-    return tmp_path_factory.mktemp("cache")
+def dataset(logged) -> Path:
+    return logged.dataset
 
 
 @pytest.fixture(scope="module")
-def rrd_dir(dataset, cache, env, tmp_path_factory) -> tuple[Path, str]:
-    out = tmp_path_factory.mktemp("rrds") / "out"
-    run = massviz("log", dataset, "--detector", "depth", "--rrd-dir", out, "--cache", cache, "--quiet", env=env)
-    return out, run.stderr
+def cache(logged) -> Path:
+    return logged.cache
+
+
+@pytest.fixture(scope="module")
+def rrd_dir(logged) -> tuple[Path, str]:
+    return logged.out, logged.stderr
 
 
 def rrd_properties(path: Path) -> dict:
@@ -233,8 +254,6 @@ def test_log_rrd_dir_full_logs_every_frame(samples_dir, cache, env, tmp_path):
     ("recording", "a\x1b[2Jb", "contains control characters"), ("flagged", "maybe", "is not True or False"),
     ("frame", "1.5", "is not an integer")])
 def test_read_dataset_refuses_hostile_patch_rows(rrd_dir, tmp_path, column, value, expected):
-    import shutil
-
     from massviz.errors import DataError
     from massviz.evaluation.browser import read_dataset
 
