@@ -3,8 +3,8 @@
 ``PATCHES/images/<recording>_<rank>.png`` (the RGB crops of a recording's K selected patches, nearest first) and
 ``PATCHES/index.csv`` (one row per patch, :data:`INDEX_COLUMNS`), every patch labelled with its recording's
 annotation (:func:`annotation_for`: a CCM annotation CSV row, else the recording's ``meta.json``). Written atomically
-(:func:`write_patch_set`), read back checked as untrusted data (:func:`read_index`). No torch here: a warm
-``massviz extract`` (every trace cached) writes a patch set without importing it.
+(:func:`write_patch_set`), read back checked as untrusted data (:func:`read_index`). No torch here: the format
+needs none (``massviz.training.train`` re-exports these names beside the training code, which does).
 """
 from __future__ import annotations
 
@@ -114,8 +114,8 @@ def patch_rows(trace, annotation: Annotation) -> list[tuple[str, np.ndarray, dic
 
 @dataclass(frozen=True)
 class ExtractResult:
-    """What :func:`extract_patches` wrote: the patch set folder, its number of patches and the recordings that
-    gave none (no detection with depth)."""
+    """What :func:`write_patch_set` wrote (for ``massviz extract`` and ``massviz.training.train.extract_patches``):
+    the patch set folder, its number of patches and the recordings that gave none (no detection with depth)."""
 
     out: Path
     n_patches: int

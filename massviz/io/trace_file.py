@@ -122,8 +122,8 @@ def check_trace_arrays(header: dict, data: dict) -> None:
 
     n = len(ints("det_frame"))
     boxes = ints("det_xyxy", ndim=2)
-    # an empty box (x1 == x2 or y1 == y2) is a detection the pipeline keeps and skips: Mask R-CNN's sub-pixel boxes,
-    # cut to integers as the paper's code cuts them, have no pixel and so no depth ("its mask has no depth")
+    # an empty box (x1 == x2 or y1 == y2) is a detection the pipeline keeps and skips: a sub-pixel Mask R-CNN box,
+    # cut to integers with int() (detect.maskrcnn.outputs_to_detections), has no pixel, so no depth
     if boxes.shape != (n, 4) or not ((boxes[:, 2] >= boxes[:, 0]) & (boxes[:, 3] >= boxes[:, 1])).all():
         raise ValueError(f"det_xyxy: every box must be 4 integers x1 <= x2, y1 <= y2 (one per detection, {n})")
     ints("det_class_id", lo=-1, hi=10_000)
