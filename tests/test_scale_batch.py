@@ -58,6 +58,38 @@ def test_predict_groups_is_predict_per_group_bit_for_bit(model, precision):
     print(f"{precision}: one patch per call vs {len(p)} per call: max |diff| {np.abs(alone - m.predict(p, f)).max():.3g} g")
 
 
+def test_calls_cover_every_row_once_for_any_group_and_call_size():
+    """Any rows (several groups' rows, in any sizes) cut into calls: every row exactly once, in order, no call of
+    one row when there are two rows or more, no call over size + 1 rows."""
+    from massviz.core.model import _calls
+
+    rng = np.random.default_rng(0)
+    for _ in range(3000):
+        size = int(rng.integers(1, 40))
+        groups = rng.integers(0, 3 * size + 3, int(rng.integers(0, 6)))
+        rows = [(g, r) for g, n in enumerate(groups) for r in range(int(n))]
+        calls = _calls(rows, size)
+        assert [row for call in calls for row in call] == rows, (size, groups)
+        assert all(1 <= len(c) <= size + 1 for c in calls), (size, groups, [len(c) for c in calls])
+        if size > 1 and len(rows) > 1:
+            assert all(len(c) >= 2 for c in calls), (size, groups, [len(c) for c in calls])
+
+
+@pytest.mark.parametrize("sizes", [(20, 13), (10, 7), (16, 1, 16, 1), (2, 15), (31, 2), (9, 8, 16)])
+def test_groups_whose_rows_sum_to_16n_plus_1_are_predicted(model, sizes):
+    """Several frames' rows summing to 16n+1 (a lone last row of the joint calls) once lost or duplicated rows
+    (KeyError / IndexError): each group is predicted, equal to predict on it alone."""
+    rng = np.random.default_rng(sum(sizes))
+    groups = [([rng.integers(0, 256, (int(rng.integers(8, 90)), int(rng.integers(8, 90)), 3), dtype=np.uint8)
+                for _ in range(n)],
+               np.stack([rng.uniform(0.05, 0.3, n), rng.uniform(0.05, 0.3, n), rng.uniform(300, 900, n)], axis=1))
+              for n in sizes]
+    got = model.predict_groups(groups, 16)
+    assert [len(g) for g in got] == list(sizes)
+    for g, (p, f) in zip(got, groups):
+        assert np.array_equal(g, model.predict(p, f))
+
+
 def test_a_group_out_of_step_is_predicted_on_its_own(model):
     from massviz.core.pipeline import _GroupPredictor
 

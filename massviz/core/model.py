@@ -313,7 +313,8 @@ def _calls(rows: list, size: int) -> list[list]:
     """``rows`` cut into calls of ``size`` rows, the last one taking a lone last row (never a call of one row)."""
     calls = [rows[i:i + size] for i in range(0, len(rows), size)]
     if len(calls) > 1 and len(calls[-1]) == 1:
-        calls[-2] += calls.pop()
+        lone = calls.pop()
+        calls[-1] = calls[-1] + lone
     return calls
 
 
