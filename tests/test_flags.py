@@ -65,6 +65,72 @@ def test_tracker_keeps_objects_apart_and_opens_tracks():
     assert list(tr.update(1, b)) == [1, 3]
 
 
+def _one_track_at_a_time(frames, fps=30):
+    """The tracker of ``massviz.core.tracks``' docstring written plainly, one open track at a time: the oracle."""
+    import math
+
+    from massviz.core.tracks import DEPTH_GATE, IOU_MIN, MAX_GAP_S, SIZE_GATE, SIZE_HISTORY, box_iou
+
+    tracks, next_id, max_gap, out = {}, 1, max(1, int(round(MAX_GAP_S * fps))), []
+    for frame, dets in frames:
+        tracks = {t: tr for t, tr in tracks.items() if frame - tr["frame"] <= max_gap}
+        boxes, depths = dets.xyxy.astype(float), dets.d.astype(float)
+        cands = []
+        for tid, tr in tracks.items():
+            gap = frame - tr["frame"]
+            for j in range(len(boxes)):
+                iou = max(box_iou(tr["box"], boxes[j])[0, 0], box_iou(tr["box"] + tr["vel"] * gap, boxes[j])[0, 0])
+                d, both = depths[j], math.isfinite(depths[j]) and math.isfinite(tr["d"])
+                ok = iou >= IOU_MIN and not (both and abs(d - tr["d"]) > DEPTH_GATE * max(d, tr["d"]))
+                if tr["sizes"] and both:
+                    sw, sh = np.median(np.asarray(tr["sizes"]), axis=0)
+                    w, h = (boxes[j, 2] - boxes[j, 0]) * d, (boxes[j, 3] - boxes[j, 1]) * d
+                    if min(sw, sh) <= 0 or min(w, h) <= 0 or max(w / sw, sw / w, h / sh, sh / h) > SIZE_GATE:
+                        ok = False
+                if ok:
+                    cands.append((-iou, gap, tid, j))
+        ids, used = [0] * len(boxes), set()
+        for _, _, tid, j in sorted(cands):
+            if ids[j] or tid in used:
+                continue
+            used.add(tid)
+            ids[j], tr = tid, tracks[tid]
+            tr["vel"] = (boxes[j] - tr["box"]) / max(frame - tr["frame"], 1)
+            tr.update(frame=frame, box=boxes[j], d=depths[j])
+            if math.isfinite(depths[j]):
+                tr["sizes"] = (tr["sizes"] + [((boxes[j, 2] - boxes[j, 0]) * depths[j],
+                                               (boxes[j, 3] - boxes[j, 1]) * depths[j])])[-SIZE_HISTORY:]
+        for j in range(len(boxes)):
+            if not ids[j]:
+                ids[j], next_id = next_id, next_id + 1
+                tracks[ids[j]] = {"frame": frame, "box": boxes[j], "vel": np.zeros(4), "d": depths[j], "sizes": [
+                    ((boxes[j, 2] - boxes[j, 0]) * depths[j], (boxes[j, 3] - boxes[j, 1]) * depths[j])]
+                    if math.isfinite(depths[j]) else []}
+        out.append(ids)
+    return out
+
+
+def test_the_tracker_equals_one_track_at_a_time_on_random_scenes():
+    """The open tracks are gated as arrays (thousands of them in a GPU run of ~100 detections a frame): the same ids
+    as gating one track at a time, on scenes of objects that move, flicker, lose depth and skip frames."""
+    for seed in range(12):
+        rng = np.random.default_rng(seed)
+        n = int(rng.integers(1, 25))
+        base, wh, depth = rng.uniform(0, 500, (n, 2)), rng.uniform(10, 150, (n, 2)), rng.uniform(300, 2000, n)
+        frames = []
+        for i in range(40):
+            idx = rng.choice(n, int(rng.integers(0, n + 1)), replace=False)
+            xy = base[idx] + rng.normal(0, 6, (len(idx), 2)) + 2 * i
+            box = np.concatenate([xy, xy + wh[idx] * rng.uniform(0.8, 1.25, (len(idx), 1))], 1).clip(0).astype(int)
+            d = depth[idx] * rng.uniform(0.8, 1.2, len(idx))
+            d[rng.random(len(idx)) < 0.1] = np.nan
+            frames.append((i * (1 + seed % 3), Detections(frame=np.full(len(idx), i), xyxy=box,
+                                                          score=np.ones(len(idx)), class_id=np.zeros(len(idx)), d=d)))
+        tr = Tracker(fps=30)
+        got = [tr.update(f, dets).tolist() for f, dets in frames]
+        assert got == _one_track_at_a_time(frames), seed
+
+
 def test_flags_match_the_ground_truth_on_all_samples(traces):
     for name, t in traces.items():
         for stride, k in SETTINGS:

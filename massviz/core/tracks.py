@@ -67,84 +67,94 @@ def metric_size(xyxy, d: float) -> tuple[float, float]:
     return float((xyxy[2] - xyxy[0]) * d), float((xyxy[3] - xyxy[1]) * d)
 
 
-class _Track:
-    __slots__ = ("id", "frame", "box", "velocity", "d", "sizes")
-
-    def __init__(self, tid: int, frame: int, box: np.ndarray, d: float):
-        self.id, self.frame, self.box, self.d = tid, frame, box, d
-        self.velocity = np.zeros(4)
-        self.sizes = [metric_size(box, d)] if math.isfinite(d) else []
-
-    def size(self) -> tuple[float, float] | None:
-        if not self.sizes:
-            return None
-        w, h = np.median(np.asarray(self.sizes), axis=0)
-        return float(w), float(h)
-
-    def update(self, frame: int, box: np.ndarray, d: float) -> None:
-        self.velocity = (box - self.box) / max(frame - self.frame, 1)
-        self.frame, self.box, self.d = frame, box, d
-        if math.isfinite(d):
-            self.sizes = (self.sizes + [metric_size(box, d)])[-SIZE_HISTORY:]
-
-
 class Tracker:
     """Online tracker (module docstring): ``update(frame_index, detections)`` returns the track id of each.
 
     ``fps``: the recording's frame rate (for :data:`MAX_GAP_S`). Feed frames in increasing order; ``detections``
     need ``xyxy`` and ``d`` (the features stage's mean depth).
+
+    The open tracks are parallel arrays, gated against all of a frame's detections at once (a GPU run keeps ~100
+    detections a frame and, with :data:`MAX_GAP_S` of 1 s, up to thousands of open tracks).
     """
 
     def __init__(self, fps: float | None = None):
         fps = float(fps) if fps and fps > 0 else DEFAULT_FPS
         self.max_gap = max(1, int(round(MAX_GAP_S * fps)))
-        self.tracks: dict[int, _Track] = {}
+        self.ids = np.zeros(0, np.int64)
+        self.frame = np.zeros(0, np.int64)
+        self.box = np.zeros((0, 4))
+        self.velocity = np.zeros((0, 4))
+        self.d = np.zeros(0)
+        self.size = np.zeros((0, 2))  # median metric size over the last SIZE_HISTORY detections with depth; NaN: none
+        self.history: dict[int, list] = {}  # track id -> its last metric sizes
         self.next_id = 1
 
-    def _gate(self, tr: _Track, frame: int, boxes: np.ndarray, depths: np.ndarray) -> np.ndarray:
-        """IoU of each (track, detection) candidate, NaN where a gate rejects it (all detections at once)."""
-        gap = frame - tr.frame
-        overlap = np.maximum(box_iou(tr.box, boxes)[0], box_iou(tr.box + tr.velocity * gap, boxes)[0])
+    def _gate(self, frame: int, boxes: np.ndarray, depths: np.ndarray) -> np.ndarray:
+        """IoU of each (open track, detection) candidate (T x N), NaN where a gate rejects it."""
+        gap = (frame - self.frame).astype(np.float64)
+        overlap = np.maximum(box_iou(self.box, boxes), box_iou(self.box + self.velocity * gap[:, None], boxes))
         ok = overlap >= IOU_MIN
-        both = np.isfinite(depths) & math.isfinite(tr.d)
+        both = np.isfinite(depths)[None, :] & np.isfinite(self.d)[:, None]
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            ok &= ~(both & (np.abs(depths - tr.d) > DEPTH_GATE * np.maximum(depths, tr.d)))
-            size = tr.size()
-            if size is not None:
-                w = (boxes[:, 2] - boxes[:, 0]) * depths
-                h = (boxes[:, 3] - boxes[:, 1]) * depths
-                positive = (min(size) > 0) & (np.minimum(w, h) > 0)
-                rw, rh = w / size[0], h / size[1]
-                worst = np.maximum(np.maximum(rw, 1 / rw), np.maximum(rh, 1 / rh))
-                ok &= ~(both & (~positive | (worst > SIZE_GATE)))
+            ok &= ~(both & (np.abs(depths[None, :] - self.d[:, None]) > DEPTH_GATE * np.maximum(depths[None, :],
+                                                                                                 self.d[:, None])))
+            sized = ~np.isnan(self.size[:, 0])
+            w = (boxes[:, 2] - boxes[:, 0]) * depths
+            h = (boxes[:, 3] - boxes[:, 1]) * depths
+            positive = (self.size.min(axis=1) > 0)[:, None] & (np.minimum(w, h) > 0)[None, :]
+            rw, rh = w[None, :] / self.size[:, :1], h[None, :] / self.size[:, 1:]
+            worst = np.maximum(np.maximum(rw, 1 / rw), np.maximum(rh, 1 / rh))
+            ok &= ~(sized[:, None] & both & (~positive | (worst > SIZE_GATE)))
         return np.where(ok, overlap, np.nan)
+
+    def _sizes(self, tid: int, box: np.ndarray, d: float, keep: list) -> np.ndarray:
+        """Track ``tid``'s history with this detection's metric size (when it has depth) and their median."""
+        if math.isfinite(d):
+            keep = (keep + [metric_size(box, d)])[-SIZE_HISTORY:]
+        self.history[tid] = keep
+        return np.median(np.asarray(keep), axis=0) if keep else np.full(2, np.nan)
 
     def update(self, frame: int, dets: Detections) -> np.ndarray:
         """Track ids (int64, >= 1) of ``dets``, all made on frame ``frame``."""
         frame = int(frame)
-        for tid in [t for t, tr in self.tracks.items() if frame - tr.frame > self.max_gap]:
-            del self.tracks[tid]
+        alive = frame - self.frame <= self.max_gap
+        if not alive.all():
+            for tid in self.ids[~alive]:
+                del self.history[int(tid)]
+            self.ids, self.frame, self.box = self.ids[alive], self.frame[alive], self.box[alive]
+            self.velocity, self.d, self.size = self.velocity[alive], self.d[alive], self.size[alive]
         boxes = np.asarray(dets.xyxy, dtype=np.float64).reshape(-1, 4)
         depths = np.asarray(dets.d, dtype=np.float64).reshape(-1)
-        candidates = []
-        for tid, tr in self.tracks.items():
-            if tr.frame >= frame or not len(boxes):
-                continue
-            overlap = self._gate(tr, frame, boxes, depths)
-            for j in np.flatnonzero(~np.isnan(overlap)):
-                candidates.append((-float(overlap[j]), frame - tr.frame, tid, int(j)))
         ids = np.zeros(len(boxes), dtype=np.int64)
-        used = set()
-        for _, _, tid, j in sorted(candidates):
-            if ids[j] or tid in used:
-                continue
-            used.add(tid)
-            ids[j] = tid
-            self.tracks[tid].update(frame, boxes[j], float(depths[j]))
-        for j in np.flatnonzero(ids == 0):
-            ids[j] = self.next_id
-            self.tracks[self.next_id] = _Track(self.next_id, frame, boxes[j], float(depths[j]))
-            self.next_id += 1
+        older = np.flatnonzero(self.frame < frame)
+        if len(boxes) and len(older):
+            overlap = self._gate(frame, boxes, depths)[older]
+            r, j = np.nonzero(~np.isnan(overlap))
+            t = older[r]
+            # greedy, highest IoU first; ties: the shorter gap, the older track, the earlier detection
+            order = np.lexsort((j, self.ids[t], frame - self.frame[t], -overlap[r, j]))
+            used = set()
+            for k in order:
+                row, col = int(t[k]), int(j[k])
+                if ids[col] or row in used:
+                    continue
+                used.add(row)
+                ids[col] = self.ids[row]
+                box, d = boxes[col], float(depths[col])
+                self.velocity[row] = (box - self.box[row]) / max(frame - int(self.frame[row]), 1)
+                self.frame[row], self.box[row], self.d[row] = frame, box, d
+                self.size[row] = self._sizes(int(self.ids[row]), box, d, self.history[int(self.ids[row])])
+        new = np.flatnonzero(ids == 0)
+        if len(new):
+            ids[new] = np.arange(self.next_id, self.next_id + len(new))
+            self.next_id += len(new)
+            self.ids = np.concatenate([self.ids, ids[new]])
+            self.frame = np.concatenate([self.frame, np.full(len(new), frame, np.int64)])
+            self.box = np.concatenate([self.box, boxes[new]])
+            self.velocity = np.concatenate([self.velocity, np.zeros((len(new), 4))])
+            self.d = np.concatenate([self.d, depths[new]])
+            self.size = np.concatenate([self.size, np.stack([self._sizes(int(tid), boxes[j], float(depths[j]), [])
+                                                             for tid, j in zip(ids[new], new)])])
         return ids
 
 
