@@ -40,8 +40,11 @@ class PipelineOptions:
     no_cache: bool = False
     quiet: bool = False
     allow_partial: bool = False  # a video cut short: process what decodes (open_recording(allow_partial=))
-    #: frames per detector call; None: the detector's default (Mask R-CNN: 1 on a CPU, 4 on CUDA). Results are equal.
+    #: frames per detector call; None: the detector's default (1; Mask R-CNN in bf16/fp16 on CUDA: 8). On a CPU
+    #: results are equal for any batch.
     batch: int | None = None
+    #: where the pipeline computes: auto (CUDA when present, else the CPU), cpu, cuda, cuda:N
+    device: str = "auto"
     #: Mask R-CNN arithmetic: fp32 (default, the paper's), bf16 (CPU with bf16 support, CUDA; the mass CNN too) or
     #: fp16 (CUDA; the mass CNN stays fp32).
     precision: str = "fp32"
@@ -164,16 +167,19 @@ def process(recording, detector, model, *, selection: Selection | None = None, k
 
 def build_pipeline(options: PipelineOptions | None = None, **kwargs) -> Pipeline:
     """Build the detector, load the mass CNN and open the trace cache from ``options`` (or keyword options)."""
-    from massviz.io.checkpoint import load_checkpoint
+    from massviz.core.device import resolve_device
     from massviz.detect import make_detector
+    from massviz.io.checkpoint import load_checkpoint
     from massviz.io.cache import TraceCache
     from massviz.io.weights import resolve_weights
 
     options = (options or PipelineOptions()).replace(**kwargs) if kwargs else (options or PipelineOptions())
     options.check()
-    model = load_checkpoint(resolve_weights(options.weights)).set_precision(options.precision)
+    device = resolve_device(options.device)
+    model = load_checkpoint(resolve_weights(options.weights)).set_precision(options.precision).to(device)
     detector = make_detector(options.detector, options.threshold, detector_weights=options.detector_weights,
-                             replay=options.replay, quiet=options.quiet, precision=options.precision)
+                             replay=options.replay, quiet=options.quiet, precision=options.precision,
+                             device=device)
     cache = None if options.no_cache else TraceCache(options.cache).check_writable()
     return Pipeline(options, detector, model, cache)
 

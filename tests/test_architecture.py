@@ -245,12 +245,14 @@ def test_the_checks_catch_a_view_importing_a_stage():
 
 
 def test_one_selection_one_score_formula_one_ground_truth_reader():
-    # the K-nearest sort lives in core/selection.py, exp(-eps) in evaluation/metrics.py, meta.json's container in
-    # core/types.py (GroundTruth.from_meta) and its one check in io/meta.py (check_meta); every other module calls them
+    # the K-nearest sort (by d) lives in core/selection.py, exp(-eps) in evaluation/metrics.py, meta.json's container
+    # in core/types.py (GroundTruth.from_meta) and its one check in io/meta.py (check_meta); every other module calls
+    # them. Other sorts (the device path orders patches and masks by size to pad them less) sort no d.
     def files_with(needle):
         return sorted(str(p.relative_to(PKG)) for p in FILES if needle in p.read_text())
 
-    assert files_with("argsort(") == ["core/selection.py"]
+    assert files_with("argsort(d") == ["core/selection.py"]
+    assert [f for f in files_with("argsort(") if f != "core/selection.py"] == ["core/resample.py", "core/stage.py"]
     assert files_with("np.exp(-") == ["evaluation/metrics.py"]  # the score's exp(-eps) (a softmax is no score)
     assert files_with('get("container")') == ["core/types.py", "io/meta.py"]
 

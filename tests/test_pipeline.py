@@ -120,7 +120,7 @@ def test_the_selection_travels_explicitly_and_step_changes_no_detector_output(re
     running = []
     for frame in rec.frames():
         raw = det.detect(frame)
-        out = fp.step(frame, detections=raw)
+        out = fp.step(frame)
         assert np.isnan(raw.d).all() and np.isnan(raw.pred).all() and (raw.track == 0).all()
         assert len(out.detections) == len(raw) and np.isfinite(out.detections.d).all() and out.detections is not raw
         running.append(out.running_estimate)
@@ -370,16 +370,20 @@ def test_run_is_a_loop_over_the_step(rec, fast):
     assert [(e.kind, e.message) for e in stepped.events] == [(e.kind, e.message) for e in ran.events]
 
 
-def test_step_takes_detections_from_a_batched_detector(rec, fast):
+def test_step_takes_what_a_frame_stage_computed_on_a_batch(rec, fast):
     from massviz.core.pipeline import FramePipeline
+    from massviz.core.stage import FrameStage
 
     det = ListDetector(DETECTIONS, threshold=0.4)
     plain, given = (FramePipeline(det, fast, k=5, recording=rec.info()) for _ in range(2))
-    for frame in rec.frames():
+    frames = list(rec.frames())
+    staged = FrameStage(det, fast, batch=3).process(frames[:3]) + FrameStage(det, fast).process(frames[3:])
+    for frame, item in zip(frames, staged):
         plain.step(frame)
-        given.step(frame, detections=det.detect(frame))
+        given.step(frame, staged=item)
     a, b = plain.finish(), given.finish()
     assert same_selection(a, b) and a.estimate == b.estimate
+    assert np.array_equal(a.detections.pred, b.detections.pred, equal_nan=True)
 
 
 def test_builder_makes_the_pipeline_the_cli_uses(weights, tmp_path):

@@ -1,4 +1,4 @@
-"""The mass CNN batches patches across frames (issue 24): ``run(..., batch=N)`` predicts the patches of N frames in
+"""The mass CNN batches patches across frames: ``run(..., batch=N)`` predicts the patches of N frames in
 one ``MassNet.predict_groups`` call, and every prediction and estimate stays bit for bit what one call per frame
 gives (on the samples and CCM 618), because a row of the convolutions does not depend on the other rows of a call of
 two rows or more, and the head runs on each frame's own rows (see ``MassNet.predict_groups``)."""
@@ -90,32 +90,6 @@ def test_groups_whose_rows_sum_to_16n_plus_1_are_predicted(model, sizes):
         assert np.array_equal(g, model.predict(p, f))
 
 
-def test_a_group_out_of_step_is_predicted_on_its_own(model):
-    from massviz.core.pipeline import _GroupPredictor
-
-    calls = []
-
-    class Spy:
-        weights_id = "spy"
-
-        def predict(self, patches, features, batch_size=16):
-            calls.append("predict")
-            return model.predict(patches, features, batch_size)
-
-        def predict_groups(self, groups, batch_size=16):
-            calls.append(f"groups {len(groups)}")
-            return model.predict_groups(groups, batch_size)
-
-    groups = [g for g in _patches(10, seed=3) if len(g[0])][:3]
-    g = _GroupPredictor(Spy())
-    g._ready = list(zip(groups, model.predict_groups(groups)))
-    assert np.array_equal(g.predict(*groups[0]), model.predict(*groups[0]))
-    assert calls == [] and g.weights_id == "spy"
-    other = (groups[2][0], groups[2][1] + 1.0)  # not the expected frame: the model on its own
-    assert np.array_equal(g.predict(*other), model.predict(*other))
-    assert calls == ["predict"] and g._ready == []
-
-
 @pytest.fixture(scope="module")
 def recordings(tmp_path_factory, shared_dir, samples_dir):
     from massviz.io.recording import find_recordings, open_recording
@@ -151,3 +125,39 @@ def test_batched_runs_predict_across_frames_and_equal_batch_1(recordings, model,
         assert max(sizes) > 1, (rec.id, sizes)  # several frames' patches in one call
         print(f"{rec.id}: {len(one.frames)} frames, {int(np.isfinite(a.pred).sum())} predictions, "
               f"estimate {one.estimate!r} g; predict calls with batch 4: {len(sizes)} (frames per call {sizes})")
+
+
+class CrowdDetector:
+    """~100 detections a frame (as a GPU run of Mask R-CNN keeps), boxes and masks drawn from the frame index:
+    100 a frame, 101 on every 4th processed frame, so that 4 frames' joint rows are 16n + 1."""
+
+    name, threshold = "crowd", 0.4
+
+    def settings(self) -> dict:
+        return {}
+
+    def detect(self, frame):
+        from massviz.core.types import Detections
+
+        rng = np.random.default_rng(frame.index)
+        n = 101 if frame.index % 16 == 12 else 100
+        h, w = frame.depth.shape
+        xy = rng.integers(0, [w - 40, h - 40], (n, 2))
+        box = np.concatenate([xy, xy + rng.integers(8, 40, (n, 2))], 1)
+        masks = [rng.random((y2 - y1, x2 - x1)) < 0.7 for x1, y1, x2, y2 in box]
+        return Detections(frame=np.full(n, frame.index), xyxy=box, score=rng.uniform(0.41, 1.0, n),
+                          class_id=np.full(n, 47), masks=masks)
+
+
+@pytest.mark.slow
+def test_batch_4_equals_batch_1_at_100_detections_a_frame(samples_dir, model):
+    from massviz.io.recording import open_recording
+
+    rec = open_recording(samples_dir / "box_handover")
+    one = run(rec, CrowdDetector(), model, k=5, stride=4, batch=1, prefetch=0, measure=False)
+    four = run(rec, CrowdDetector(), model, k=5, stride=4, batch=4, prefetch=0, measure=False)
+    assert len(one.frames) >= 8 and len(one.detections) >= 90 * len(one.frames)
+    for name in ("xyxy", "d", "pred"):
+        assert np.array_equal(getattr(one.detections, name), getattr(four.detections, name), equal_nan=True), name
+    assert np.isfinite(one.detections.pred).sum() > 500
+    assert np.array_equal(one.selection, four.selection) and one.estimate == four.estimate

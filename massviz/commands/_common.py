@@ -52,14 +52,19 @@ def add_pipeline_args(p: argparse.ArgumentParser, selection: bool = True) -> Non
                    help="offline copy of the detector's weights: torchvision's Mask R-CNN COCO state_dict, or "
                    "(.onnx) OpenCV Zoo's object_detection_nanodet_2022nov.onnx for nanodet")
     g.add_argument("--replay", metavar="PATH", help="with --detector replay: a saved trace (.npz) or detections JSON")
+    g.add_argument("--device", default="auto", metavar="DEV",
+                   help="where the pipeline computes: auto (a CUDA GPU when there is one, else the CPU; default), "
+                   "cpu, cuda or cuda:N. On CUDA, Mask R-CNN, the masks, d, the patches and the mass CNN all run on "
+                   "the GPU (the depth and NanoDet detectors stay on the CPU); recorded in the trace")
     g.add_argument("--batch", type=int, metavar="N",
-                   help="frames per detector forward (Mask R-CNN, NanoDet; default: 1 on a CPU, 4 on CUDA for Mask "
-                   "R-CNN), their patches predicted by the mass CNN together; results are identical")
+                   help="frames per detector forward (Mask R-CNN, NanoDet), their patches predicted by the mass CNN "
+                   "together. Default: 1, except 8 for Mask R-CNN in bf16/fp16 on CUDA. A batch of N frames may "
+                   "round differently from N batches of 1 (float rounding; README, 'GPU')")
     g.add_argument("--precision", choices=PRECISIONS, default="fp32",
-                   help="Mask R-CNN arithmetic: fp32 (default, the paper's), bf16 (CPUs with bfloat16 support, "
-                   "CUDA; the mass CNN runs in bf16 too) or fp16 (CUDA; the mass CNN stays fp32). Reduced "
-                   "precision is faster but changes results: measure how much with 'massviz compare'. Recorded in "
-                   "the trace and its cache key")
+                   help="Mask R-CNN arithmetic: fp32 (default, the paper's: IEEE fp32, no TF32, deterministic "
+                   "kernels on CUDA), bf16 (CPUs with bfloat16 support, CUDA; the mass CNN runs in bf16 too) or "
+                   "fp16 (CUDA; the mass CNN stays fp32). Reduced precision is faster but changes results: measure "
+                   "how much with 'massviz compare'. Recorded in the trace and its cache key")
     g.add_argument("--cache", metavar="DIR", help="trace cache directory (default: $MASSVIZ_CACHE_DIR or user cache)")
     g.add_argument("--no-cache", action="store_true", help="neither read nor write the trace cache")
     g.add_argument("--quiet", action="store_true",

@@ -76,7 +76,8 @@ def _key(options) -> dict:
 
     weights = options.weights if options.weights is not None else (os.environ.get(ENV_WEIGHTS) or None)
     return {"detector": options.detector, "detector_weights": absolute(options.detector_weights),
-            "replay": absolute(options.replay), "precision": options.precision, "weights": absolute(weights)}
+            "replay": absolute(options.replay), "precision": options.precision, "weights": absolute(weights),
+            "device": options.device}
 
 
 def build_remembering(args, threshold: float | None = None):

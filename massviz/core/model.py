@@ -105,6 +105,15 @@ class Ranges:
         hi = np.array([self.max_ratio_width, self.max_ratio_height, self.max_distance])
         return ((f - lo) / (hi - lo)).astype(np.float32)
 
+    def normalise_features_tensor(self, features: torch.Tensor) -> torch.Tensor:
+        """:meth:`normalise_features` on a float64 (N, 3) tensor, on its device: the same float64 arithmetic, then
+        float32 (bit-identical to the numpy version)."""
+        lo = torch.tensor([self.min_ratio_width, self.min_ratio_height, self.min_distance], dtype=torch.float64,
+                          device=features.device)
+        hi = torch.tensor([self.max_ratio_width, self.max_ratio_height, self.max_distance], dtype=torch.float64,
+                          device=features.device)
+        return ((features.double() - lo) / (hi - lo)).float()
+
     def denormalise_mass(self, y) -> np.ndarray:
         """Network output (normalised) → grams, float32, clamped at 0 as the original does."""
         y = np.asarray(y, dtype=np.float32)
@@ -141,6 +150,10 @@ def preprocess_patches(patches: Sequence[np.ndarray]) -> torch.Tensor:
         return torch.empty(0, 3, PATCH_SIZE, PATCH_SIZE)
     return torch.stack([preprocess_patch(p) for p in patches])
 
+
+#: rows of every mass CNN call of :meth:`MassNet.predict_normalised` (the device path), the last call padded: a
+#: patch's prediction then never depends on how many patches share its call.
+DEVICE_CALL_ROWS = 128
 
 #: torch intra-op threads for :meth:`MassNet.predict` (0: leave torch's setting). One thread: measured 5-7x faster
 #: than two for 6-16 patches on this project's shared 2-core machine under load (``benchmarks/model_threads.py``);
@@ -237,6 +250,38 @@ class MassNet(nn.Module):
         return self
 
     @torch.no_grad()
+    def predict_normalised(self, images: torch.Tensor, features: torch.Tensor,
+                           rows: int = DEVICE_CALL_ROWS) -> torch.Tensor:
+        """The network's outputs (normalised mass, float32, shape (N,), on the model's device) for inputs already
+        there: ``images`` (N, 3, 112, 112) float32 in [0, 1] (``massviz.core.resample.resize_boxes``), ``features``
+        (N, 3) normalised (``Ranges.normalise_features_tensor``). Every call has exactly ``rows`` rows, the last one
+        padded with zeros, so a patch's output does not depend on how many patches share its call (on a GPU the
+        kernels are chosen by the call's shape). Nothing is copied to the host: ``Ranges.denormalise_mass`` of the
+        result gives grams."""
+        n = len(images)
+        device = next(self.parameters()).device
+        out = torch.empty(n, dtype=torch.float32, device=device)
+        if n == 0:
+            return out
+        was_training = self.training
+        self.eval()
+        self.to(memory_format=torch.channels_last)
+        try:
+            for start in range(0, n, rows):
+                x = images[start:start + rows]
+                f = features[start:start + rows]
+                if len(x) < rows:  # pad to the fixed call size
+                    x = torch.cat([x, x.new_zeros((rows - len(x), *x.shape[1:]))])
+                    f = torch.cat([f, f.new_zeros((rows - len(f), f.shape[1]))])
+                x = x.to(device).contiguous(memory_format=torch.channels_last)
+                with torch.autocast(device.type, dtype=torch.bfloat16, enabled=self.precision == "bf16"):
+                    y = self._head(self._trunk_eval(x), f.to(device))
+                out[start:start + rows] = y[:min(rows, n - start), 0].float()
+        finally:
+            self.train(was_training)
+        return out
+
+    @torch.no_grad()
     def predict(self, patches: Sequence[np.ndarray], features, batch_size: int = 16) -> np.ndarray:
         """Grams (float32, shape (N,)) for N RGB crops (H×W×3 uint8) and their raw ``[a, b, d_mm]`` features."""
         return self.predict_groups([(patches, features)], batch_size)[0]
@@ -318,5 +363,5 @@ def _calls(rows: list, size: int) -> list[list]:
     return calls
 
 
-__all__ = ["PATCH_SIZE", "N_PARAMETERS", "RANGE_KEYS", "Ranges", "square_pad", "preprocess_patch",
+__all__ = ["PATCH_SIZE", "N_PARAMETERS", "DEVICE_CALL_ROWS", "RANGE_KEYS", "Ranges", "square_pad", "preprocess_patch",
            "preprocess_patches", "MassNet"]

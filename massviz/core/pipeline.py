@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import heapq
+import inspect
 import math
 import sys
 import time
@@ -36,10 +37,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from tqdm.auto import tqdm
 
-from massviz.core.patches import crop
 from massviz.core.detector import Detector
 from massviz.core.prefetch import Prefetcher
-from massviz.core.selection import Selection, compute_features, estimate_mass, select_k_nearest
+from massviz.core.selection import Selection, estimate_mass, select_k_nearest
+from massviz.core.stage import FramePatches, FrameStage, StagedFrame, predictable
 from massviz.core.trace import Event, Trace, describe_detection, describe_selection, ranked_measurements
 from massviz.core.tracks import Tracker
 from massviz.core.types import Detections, Frame, RecordingInfo
@@ -48,26 +49,16 @@ from massviz.core.types import Detections, Frame, RecordingInfo
 KEEP_PATCHES = 32
 
 
-def _model_inputs(rgb: np.ndarray, dets: Detections) -> tuple[list, list, np.ndarray | None]:
-    """(every detection's patch, the detections the mass CNN predicts: finite d and a non-empty box, their
-    ``[a, b, d]`` rows or None when there are none)."""
-    patches = [crop(rgb, box) for box in dets.xyxy]
-    ok = [i for i in range(len(dets)) if np.isfinite(dets.d[i]) and patches[i].size]
-    feats = np.stack([dets.a[ok], dets.b[ok], dets.d[ok]], axis=1) if ok else None
-    return patches, ok, feats
-
-
-def predict_detections(model, rgb: np.ndarray, dets: Detections) -> tuple[np.ndarray, list]:
+def predict_detections(model, rgb: np.ndarray, dets: Detections) -> tuple[np.ndarray, FramePatches]:
     """Mass prediction (g) for every detection with a finite d and a non-empty box; NaN for the others."""
-    pred = np.full(len(dets), np.nan, dtype=np.float32)
-    patches, ok, feats = _model_inputs(rgb, dets)
-    if ok:
-        pred[ok] = model.predict([patches[i] for i in ok], feats)
-        if not np.isfinite(pred[ok]).all():  # weights whose numbers are finite but overflow on this input
-            from massviz.errors import WeightsError
+    from massviz.core.stage import _check_finite
 
-            raise WeightsError("the mass CNN predicted a non-finite mass (its weights or ranges overflow)",
-                               getattr(model, "checkpoint_path", None))
+    pred = np.full(len(dets), np.nan, dtype=np.float32)
+    patches = FramePatches(rgb, dets.xyxy)
+    ok = predictable(dets)
+    if len(ok):
+        pred[ok] = model.predict([patches[i] for i in ok], np.stack([dets.a[ok], dets.b[ok], dets.d[ok]], axis=1))
+        _check_finite(model, pred[ok])
     return pred, patches
 
 
@@ -77,11 +68,14 @@ class _NearestPatches:
     def __init__(self, n: int):
         self.n, self.heap, self.patches = n, [], {}
 
-    def offer(self, index: int, d: float, patch: np.ndarray) -> None:
+    def offer(self, index: int, d: float, patches, i: int) -> None:
+        """Detection ``index`` at distance ``d``, its patch ``patches[i]`` (read only when it is kept)."""
         if not np.isfinite(d) or self.n <= 0:
             return
+        if len(self.heap) >= self.n and (-d, -index) <= self.heap[0]:
+            return  # not nearer than the farthest kept (ties: the earliest stays)
         heapq.heappush(self.heap, (-d, -index))
-        self.patches[index] = patch
+        self.patches[index] = patches[i]
         if len(self.heap) > self.n:
             _, neg = heapq.heappop(self.heap)
             self.patches.pop(-neg, None)
@@ -92,7 +86,7 @@ class FrameResult:
     """What one ``FramePipeline.step`` computed.
 
     - ``frame``: the frame; ``detections``: its detections with d, a, b and ``pred`` (their indices in the trace are
-      ``offset + i``); ``patches``: their RGB crops.
+      ``offset + i``); ``patches``: their RGB crops (``FramePatches``, cut when read).
     - ``selection``: the K nearest detections *so far* (indices into the trace's detections, nearest first) and
       ``running_estimate`` the mean of their predictions (-1 while nothing is selected).
     - ``timings``: this frame's seconds per stage (read, detect, features, predict, select); ``events`` its decisions.
@@ -134,7 +128,7 @@ class FramePipeline:
 
     def __init__(self, detector: Detector, model, *, selection: Selection | None = None, k: int | None = None,
                  stride: int | None = None, recording: RecordingInfo | None = None,
-                 keep_patches: int = KEEP_PATCHES, measure: bool = False):
+                 keep_patches: int = KEEP_PATCHES, measure: bool = False, stage: FrameStage | None = None):
         selection = resolve_selection(selection, k, stride)
         self.detect_threshold = float(detector.threshold)  # the detector's own cut, recorded in the trace
         if selection.threshold is None:
@@ -144,6 +138,7 @@ class FramePipeline:
                              f"{self.detect_threshold} (lower-scored detections are never kept)")
         self.selection = selection
         self.detector, self.model = detector, model
+        self.stage = stage if stage is not None else FrameStage(detector, model)
         self.k, self.stride = selection.k, selection.stride
         self._exclude = np.asarray(selection.exclude, dtype=np.int64)
         self.recording = recording
@@ -163,42 +158,47 @@ class FramePipeline:
         self._start = time.perf_counter()
         self._tracker = Tracker(recording.fps if recording is not None else None)
         self._intrinsics = recording.intrinsics if (measure and recording is not None) else None
+        if self._intrinsics is not None:
+            try:  # the measure stage needs Open3D; a machine without it (e.g. a CUDA image) estimates without sizes
+                import massviz.core.geometry  # noqa: F401
+            except ImportError as err:
+                self._intrinsics = None
+                self.events.append(Event(-1, f"3D measurement skipped: Open3D cannot be imported ({err})",
+                                         "warning", "warn"))
         self._crops: dict = {}  # global detection index -> geometry.Crop of a detection in the running K nearest
 
     @property
     def frames_done(self) -> int:
         return len(self._frames)
 
-    def step(self, frame: Frame, *, detections: Detections | None = None, read_seconds: float = 0.0,
-             detect_seconds: float = 0.0) -> FrameResult:
-        """Run detect (unless ``detections`` are given: then ``detect_seconds`` is this frame's share of the time
-        they took), features, predict and the running selection on one frame."""
-        t1 = time.perf_counter()
-        raw = self.detector.detect(frame) if detections is None else detections
-        t2 = time.perf_counter()
-        if detections is not None:
-            t1 = t2 - detect_seconds
-        dets = compute_features(raw, frame.depth)  # new arrays: the detector's output stays as it made it
-        dets.track = self._tracker.update(frame.index, dets)
+    def step(self, frame: Frame, *, staged: StagedFrame | None = None, read_seconds: float = 0.0) -> FrameResult:
+        """Run detect, features and predict on one frame (``self.stage``), unless ``staged`` holds what a
+        ``FrameStage`` already computed for it (a batch of frames, possibly on a GPU), then the tracks and the
+        running selection."""
+        if staged is None:
+            staged = self.stage.process([frame], [read_seconds])[0]
+        dets = staged.detections
         t3 = time.perf_counter()
-        dets.pred, patches = predict_detections(self.model, frame.rgb, dets)
-        t4 = time.perf_counter()
-        pop_notes = getattr(self.detector, "pop_notes", None)  # e.g. the depth detector's rejected objects
+        dets.track = self._tracker.update(frame.index, dets)
+        t_track = time.perf_counter() - t3
+        patches = staged.patches
         events = [Event(frame.index, f"not a container candidate: {note}", "skipped", "info")
-                  for note in (pop_notes(frame.index) if pop_notes is not None else ())]
-        for i in range(len(dets)):
-            if not np.isfinite(dets.d[i]):
-                events.append(Event(frame.index, f"skipped {describe_detection(dets, i)}: its mask has no depth",
-                                    "skipped", "warn", self._offset + i))
-            self._nearest.offer(self._offset + i, float(dets.d[i]), patches[i])
+                  for note in staged.notes]
         offset = self._offset
+        for i in np.flatnonzero(~np.isfinite(dets.d)):
+            events.append(Event(frame.index, f"skipped {describe_detection(dets, int(i))}: its mask has no depth",
+                                "skipped", "warn", offset + int(i)))
+        for i in np.flatnonzero(np.isfinite(dets.d)):
+            self._nearest.offer(offset + int(i), float(dets.d[i]), patches, int(i))
         self._frames.append(frame.index)
         self._parts.append(dets)
         self._offset += len(dets)
+        t4 = time.perf_counter()
         selection, running = self._update_selection(dets, offset)
         t5 = time.perf_counter()
-        timings = {"read": read_seconds, "detect": t2 - t1, "features": t3 - t2, "predict": t4 - t3,
-                   "select": t5 - t4}
+        timings = {"read": staged.timings.get("read", read_seconds), "detect": staged.timings.get("detect", 0.0),
+                   "features": staged.timings.get("features", 0.0) + t_track,
+                   "predict": staged.timings.get("predict", 0.0), "select": t5 - t4}
         if self._intrinsics is not None:
             self._keep_crops(frame, dets, offset, selection)
         for name, seconds in timings.items():
@@ -267,119 +267,53 @@ class FramePipeline:
                      detections=detections, selection=selection, estimate=estimate, excluded=excluded,
                      weights_id=getattr(self.model, "weights_id", ""), timings=timings, events=events,
                      frame_timings={n: np.asarray(v) for n, v in self._frame_timings.items()},
-                     measurements=measurements)
-
-
-class _GroupPredictor:
-    """The mass CNN as ``FramePipeline.step`` sees it when ``run`` detects N frames at once (``batch`` > 1): the
-    first ``predict`` of a group predicts the patches of all its frames in one ``predict_groups`` call (the
-    convolutions of N frames' patches together); each frame's own ``predict`` then takes its rows. The same numbers
-    as one ``predict`` per frame (``MassNet.predict_groups``' contract), and checked: a call whose patches or
-    features are not the ones expected is predicted on its own. The group's prediction time is charged to the
-    predict stage of its first frame with detections. Anything else is the model's (``weights_id`` ...)."""
-
-    def __init__(self, model):
-        self._model = model
-        self._group: list = []
-        self._ready: list = []
-
-    def __getattr__(self, name):
-        return getattr(self._model, name)
-
-    def expect(self, frames, detections) -> None:
-        """The next frames ``step`` will run, with their detector output (``detect_in_batches``' ``on_group``)."""
-        self._group, self._ready = list(zip(frames, detections)), []
-
-    def predict(self, patches, features, batch_size: int = 16):
-        if self._group:  # the first call of a group: every frame's inputs as step makes them (features are cheap)
-            inputs = [_model_inputs(frame.rgb, compute_features(raw, frame.depth)) for frame, raw in self._group]
-            groups = [([p[i] for i in ok], f) for p, ok, f in inputs if ok]
-            self._group = []
-            self._ready = list(zip(groups, self._model.predict_groups(groups, batch_size))) if groups else []
-        if self._ready:
-            (want_patches, want_features), pred = self._ready.pop(0)
-            if (len(want_patches) == len(patches) and np.array_equal(want_features, features)
-                    and all(a.shape == b.shape and np.array_equal(a, b) for a, b in zip(want_patches, patches))):
-                return pred
-            self._ready = []  # out of step with the frames: predict on its own from here
-        return self._model.predict(patches, features, batch_size)
-
-
-def detect_in_batches(frames, detector: Detector, batch: int = 1, on_group=None):
-    """``(frame, detections, read seconds, detect seconds)`` for each frame of the iterable ``frames``.
-
-    ``batch`` 1: detections are None (``FramePipeline.step`` runs the detector itself). ``batch`` N > 1: N frames are
-    read, then detected in one call of the detector's ``detect_batch`` (frame by frame when it has none); each frame
-    is charged 1/N of that call's time; ``on_group(frames, detections)`` is called with the N frames and their
-    detections before the first is yielded. Either way the caller runs ``step(frame, detections=...)`` frame by
-    frame.
-    """
-    if batch < 1:
-        raise ValueError("batch must be >= 1")
-    detect_batch = getattr(detector, "detect_batch", None) if batch > 1 else None
-    it = iter(frames)
-    while True:
-        group, reads = [], []
-        t0 = time.perf_counter()
-        for frame in it:
-            t1 = time.perf_counter()
-            group.append(frame)
-            reads.append(t1 - t0)
-            if len(group) == batch:
-                break
-            t0 = time.perf_counter()
-        if not group:
-            return
-        if batch == 1:
-            yield group[0], None, reads[0], 0.0
-            continue
-        t2 = time.perf_counter()
-        dets = detect_batch(group) if detect_batch is not None else [detector.detect(f) for f in group]
-        share = (time.perf_counter() - t2) / len(group)
-        if on_group is not None:
-            on_group(group, dets)
-        for frame, d, r in zip(group, dets, reads):
-            yield frame, d, r, share
+                     measurements=measurements, compute=self.stage.describe())
 
 
 def run(recording, detector: Detector, model, *, selection: Selection | None = None, k: int | None = None,
         stride: int | None = None, keep_patches: int = KEEP_PATCHES, progress: bool = False, batch: int = 1,
-        prefetch: int = 2, on_frame=None, measure: bool = True) -> Trace:
+        prefetch: int = 2, on_frame=None, measure: bool = True, kernels: str = "auto",
+        overlap: bool | None = None) -> Trace:
     """Run the pipeline over ``recording`` (a loop over ``FramePipeline.step``) and select as ``selection`` says
     (``k=``/``stride=``: shorthand, see ``FramePipeline``).
 
-    ``batch``: frames per detector call (``detect_in_batches``), and per mass CNN call (the patches of those frames
-    predicted together, ``MassNet.predict_groups``, when the model has it); ``prefetch``: frames read ahead in a
-    background thread (``massviz.core.prefetch.Prefetcher``, at least ``batch``; 0 reads in this thread). Neither
-    changes the result (bit for bit); the ``read`` timing is then the time spent waiting for frames.
+    ``batch``: frames per detector call, their patches predicted by the mass CNN together
+    (``massviz.core.stage.FrameStage``); ``kernels``: the stage's kernels (``auto``: ``device`` when the mass CNN is
+    on a CUDA GPU, else ``exact``). ``prefetch``: frames read ahead in a background thread
+    (``massviz.core.prefetch.Prefetcher``, at least ``batch``; 0 reads in this thread); it never changes the result;
+    the ``read`` timing is then the time spent waiting for frames. ``overlap``: the stage in a thread of its own, a
+    batch ahead of the selection (default: on CUDA).
 
     ``on_frame(frame, result)``: a read-only observer called after each frame's step with the ``Frame`` (its arrays
     and, when the format has them, the bytes the reader read) and the ``FrameResult``, e.g. a sink logging each frame
     as it is processed so that no frame is read twice (``massviz log``). It must not change either; its time is not
     charged to any stage. ``measure``: the measure stage (``FramePipeline``).
     """
-    grouped = _GroupPredictor(model) if batch > 1 and hasattr(model, "predict_groups") else None
-    fp = FramePipeline(detector, model if grouped is None else grouped,
-                       selection=resolve_selection(selection, k, stride), recording=recording.info(),
-                       keep_patches=keep_patches, measure=measure)
+    stage = FrameStage(detector, model, batch=batch, kernels=kernels, overlap=overlap)
+    fp = FramePipeline(detector, model, selection=resolve_selection(selection, k, stride), recording=recording.info(),
+                       keep_patches=keep_patches, measure=measure, stage=stage)
     stride = fp.stride
     total = math.ceil(recording.num_frames / stride)
     bar = tqdm(total=total, desc=f"{recording.id}", unit="frame", file=sys.stderr, disable=not progress,
                leave=False)
-    frames = recording.frames(stride=stride)
+    workers = stage.read_workers if "workers" in inspect.signature(recording.frames).parameters else 1
+    frames = recording.frames(stride=stride, **({"workers": workers} if workers > 1 else {}))
     if prefetch > 0:
-        frames = Prefetcher(frames, size=max(int(prefetch), int(batch)))
+        frames = Prefetcher(frames, size=max(int(prefetch), int(batch)), prepare=stage.prepare)
+    staged = stage.stream(frames)
+    if stage.overlap:
+        staged = Prefetcher(staged, size=2 * batch)
     try:  # the bar is cleared before any error is reported, so the error line stands alone
-        for frame, dets, read_s, detect_s in detect_in_batches(frames, detector, batch,
-                                                               None if grouped is None else grouped.expect):
-            result = fp.step(frame, detections=dets, read_seconds=read_s, detect_seconds=detect_s)
+        for item in staged:
+            result = fp.step(item.frame, staged=item)
             if on_frame is not None:
-                on_frame(frame, result)
+                on_frame(item.frame, result)
             bar.update(1)
     finally:
         bar.close()
-        if isinstance(frames, Prefetcher):
-            frames.close()
+        for it in (staged, frames):
+            if isinstance(it, Prefetcher):
+                it.close()
     fp.events.extend(Event(-1, note, "warning", "warn") for note in getattr(recording, "notes", ()))
     return fp.finish()
 
@@ -401,5 +335,5 @@ def repredict(trace: Trace, recording, model, progress: bool = False) -> Trace:
     return out.reselect()
 
 
-__all__ = ["FramePipeline", "FrameResult", "KEEP_PATCHES", "predict_detections", "detect_in_batches", "run",
-           "repredict", "resolve_selection"]
+__all__ = ["FramePipeline", "FrameResult", "KEEP_PATCHES", "predict_detections", "run", "repredict",
+           "resolve_selection"]

@@ -28,12 +28,14 @@ class _Failure:
 
 
 class Prefetcher:
-    """Iterate ``source`` in a daemon thread, up to ``size`` (>= 1) items ahead."""
+    """Iterate ``source`` in a daemon thread, up to ``size`` (>= 1) items ahead; ``prepare(item)``, when given, is
+    applied to each item in that thread (e.g. copying a frame into pinned memory)."""
 
-    def __init__(self, source: Iterable, size: int = 2):
+    def __init__(self, source: Iterable, size: int = 2, prepare=None):
         if size < 1:
             raise ValueError("size must be >= 1")
         self._source = iter(source)
+        self._prepare = prepare
         self._queue: queue.Queue = queue.Queue(maxsize=size)
         self._stop = threading.Event()
         self._done = False
@@ -53,6 +55,8 @@ class Prefetcher:
     def _work(self) -> None:
         try:
             for item in self._source:
+                if self._prepare is not None:
+                    item = self._prepare(item)
                 if not self._put(item):
                     break
             else:

@@ -81,6 +81,8 @@ class Trace:
     - ``frame_timings``: seconds per stage for each processed frame (stage -> array aligned with ``frames``; empty
       for traces made before massviz recorded them).
     - ``flags``: ``massviz.core.flags.Flags`` of the selection (made when the trace is; see the module docstring).
+    - ``compute``: where and how the detections and predictions were computed (``FrameStage.describe``: device,
+      kernels, precision, batch, mode ``faithful``/``fast``); empty for traces made before massviz recorded it.
     - ``ground_truth_source``: what the detections' ground-truth overlaps (``Detections.gt_iou`` ...) were computed
       from (``massviz.core.flags.ground_truth_source``; "" none): the flags use them only while it matches the
       recording's ground truth (``massviz.io.ground_truth.with_ground_truth`` fills them).
@@ -104,6 +106,7 @@ class Trace:
     frame_timings: dict = field(default_factory=dict)
     flags: Flags | None = None
     ground_truth_source: str = ""
+    compute: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if isinstance(self.recording, dict):

@@ -54,9 +54,11 @@ def choose_auto(detector_weights: str | Path | None = None) -> tuple[str, str]:
 
 
 def make_detector(name: str = "auto", threshold: float = 0.4, *, detector_weights: str | Path | None = None,
-                  replay: str | Path | None = None, quiet: bool = False, precision: str = "fp32") -> Detector:
+                  replay: str | Path | None = None, quiet: bool = False, precision: str = "fp32",
+                  device=None) -> Detector:
     """Build a detector by name (see module docstring). ``precision`` (fp32, bf16, fp16) is Mask R-CNN's; the other
-    detectors have only fp32. ``quiet`` hides progress bars only: auto's choice is always printed (stderr)."""
+    detectors have only fp32. ``device``: Mask R-CNN's (default: CUDA when present); the other detectors run on the
+    CPU. ``quiet`` hides progress bars only: auto's choice is always printed (stderr)."""
     if name not in DETECTORS:
         raise MassvizError(f"unknown detector {name!r} (choose from {', '.join(DETECTORS)})")
     if name == "auto":
@@ -68,7 +70,8 @@ def make_detector(name: str = "auto", threshold: float = 0.4, *, detector_weight
     if name == "maskrcnn":
         from massviz.detect.maskrcnn import MaskRCNNDetector
 
-        return MaskRCNNDetector(threshold=threshold, weights=detector_weights, precision=precision)
+        return MaskRCNNDetector(threshold=threshold, weights=detector_weights, precision=precision,
+                                device=None if device is None else str(device))
     if precision != "fp32":
         raise MassvizError(f"--precision {precision} is a Mask R-CNN mode; the {name} detector runs in fp32 only "
                            "(use --detector maskrcnn, or leave --precision at fp32)")

@@ -43,8 +43,10 @@ import torch
 from torchvision.models.detection.roi_heads import RoIHeads
 from torchvision.models.detection.transform import GeneralizedRCNNTransform, resize_boxes
 
-from massviz.errors import MassvizError, WeightsError
+from massviz.core.device import faithful_fp32
+from massviz.core.resample import to_unit_float
 from massviz.core.types import COCO_KEEP, PRECISIONS, Detections, Frame
+from massviz.errors import MassvizError, WeightsError
 
 MASK_THRESHOLD = 0.5
 _DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
@@ -193,10 +195,78 @@ def paste_mask_crops(masks: torch.Tensor, boxes: torch.Tensor, im_h: int, im_w: 
     return out
 
 
+class MaskWindows:
+    """Mask R-CNN's masks of a batch of detections kept on the device, pasted only inside their integer boxes when
+    asked (``massviz.core.stage``'s device path): ``windows(index, xyxy, height, width)`` is, for each detection
+    ``index``, ``paste_mask_crops``' mask as a (height, width) window of a bool tensor (top-left aligned; False past
+    its box), for many detections in one set of tensor operations.
+
+    The arithmetic is torchvision's paste (``expand_masks``, ``expand_boxes``, bilinear resize without aligned corners,
+    threshold 0.5), written as gathers over all the boxes at once, in float32 as PyTorch's CUDA kernel computes it;
+    a pixel can differ from ``paste_mask_crops`` only where its probability is within float rounding of 0.5
+    (tests/test_device_path.py)."""
+
+    def __init__(self, probs: torch.Tensor, boxes: torch.Tensor, im_h: int, im_w: int,
+                 threshold: float = MASK_THRESHOLD, padding: int = 1):
+        from torchvision.models.detection.roi_heads import expand_boxes, expand_masks
+
+        self.device = probs.device
+        if len(probs):
+            padded, scale = expand_masks(probs.float(), padding=padding)
+            self.padded = padded[:, 0]  # (n, M + 2p, M + 2p)
+            self.expanded = expand_boxes(boxes.float(), scale).to(dtype=torch.int64)  # (n, 4) x0, y0, x1, y1
+        else:
+            self.padded = probs.new_zeros((0, 1, 1))
+            self.expanded = boxes.new_zeros((0, 4), dtype=torch.int64)
+        self.im_h, self.im_w, self.threshold = int(im_h), int(im_w), float(threshold)
+
+    def __len__(self) -> int:
+        return len(self.padded)
+
+    @staticmethod
+    def _axis(start, lo, hi, size, n_in, limit):
+        """Along one axis, for window positions 0..size-1 of boxes starting at ``start``: the two input cells, their
+        weights and whether the canvas holds the position ([lo, hi] of the expanded box, inside the image)."""
+        pos = start[:, None] + torch.arange(size, device=start.device)[None, :]  # image coordinate
+        out_len = (hi - lo + 1).clamp(min=1)  # the resized mask's length
+        j = pos - lo[:, None]  # index into the resized mask
+        inside = (j >= 0) & (j < out_len[:, None]) & (pos < limit)
+        scale = torch.full_like(out_len, n_in, dtype=torch.float32) / out_len.float()
+        src = (scale[:, None] * (j.float() + 0.5) - 0.5).clamp(min=0)
+        i0 = src.to(torch.int64).clamp(max=n_in - 1)  # src >= 0: truncation is floor
+        lam = src - i0.float()
+        i1 = torch.where(i0 < n_in - 1, i0 + 1, i0)
+        return i0.clamp(min=0), i1.clamp(min=0), 1 - lam, lam, inside
+
+    def windows(self, index, xyxy, height: int, width: int) -> torch.Tensor:
+        """(len(index), height, width) bool on the device: detection ``index[i]``'s mask in its integer box
+        ``xyxy[i]`` (x1, y1, x2, y2; host arrays or tensors), top-left aligned, False past the box."""
+        idx = index if isinstance(index, torch.Tensor) else torch.from_numpy(np.asarray(index, dtype=np.int64))
+        box = xyxy if isinstance(xyxy, torch.Tensor) else torch.from_numpy(np.asarray(xyxy, np.int64).reshape(-1, 4))
+        idx, box = idx.to(self.device), box.to(self.device, torch.int64)
+        m = self.padded[idx]  # (k, S, S)
+        ex = self.expanded[idx]
+        n_in = m.shape[-1]
+        y0, y1, wy0, wy1, y_in = self._axis(box[:, 1], ex[:, 1], ex[:, 3], height, n_in, self.im_h)
+        x0, x1, wx0, wx1, x_in = self._axis(box[:, 0], ex[:, 0], ex[:, 2], width, n_in, self.im_w)
+        k = torch.arange(len(idx), device=self.device)[:, None, None]
+        rows = torch.arange(n_in, device=self.device)[None, :, None]
+        # along x for every row of the padded mask, then along y: CUDA's h0 * (w0 * a + w1 * b) + h1 * (...)
+        across = wx0[:, None, :] * m[k, rows, x0[:, None, :]] + wx1[:, None, :] * m[k, rows, x1[:, None, :]]
+        value = (wy0[:, :, None] * across[k, y0[:, :, None], torch.arange(width, device=self.device)]
+                 + wy1[:, :, None] * across[k, y1[:, :, None], torch.arange(width, device=self.device)])
+        in_box = ((torch.arange(height, device=self.device)[None, :] < (box[:, 3] - box[:, 1])[:, None])[:, :, None]
+                  & (torch.arange(width, device=self.device)[None, :] < (box[:, 2] - box[:, 0])[:, None])[:, None, :])
+        return (value > self.threshold) & y_in[:, :, None] & x_in[:, None, :] & in_box
+
+
 class MaskCropTransform(GeneralizedRCNNTransform):
     """torchvision's ``GeneralizedRCNNTransform`` whose ``postprocess`` uses ``paste_mask_crops`` instead of
     full-image mask pasting: boxes are rescaled as torchvision does; ``masks`` is replaced by ``mask_crops`` (bool
-    arrays, one per box)."""
+    arrays, one per box). With ``paste = False`` the masks stay the mask head's probabilities (n, 1, 28, 28) on the
+    device (``MaskWindows`` pastes them later)."""
+
+    paste = True
 
     @classmethod
     def of(cls, stock) -> "MaskCropTransform":
@@ -209,7 +279,7 @@ class MaskCropTransform(GeneralizedRCNNTransform):
             return result
         for pred, im_s, o_im_s in zip(result, image_shapes, original_image_sizes):
             pred["boxes"] = resize_boxes(pred["boxes"], im_s, o_im_s)
-            if "masks" in pred:
+            if "masks" in pred and self.paste:
                 pred["mask_crops"] = paste_mask_crops(pred.pop("masks"), pred["boxes"], *o_im_s)
         return result
 
@@ -361,8 +431,11 @@ class MaskRCNNDetector:
             src = f"{self.weights.resolve()}:{self._weights_digest}"
         else:
             src = "torchvision:COCO_V1" if self.pretrained else "random-init"
-        return {"weights": src, "classes": list(self.classes), "mask_threshold": MASK_THRESHOLD,
-                "precision": self.precision}
+        out = {"weights": src, "classes": list(self.classes), "mask_threshold": MASK_THRESHOLD,
+               "precision": self.precision}
+        if self.device.type != "cpu":  # another device's kernels round differently: another cache entry
+            out["device"] = self.device.type
+        return out
 
     @property
     def model(self) -> torch.nn.Module:
@@ -372,8 +445,10 @@ class MaskRCNNDetector:
 
     @property
     def default_batch(self) -> int:
-        """Frames per forward when ``--batch`` is not given: 1 on a CPU (batching gains ~5 % there), 4 on CUDA."""
-        return 4 if self.device.type == "cuda" else 1
+        """Frames per forward when ``--batch`` is not given: 1 on a CPU (batching gains ~5 % there) and in the
+        faithful fp32 mode on CUDA (cuDNN chooses kernels by the batch's shape: ``massviz.core.device``), 8 in
+        bf16/fp16 on CUDA."""
+        return 8 if self.device.type == "cuda" and self.precision != "fp32" else 1
 
     @property
     def runtime(self) -> torch.nn.Module:
@@ -399,8 +474,40 @@ class MaskRCNNDetector:
 
     def _forward(self, frames: list[Frame]) -> list[Detections]:
         model = self.runtime
-        with torch.inference_mode():
-            images = [torch.from_numpy(f.rgb).permute(2, 0, 1).float().div(255).to(self.device)  # = ToTensor()
+        model.transform.paste = True
+        with torch.inference_mode(), faithful_fp32(self.device, self.precision == "fp32"):
+            images = [to_unit_float(torch.from_numpy(f.rgb).to(self.device).permute(2, 0, 1))  # = ToTensor()
                       for f in frames]
             outputs = model(images)
             return [outputs_to_detections(o, f.index, self.threshold, self.classes) for o, f in zip(outputs, frames)]
+
+    def detect_device(self, frames: list[Frame], rgb: torch.Tensor) -> tuple[list[Detections], MaskWindows]:
+        """``detect_batch`` for frames already on the device (``rgb``: (N, H, W, 3) uint8 there), masks left there:
+        each frame's ``Detections`` (boxes, scores, classes; masks not filled) and one ``MaskWindows`` of all their
+        masks, in order. One copy to the host (the boxes, scores and classes of every frame)."""
+        model = self.runtime
+        model.transform.paste = False
+        try:
+            with torch.inference_mode(), faithful_fp32(self.device, self.precision == "fp32"):
+                outputs = model([to_unit_float(rgb[i].permute(2, 0, 1)) for i in range(len(frames))])  # ToTensor
+        finally:
+            model.transform.paste = True
+        with torch.inference_mode():
+            counts = [len(o["scores"]) for o in outputs]
+            boxes = torch.cat([o["boxes"].float() for o in outputs]) if outputs else torch.zeros((0, 4))
+            host = torch.cat([boxes, torch.cat([o["scores"].float()[:, None] for o in outputs]),
+                              torch.cat([o["labels"].float()[:, None] for o in outputs])], dim=1).cpu().numpy()
+            probs = torch.cat([o["masks"] for o in outputs]) if outputs else torch.zeros((0, 1, 28, 28))
+            scores, labels = host[:, 4].astype(np.float32), host[:, 5].astype(np.int64)
+            keep = (scores > self.threshold) & np.isin(labels, list(self.classes))
+            xyxy = host[:, :4].astype(np.float32).astype(np.int32)  # int(v): truncation, as outputs_to_detections
+            dets, start = [], 0
+            for f, n in zip(frames, counts):
+                sl = slice(start, start + n)
+                k = keep[sl]
+                dets.append(Detections(frame=np.full(int(k.sum()), f.index), xyxy=xyxy[sl][k], score=scores[sl][k],
+                                       class_id=labels[sl][k]))
+                start += n
+            kept = torch.from_numpy(np.flatnonzero(keep)).to(probs.device)
+            h, w = (int(v) for v in rgb.shape[1:3])
+            return dets, MaskWindows(probs[kept], boxes[kept], h, w)

@@ -27,7 +27,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import platformdirs
 
 from massviz.errors import MassvizError
 from massviz.io.filehash import FileHasher
@@ -39,7 +38,12 @@ from massviz.io.trace_file import load_trace, save_trace
 
 
 def default_cache_dir() -> Path:
-    return Path(os.environ.get("MASSVIZ_CACHE_DIR") or platformdirs.user_cache_dir("massviz"))
+    env = os.environ.get("MASSVIZ_CACHE_DIR")
+    if env:
+        return Path(env)
+    import platformdirs  # only for the default folder: a CUDA image without it runs with --cache or --no-cache
+
+    return Path(platformdirs.user_cache_dir("massviz"))
 
 
 class TraceCache:

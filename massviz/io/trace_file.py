@@ -39,7 +39,7 @@ def save_trace(trace: Trace, path: str | Path) -> Path:
         "timings": trace.timings, "events": [e.to_list() for e in trace.events],
         "measurements": list(trace.measurements), "flags": trace.flags.to_dict(),
         "frame_timing_stages": list(trace.frame_timings),
-        "ground_truth_source": trace.ground_truth_source,
+        "ground_truth_source": trace.ground_truth_source, "compute": trace.compute,
     }
     masks = [m if m is not None else PackedMask(np.zeros((0, 0), bool)) for m in dets.masks]
     patch_idx = [i for i, p in enumerate(dets.patches) if p is not None]
@@ -101,7 +101,8 @@ def _from_arrays(header: dict, data: dict) -> Trace:
                flags=Flags.from_dict(header["flags"]) if isinstance(header.get("flags"), dict) else None,
                frame_timings={name: data[f"frame_time_{i}"]
                               for i, name in enumerate(header.get("frame_timing_stages", []))},
-                 ground_truth_source=str(header.get("ground_truth_source", ""))[:10_000])
+                 ground_truth_source=str(header.get("ground_truth_source", ""))[:10_000],
+                 compute=dict(header.get("compute") or {}))
 
 
 def check_trace_arrays(header: dict, data: dict) -> None:
@@ -270,6 +271,12 @@ def check_trace_header(header: dict, data: dict) -> None:
         if a.dtype.kind != "f" or not np.isfinite(a).all():
             raise ValueError(f"frame_time_{i} must be finite floats")
     text(header.get("ground_truth_source", ""), "ground_truth_source")
+    compute = header.get("compute") or {}
+    if not isinstance(compute, dict) or len(compute) > 20 or not all(
+            isinstance(k, str) and len(k) <= 40 and (isinstance(v, str) and len(v) <= 200
+                                                     or isinstance(v, int) and not isinstance(v, bool))
+            for k, v in compute.items()):
+        raise ValueError("header compute must be an object of at most 20 short names and texts or integers")
     if not math.isfinite(float(header["estimate"])):
         raise ValueError("header estimate must be a finite number")
 

@@ -21,7 +21,6 @@ import urllib.error
 from dataclasses import dataclass
 from pathlib import Path
 
-import platformdirs
 
 from massviz.errors import WeightsError
 
@@ -85,7 +84,11 @@ def sha256_file(path: str | Path) -> str:
 
 def cache_dir() -> Path:
     """Folder the downloaded weights live in: ``$MASSVIZ_CACHE_DIR/weights`` or the user cache's ``weights``."""
-    base = os.environ.get(ENV_CACHE_DIR) or platformdirs.user_cache_dir("massviz")
+    base = os.environ.get(ENV_CACHE_DIR)
+    if not base:
+        import platformdirs  # only for the default folder (a CUDA image without it runs with --weights)
+
+        base = platformdirs.user_cache_dir("massviz")
     return Path(base) / "weights"
 
 

@@ -1,0 +1,328 @@
+"""Detect, features and predict for a batch of frames: the per-frame work before the selection, on the CPU or a
+CUDA GPU. ``FramePipeline.step`` takes what this computes; ``run`` streams a recording through it.
+
+Two sets of kernels compute the same three stages (``FrameStage(kernels=...)``):
+
+* ``exact`` (the CPU's default): the detector's ``detect``/``detect_batch`` (host ``Detections`` with masks), d, a
+  and b with numpy (``compute_features``), each patch cropped on the host and resized by Pillow for the mass CNN
+  (``MassNet.predict_groups``): bit for bit the paper's CPU arithmetic. Nothing else is ever run on a CPU by default.
+* ``device`` (CUDA's default): the frames are copied to the device once (from pinned memory, without blocking);
+  Mask R-CNN's masks stay there and are pasted only inside their boxes (the detector's ``detect_device``), d is
+  summed there; every patch is cut, zero-padded and resized there (``massviz.core.resample``, Pillow's bytes exactly)
+  and the mass CNN runs there in calls of a fixed size (``MassNet.predict_normalised``). Back to the host come only
+  the boxes, scores and classes (one copy, after the detector), then d, the masks' bits inside their boxes and the
+  predictions (one copy at the end of the batch). A detector without ``detect_device`` (depth, NanoDet, replay)
+  detects on the host; its masks' d is computed there and the patches still go to the device.
+
+The two agree up to float rounding on the same device (tests/test_device_path.py runs both on the CPU); on the CPU
+the default stays ``exact``. Stage times: a batch's detect, features and predict seconds are shared equally by its
+frames. On CUDA the device works asynchronously: its time is charged to the stage that waits for it (predict, whose
+end copies the results).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from massviz.core.patches import crop
+from massviz.core.selection import box_ratios, compute_features
+from massviz.core.types import Detections, Frame, PackedMask
+
+KERNELS = ("auto", "exact", "device")
+#: most mask-window pixels (detections x height x width) gathered at once on the device
+WINDOW_BUDGET = 1 << 25
+
+
+class FramePatches:
+    """Each detection's RGB patch (``massviz.core.patches.crop`` of its box), cut when read."""
+
+    def __init__(self, rgb: np.ndarray, xyxy: np.ndarray):
+        self._rgb, self._xyxy = rgb, np.asarray(xyxy).reshape(-1, 4)
+
+    def __len__(self) -> int:
+        return len(self._xyxy)
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [self[j] for j in range(*i.indices(len(self)))]
+        return crop(self._rgb, self._xyxy[i])
+
+    def __iter__(self):
+        return (self[i] for i in range(len(self)))
+
+
+@dataclass
+class StagedFrame:
+    """One frame after detect, features and predict: its detections with d, a, b and ``pred``, their patches
+    (``FramePatches``), this frame's seconds per stage and the detector's notes (e.g. the depth detector's rejected
+    objects)."""
+
+    frame: Frame
+    detections: Detections
+    patches: FramePatches
+    timings: dict = field(default_factory=dict)
+    notes: list = field(default_factory=list)
+
+
+def model_device(model):
+    """The torch device of a model's parameters (the CPU for a model without any, e.g. a test's stand-in)."""
+    import torch
+
+    params = getattr(model, "parameters", None)
+    if params is None:
+        return torch.device("cpu")
+    try:
+        return next(params()).device
+    except (StopIteration, TypeError):
+        return torch.device("cpu")
+
+
+def same_device(a, b) -> bool:
+    """Whether two torch devices are the same (``cuda`` without an index is the current CUDA device)."""
+    import torch
+
+    a, b = torch.device(a), torch.device(b)
+    if a.type != b.type:
+        return False
+    if a.type != "cuda":
+        return True
+    current = torch.cuda.current_device()
+    return (current if a.index is None else a.index) == (current if b.index is None else b.index)
+
+
+def _check_finite(model, pred: np.ndarray) -> None:
+    if not np.isfinite(pred).all():  # weights whose numbers are finite but overflow on this input
+        from massviz.errors import WeightsError
+
+        raise WeightsError("the mass CNN predicted a non-finite mass (its weights or ranges overflow)",
+                           getattr(model, "checkpoint_path", None))
+
+
+def predictable(dets: Detections) -> np.ndarray:
+    """Indices of the detections the mass CNN predicts: a finite d and a non-empty box."""
+    wide = (dets.xyxy[:, 2] > dets.xyxy[:, 0]) & (dets.xyxy[:, 3] > dets.xyxy[:, 1])
+    return np.flatnonzero(np.isfinite(dets.d) & wide)
+
+
+class FrameStage:
+    """Detect, features and predict for batches of frames (module docstring). ``device``: where the mass CNN runs
+    (default: the device of its parameters); ``kernels``: ``auto`` (``device`` on CUDA, ``exact`` elsewhere),
+    ``exact`` or ``device``; ``batch``: frames per detector call (``stream``)."""
+
+    def __init__(self, detector, model, *, batch: int = 1, kernels: str = "auto", overlap: bool | None = None):
+        if kernels not in KERNELS:
+            raise ValueError(f"kernels must be one of {', '.join(KERNELS)}, got {kernels!r}")
+        if batch < 1:
+            raise ValueError("batch must be >= 1")
+        self.detector, self.model, self.batch = detector, model, int(batch)
+        self.device = model_device(model)
+        has_net = hasattr(model, "predict_normalised") and getattr(model, "ranges", None) is not None
+        if kernels == "auto":
+            kernels = "device" if self.device.type == "cuda" and has_net else "exact"
+        if kernels == "device" and not has_net:
+            raise ValueError("the device kernels need the mass CNN (MassNet with its ranges)")
+        self.kernels = kernels
+        self._overlap = overlap
+
+    def describe(self) -> dict:
+        """What a trace records of where it was computed: device, kernels, precision, batch and the mode
+        (``faithful``: fp32, the paper's arithmetic; ``fast``: bf16/fp16)."""
+        from massviz.core.device import describe
+
+        precision = getattr(self.detector, "precision", None) or getattr(self.model, "precision", "fp32")
+        return {"device": describe(self.device), "kernels": self.kernels, "precision": str(precision),
+                "batch": self.batch, "mode": "faithful" if precision == "fp32" else "fast"}
+
+    @property
+    def overlap(self) -> bool:
+        """Whether ``run`` computes the next batches in a thread of their own while the caller selects (default:
+        on CUDA)."""
+        return self.device.type == "cuda" if self._overlap is None else bool(self._overlap)
+
+
+    @property
+    def read_workers(self) -> int:
+        """Threads that decode a recording's depth images for this stage: several on CUDA (a GPU consumes frames
+        faster than one thread decodes them), 1 on the CPU (its cores run the detector)."""
+        import os
+
+        return min(4, os.cpu_count() or 1) if self.overlap else 1
+
+    def prepare(self, frame: Frame) -> Frame:
+        """Done to each frame in the reading thread: pinned memory for a GPU's copies."""
+        if self.device.type == "cuda":
+            from massviz.core.device import pin_frame
+
+            return pin_frame(frame)
+        return frame
+
+    def stream(self, frames, reads=None):
+        """``StagedFrame`` for each frame of the iterable ``frames``, ``batch`` frames per call of ``process``;
+        ``read`` time is the time spent waiting for each frame."""
+        it = iter(frames)
+        while True:
+            group, waits = [], []
+            t0 = time.perf_counter()
+            for frame in it:
+                t1 = time.perf_counter()
+                group.append(frame)
+                waits.append(t1 - t0)
+                if len(group) == self.batch:
+                    break
+                t0 = time.perf_counter()
+            if not group:
+                return
+            yield from self.process(group, waits)
+
+    def process(self, frames: list[Frame], reads=None) -> list[StagedFrame]:
+        """Detect, features and predict on ``frames`` (one detector call for all of them when the detector has
+        ``detect_batch`` and there are several); ``reads``: each frame's read seconds."""
+        reads = list(reads) if reads is not None else [0.0] * len(frames)
+        if self.kernels == "device":
+            out = self._process_device(frames)
+        else:
+            out = self._process_exact(frames)
+        for staged, r in zip(out, reads):
+            staged.timings = {"read": r, **staged.timings}
+        return out
+
+    # ----------------------------------------------------------------------------------------------- exact kernels
+    def _detect(self, frames: list[Frame]) -> list[Detections]:
+        detect_batch = getattr(self.detector, "detect_batch", None) if len(frames) > 1 else None
+        return detect_batch(frames) if detect_batch is not None else [self.detector.detect(f) for f in frames]
+
+    def _notes(self, frame: Frame) -> list:
+        pop_notes = getattr(self.detector, "pop_notes", None)  # e.g. the depth detector's rejected objects
+        return list(pop_notes(frame.index)) if pop_notes is not None else []
+
+    def _process_exact(self, frames: list[Frame]) -> list[StagedFrame]:
+        n = len(frames)
+        t0 = time.perf_counter()
+        raw = self._detect(frames)
+        t1 = time.perf_counter()
+        dets = [compute_features(r, f.depth) for r, f in zip(raw, frames)]  # new arrays: the detector's stay
+        t2 = time.perf_counter()
+        patches = [FramePatches(f.rgb, d.xyxy) for f, d in zip(frames, dets)]
+        rows = [predictable(d) for d in dets]
+        groups = [([p[i] for i in ok], np.stack([d.a[ok], d.b[ok], d.d[ok]], axis=1)) for p, d, ok
+                  in zip(patches, dets, rows) if len(ok)]
+        if groups and len(groups) > 1 and hasattr(self.model, "predict_groups"):
+            preds = iter(self.model.predict_groups(groups))
+        else:  # one frame (or a model with only predict): one call per frame, as the paper's code
+            preds = iter([self.model.predict(p, f) for p, f in groups])
+        for d, ok in zip(dets, rows):
+            d.pred = np.full(len(d), np.nan, dtype=np.float32)
+            if len(ok):
+                d.pred[ok] = next(preds)
+                _check_finite(self.model, d.pred[ok])
+        t3 = time.perf_counter()
+        share = {"detect": (t1 - t0) / n, "features": (t2 - t1) / n, "predict": (t3 - t2) / n}
+        return [StagedFrame(f, d, p, dict(share), self._notes(f)) for f, d, p in zip(frames, dets, patches)]
+
+    # ---------------------------------------------------------------------------------------------- device kernels
+    def _process_device(self, frames: list[Frame]) -> list[StagedFrame]:
+        import torch
+
+        from massviz.core.device import faithful_fp32, upload
+        from massviz.core.resample import resize_boxes
+
+        n, dev = len(frames), self.device
+        fp32 = getattr(self.model, "precision", "fp32") == "fp32"
+        with torch.inference_mode(), faithful_fp32(dev, fp32):
+            t0 = time.perf_counter()
+            rgb = upload([f.rgb for f in frames], dev)
+            detect_device = getattr(self.detector, "detect_device", None)
+            if detect_device is not None and not same_device(getattr(self.detector, "device", "cpu"), dev):
+                detect_device = None  # a detector elsewhere: its own detect, host masks
+            if detect_device is not None:
+                raw, masks = detect_device(frames, rgb)
+            else:
+                raw, masks = self._detect(frames), None
+            t1 = time.perf_counter()
+            counts = [len(r) for r in raw]
+            xyxy = np.concatenate([r.xyxy for r in raw]) if raw else np.zeros((0, 4), np.int32)
+            frame_of = np.repeat(np.arange(n), counts)
+            height, width = frames[0].depth.shape[:2]
+            a, b = box_ratios(xyxy, width, height)
+            host_d = None
+            if masks is None:  # host masks: d on the host, exactly compute_features
+                dets = [compute_features(r, f.depth) for r, f in zip(raw, frames)]
+                host_d = np.concatenate([d.d for d in dets]) if dets else np.zeros(0)
+                d_dev = torch.from_numpy(host_d).to(dev)
+                windows = None
+            else:
+                depth = upload([f.depth.view(np.int16) for f in frames], dev)
+                d_dev, windows = self._distances(masks, depth, frame_of, xyxy)
+            t2 = time.perf_counter()
+            wide = np.flatnonzero((xyxy[:, 2] > xyxy[:, 0]) & (xyxy[:, 3] > xyxy[:, 1]))
+            images = resize_boxes(rgb, frame_of[wide], xyxy[wide])
+            feats = torch.stack([torch.from_numpy(a[wide]).to(dev), torch.from_numpy(b[wide]).to(dev),
+                                 torch.nan_to_num(d_dev[torch.from_numpy(wide).to(dev)], nan=0.0)], dim=1)
+            y = self.model.predict_normalised(images, self.model.ranges.normalise_features_tensor(feats))
+            # the one copy back: predictions, d, and the masks' windows
+            y = y.cpu().numpy()
+            d = host_d if host_d is not None else d_dev.cpu().numpy()
+            window_bits = [(idx, w.cpu().numpy()) for idx, w in windows] if windows is not None else []
+            t3 = time.perf_counter()
+        pred = np.full(len(xyxy), np.nan, dtype=np.float32)
+        ok = np.isfinite(d[wide])
+        pred[wide[ok]] = self.model.ranges.denormalise_mass(y[ok])
+        _check_finite(self.model, pred[wide[ok]])
+        mask_list = [None] * len(xyxy)
+        for idx, bits in window_bits:
+            for row, i in enumerate(idx):
+                x1, y1, x2, y2 = (int(v) for v in xyxy[i])
+                mask_list[i] = PackedMask(bits[row, :max(y2 - y1, 0), :max(x2 - x1, 0)])
+        out, start = [], 0
+        share = {"detect": (t1 - t0) / n, "features": (t2 - t1) / n, "predict": (t3 - t2) / n}
+        for f, r, c in zip(frames, raw, counts):
+            sl = slice(start, start + c)
+            masks_f = mask_list[sl] if masks is not None else list(r.masks)
+            det = Detections(frame=r.frame, xyxy=r.xyxy, score=r.score, class_id=r.class_id, masks=masks_f,
+                             d=d[sl], a=a[sl], b=b[sl], pred=pred[sl])
+            out.append(StagedFrame(f, det, FramePatches(f.rgb, det.xyxy), dict(share), self._notes(f)))
+            start += c
+        return out
+
+    def _distances(self, masks, depth, frame_of: np.ndarray, xyxy: np.ndarray):
+        """d of every detection on the device (float64, NaN without depth; ``mask_distance``'s arithmetic: the sum
+        of the depth under the mask over the count of its pixels with depth, rounded to 2 decimals) and the masks'
+        windows in chunks of similar size: [(detection indices, (k, h, w) bool tensor)]."""
+        import torch
+
+        dev = depth.device
+        h = np.maximum(xyxy[:, 3] - xyxy[:, 1], 0)
+        w = np.maximum(xyxy[:, 2] - xyxy[:, 0], 0)
+        d = torch.full((len(xyxy),), float("nan"), dtype=torch.float64, device=dev)
+        chunks = []
+        order = np.argsort(h * w, kind="stable")
+        # one copy of the boxes and the order to the device (each copy from pageable memory waits for the device)
+        geo = torch.from_numpy(np.concatenate([frame_of[:, None], xyxy], axis=1).astype(np.int64)).to(dev)
+        order_dev = torch.from_numpy(order).to(dev)
+        hundred = torch.full((), 100.0, dtype=torch.float64, device=dev)  # a tensor: a true division on CUDA
+        start = 0
+        while start < len(order):  # chunks of similar size, each at most WINDOW_BUDGET pixels (or one detection)
+            end, hh, ww = start + 1, max(int(h[order[start]]), 1), max(int(w[order[start]]), 1)
+            while end < len(order):
+                h2, w2 = max(hh, int(h[order[end]])), max(ww, int(w[order[end]]))
+                if (end + 1 - start) * h2 * w2 > WINDOW_BUDGET:
+                    break
+                end, hh, ww = end + 1, h2, w2
+            idx, idx_dev = order[start:end], order_dev[start:end]
+            g = geo[idx_dev]
+            win = masks.windows(idx_dev, g[:, 1:], hh, ww)
+            ys = (g[:, 2:3] + torch.arange(hh, device=dev)).clamp(max=depth.shape[1] - 1)
+            xs = (g[:, 1:2] + torch.arange(ww, device=dev)).clamp(max=depth.shape[2] - 1)
+            z = depth[g[:, 0, None, None], ys[:, :, None], xs[:, None, :]].to(torch.int64) & 0xFFFF
+            z = torch.where(win, z, 0)
+            total, count = z.sum(dim=(1, 2)), (z > 0).sum(dim=(1, 2))
+            mean = total.double() / count.double()
+            d[idx_dev] = torch.where(count > 0, torch.round(mean * hundred) / hundred, float("nan"))
+            chunks.append((idx, win))
+            start = end
+        return d, chunks
+
+
+__all__ = ["KERNELS", "FrameStage", "StagedFrame", "FramePatches", "model_device", "predictable"]
