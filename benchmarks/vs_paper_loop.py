@@ -67,10 +67,10 @@ def make_recording(folder: Path, n: int) -> Path:
         # same patch several times) where massviz takes distinct detections (README: deliberate differences).
         depth = (1800 + 0.2 * xx + 0.3 * yy + rng.integers(0, 60, (HEIGHT, WIDTH))).astype(np.uint16)
         for j, (w, h, c) in enumerate([(120, 200, (200, 40, 40)), (90, 150, (40, 200, 60)), (160, 110, (50, 60, 220))]):
-            x = 150 + 350 * j + 12 * i
+            x = 150 + 350 * j + (12 * i) % 204  # the same path for the first 17 frames, then again
             y = 250 + 30 * j
             rgb[y:y + h, x:x + w] = c
-            depth[y:y + h, x:x + w] = 650 + 80 * j - 5 * i + rng.integers(0, 40, (h, w))
+            depth[y:y + h, x:x + w] = 650 + 80 * j - 5 * (i % 17) + rng.integers(0, 40, (h, w))
         writer.write(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
         cv2.imwrite(str(folder / "depth" / f"{i:06d}.png"), depth)
     writer.release()
@@ -102,8 +102,11 @@ def make_weights(path: Path, scenario: str) -> Path:
 
 
 # ------------------------------------------------------------------------------------------------------ workers
-def paper_loop(recording: Path, detector_weights: Path, mass_weights: Path, k: int = 5, threshold: float = 0.4):
-    """The paper's inference loop (module docstring). Returns (estimate, chosen [(frame, box)], detections)."""
+def paper_loop(recording: Path, detector_weights: Path, mass_weights: Path, k: int = 5, threshold: float = 0.4,
+               device: str = "cpu"):
+    """The paper's inference loop (module docstring). Returns (estimate, chosen [(frame, box)], detections).
+    ``device``: where its model, frames and mass CNN run (``cuda``: the paper's loop on a GPU, its outputs copied
+    back as its code does; ``benchmarks/gpu.py``)."""
     import cv2
     import numpy as np
     import torch
@@ -114,8 +117,8 @@ def paper_loop(recording: Path, detector_weights: Path, mass_weights: Path, k: i
 
     model = maskrcnn_resnet50_fpn(weights=None, weights_backbone=None, num_classes=91)  # box_score_thresh 0.05
     model.load_state_dict(torch.load(detector_weights, map_location="cpu", weights_only=True))
-    model.eval()
-    mass = load_checkpoint(mass_weights)
+    model.eval().to(device)
+    mass = load_checkpoint(mass_weights).to(device)
     depth_files = sorted((recording / "depth").glob("*.png"))
     cap = cv2.VideoCapture(str(recording / "rgb.mp4"))
     count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
@@ -128,11 +131,11 @@ def paper_loop(recording: Path, detector_weights: Path, mass_weights: Path, k: i
         rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
         depth = cv2.imread(str(depth_files[index]), cv2.IMREAD_UNCHANGED)
         with torch.no_grad():
-            out = model([TF.to_tensor(rgb)])[0]
-        scores = out["scores"].numpy()
-        labels = out["labels"].numpy()
-        boxes = [[int(v) for v in box] for box in out["boxes"].numpy()]
-        full = (out["masks"] > 0.5).numpy()[:, 0]  # every box above 0.05 got a full-image mask
+            out = model([TF.to_tensor(rgb).to(device)])[0]
+        scores = out["scores"].cpu().numpy()
+        labels = out["labels"].cpu().numpy()
+        boxes = [[int(v) for v in box] for box in out["boxes"].cpu().numpy()]
+        full = (out["masks"] > 0.5).cpu().numpy()[:, 0]  # every box above 0.05 got a full-image mask
         height, width = rgb.shape[:2]
         for cls in KEEP.values():  # the paper's filter regroups class by class
             for j in np.flatnonzero((labels == cls) & (scores > threshold)):
