@@ -65,6 +65,9 @@ def estimate_row(trace, recording, extra, *, exclusions=None, exec_time: str = "
     seconds = float(trace.timings.get("total", -1.0)) if exec_time == "measured" else -1.0
     detector = trace.detector.get("name", "?") + (f" {trace.detector['precision']}" if "precision" in trace.detector
                                                    else "")
+    device = str((getattr(trace, "compute", None) or {}).get("device", ""))
+    if device and device != "cpu":  # where it ran, when not on the CPU (e.g. "on cuda:0 (NVIDIA H200)")
+        detector += f" on {device}"
     return {"config_id": recording.config_id, "mass_g": float(trace.estimate), "exec_time_s": seconds,
             "k": len(trace.selection), "detections": len(trace.detections), "detector": detector,
             "warning": flag_warning("estimate", trace)}
