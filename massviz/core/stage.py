@@ -158,7 +158,7 @@ class FrameStage:
             return pin_frame(frame)
         return frame
 
-    def stream(self, frames, reads=None):
+    def stream(self, frames):
         """``StagedFrame`` for each frame of the iterable ``frames``, ``batch`` frames per call of ``process``;
         ``read`` time is the time spent waiting for each frame."""
         it = iter(frames)
@@ -208,7 +208,7 @@ class FrameStage:
         rows = [predictable(d) for d in dets]
         groups = [([p[i] for i in ok], np.stack([d.a[ok], d.b[ok], d.d[ok]], axis=1)) for p, d, ok
                   in zip(patches, dets, rows) if len(ok)]
-        if groups and len(groups) > 1 and hasattr(self.model, "predict_groups"):
+        if len(groups) > 1 and hasattr(self.model, "predict_groups"):
             preds = iter(self.model.predict_groups(groups))
         else:  # one frame (or a model with only predict): one call per frame, as the paper's code
             preds = iter([self.model.predict(p, f) for p, f in groups])
