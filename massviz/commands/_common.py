@@ -12,9 +12,9 @@ detectors (--detector):
   maskrcnn  paper fidelity: the paper's torchvision Mask R-CNN (cup, book, wine glass, bottle; score > threshold);
             ~3-4 s a 1280x720 frame on a 2-core CPU
   nanodet   CPU / live / offline: OpenCV Zoo's NanoDet through cv2.dnn (the same classes and threshold; 3.8 MB
-            model, downloaded once, sha256-pinned); ~0.1 s a frame. Boxes only: the mask is the nearest coherent
-            depth surface in the box, so d is that surface's mean depth (the paper's d averages Mask R-CNN's
-            silhouette, wherever the sensor measured through or beside it)
+            model, downloaded once, sha256-pinned); ~0.1 s a frame. Boxes only: the mask is the surface grown
+            from the box's centre over continuous depth, the table it stands on left out, so d is that
+            surface's mean depth (the paper's d averages Mask R-CNN's silhouette)
   depth     no weights at all: the nearest free-standing object(s) in the depth map (no class; objects cut by the
             image border are not candidates); works offline
   replay    detections saved earlier (--replay trace.npz or a detections JSON file)
