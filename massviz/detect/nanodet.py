@@ -59,6 +59,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from massviz.core.detector import DEFAULT_THRESHOLDS
 from massviz.core.types import COCO_KEEP, Detections, Frame
 from massviz.errors import WeightsError
 
@@ -259,11 +260,12 @@ def depth_mask(depth: np.ndarray, box, *, min_mm: float = 200.0, max_mm: float =
     grown = np.zeros((h + 2, w + 2), np.uint8)
     flags = 8 | cv2.FLOODFILL_MASK_ONLY | (1 << 8)
     ys, xs = np.nonzero(seeds)
-    left = np.argsort((ys - h / 2) ** 2 + (xs - w / 2) ** 2)  # from the seed nearest the box's centre
-    while left.size:
-        k = left[0]
+    centred = (ys - h / 2) ** 2 + (xs - w / 2) ** 2
+    while ys.size:  # from the seed nearest the box's centre, then any seed the fills have not reached
+        k = int(np.argmin(centred))
         cv2.floodFill(logz, grown, (int(xs[k]), int(ys[k])), 0, step, step, flags)
-        left = left[grown[ys[left] + 1, xs[left] + 1] == 0]
+        left = grown[ys + 1, xs + 1] == 0
+        ys, xs, centred = ys[left], xs[left], centred[left]
     n, labels, stats, _ = cv2.connectedComponentsWithStats(grown[1:-1, 1:-1] & valid.astype(np.uint8), connectivity=8)
     if n <= 1:
         return out
@@ -319,8 +321,10 @@ class NanoDetDetector:
 
     name = "nanodet"
     default_batch = 1
+    default_threshold = DEFAULT_THRESHOLDS["nanodet"]
 
-    def __init__(self, threshold: float = 0.4, weights: str | Path | None = None, *, nms_iou: float = NMS_IOU,
+    def __init__(self, threshold: float = DEFAULT_THRESHOLDS["nanodet"], weights: str | Path | None = None, *,
+                 nms_iou: float = NMS_IOU,
                  band_mm: float = 40.0, band_fraction: float = 0.05, mode_fraction: float = 0.25,
                  step_fraction: float = 0.015, progress: bool = True):
         self.threshold = float(threshold)
