@@ -54,6 +54,7 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
+    import contextlib
     from pathlib import Path
 
     from massviz.commands._common import build, flag_warning
@@ -67,7 +68,7 @@ def run(args) -> int:
         return run_rrd_dir(args)
     if not args.rrd and not args.spawn:
         raise MassvizError("say where to log: --rrd OUT.rrd, --spawn or --rrd-dir OUT")
-    from massviz.io.atomic import check_output_dir, check_output_file
+    from massviz.io.atomic import check_output_dir, check_output_file, staged_files
 
     if args.rrd:
         check_output_file(args.rrd, "--rrd")
@@ -75,17 +76,24 @@ def run(args) -> int:
         check_output_dir(args.ply, "--ply")
     rec = open_recording(args.recording, allow_partial=args.allow_partial)
     pipeline = build(args)
-    threshold = pipeline.options.selection.threshold
-    # one pass: each frame is logged as the pipeline processes it (a trace from the cache is replayed once)
-    trace, stats = log_run(rec, lambda on_frame: pipeline.process(rec, on_frame=on_frame),
-                           rrd=Path(args.rrd) if args.rrd else None, spawn=args.spawn, progress=not args.quiet,
-                           video=args.video, points=args.points,
-                           threshold=float(pipeline.detector.threshold) if threshold is None else threshold,
-                           k=pipeline.options.selection.k)
-    if args.ply:
+    ply_line = []
+
+    def write_clouds(trace, stage):
         from massviz.views.open3d_view import write_ply_or_skip
 
-        print(write_ply_or_skip(Path(args.ply), trace, rec), file=sys.stderr)
+        ply_line.append(write_ply_or_skip(stage, trace, rec).replace(str(stage), str(args.ply)))
+
+    # the .ply files go to a hidden folder moved into --ply at the end, and are written before the .rrd is renamed
+    # into place: a failure in either leaves neither (and no --ply folder this run created)
+    with staged_files(args.ply) if args.ply else contextlib.nullcontext() as stage:
+        # one pass: each frame is logged as the pipeline processes it (a trace from the cache is replayed once)
+        trace, stats = log_run(rec, lambda on_frame: pipeline.process(rec, on_frame=on_frame),
+                               rrd=Path(args.rrd) if args.rrd else None, spawn=args.spawn, progress=not args.quiet,
+                               video=args.video, points=args.points, threshold=pipeline.threshold,
+                               k=pipeline.options.selection.k,
+                               before_close=(lambda trace: write_clouds(trace, stage)) if args.ply else None)
+    if ply_line:
+        print(ply_line[0], file=sys.stderr)
     est = "not estimated" if trace.estimate < 0 else f"{trace.estimate:.1f} g"
     gt = trace.ground_truth_mass
     print(f"{rec.id}: {est}" + (f" (ground truth {gt:.1f} g)" if gt is not None else "")
