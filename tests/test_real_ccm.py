@@ -366,3 +366,46 @@ def _red_centre(rgb: np.ndarray) -> tuple[float, float]:
     sil = _cup_silhouette(rgb)
     ys, xs = np.nonzero(sil)
     return float(np.median(xs)), float(np.median(ys))
+
+
+# ------------------------------------------------------------------------------------------ RGB-only recordings
+def test_rgb_only_recording_estimate_says_what_is_missing_log_shows_detections_and_tracks(real, tmp_path):
+    """618's video without depth (the first 12 frames as REC/rgb.mp4): estimate is one line naming the folder and
+    what would be needed; log runs NanoDet and the tracker on RGB alone (no mass); the library gives the same."""
+    import subprocess
+    import sys
+
+    from massviz.app import PipelineOptions, build_pipeline
+    from massviz.io.recording import open_recording
+
+    rec = tmp_path / "side"
+    rec.mkdir()
+    frames = _video_frames(real)[:12]
+    writer = cv2.VideoWriter(str(rec / "rgb.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 30, (1280, 720))
+    for f in frames:
+        writer.write(np.ascontiguousarray(f.rgb[..., ::-1]))
+    writer.release()
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    common = ["--weights", str(real["weights"]), "--no-cache", "--quiet"]
+    r = subprocess.run([sys.executable, "-m", "massviz", "estimate", str(rec), "--out", str(tmp_path / "o.csv"),
+                        *common], capture_output=True, text=True, env=env, cwd=ROOT, timeout=600)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "Traceback" not in r.stderr
+    assert r.stderr.startswith(f"massviz estimate: error: {rec}: no depth (no depth/ folder): ")
+    assert "16-bit depth PNG per RGB frame" in r.stderr and "massviz log REC" in r.stderr
+    assert not (tmp_path / "o.csv").exists()
+    r = subprocess.run([sys.executable, "-m", "massviz", "log", str(rec), "--rrd", str(tmp_path / "side.rrd"),
+                        "--detector", "nanodet", "--detector-weights", str(real["onnx"]), *common],
+                       capture_output=True, text=True, env=env, cwd=ROOT, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert "side: RGB only (no depth): " in r.stderr and "no mass" in r.stderr and (tmp_path / "side.rrd").is_file()
+    r = subprocess.run([sys.executable, "-m", "massviz", "log", str(rec), "--rrd", str(tmp_path / "d.rrd"),
+                        "--detector", "depth", *common], capture_output=True, text=True, env=env, cwd=ROOT, timeout=600)
+    assert r.returncode == 2 and "the depth detector has nothing to work on; --detector nanodet" in r.stderr
+    assert not (tmp_path / "d.rrd").exists()
+    recording = open_recording(rec, rgb_only=True)
+    assert recording.rgb_only
+    trace = build_pipeline(PipelineOptions(detector="nanodet", detector_weights=str(real["onnx"]),
+                                           weights=str(real["weights"]), no_cache=True, quiet=True)).process(recording)
+    cups = trace.detections.class_id == CUP
+    assert len(set(trace.detections.frame[cups].tolist())) == 12 and np.isnan(trace.detections.d).all()
+    assert len(set(trace.detections.track[cups].tolist())) == 1 and trace.estimate == -1

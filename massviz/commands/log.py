@@ -15,9 +15,12 @@ def register(sub) -> None:
         description="Run the pipeline on one recording (a massviz folder, a CCM .mp4 or a RealSense .db3/.bag) and "
         "log the trace to "
         "Rerun: frames, depth, detections, masks, point cloud, the chosen patches as the model saw them, "
-        "per-patch predictions, the estimate, the decisions and the stage timings (entity tree in the README).",
+        "per-patch predictions, the estimate, the decisions and the stage timings (entity tree in the README). "
+        "A recording without depth (no depth/ folder) is logged RGB only: what the detector finds and its tracks, "
+        "no mass (give --detector nanodet or maskrcnn; the depth detector needs depth).",
         epilog="examples:\n  massviz log data_samples/cup_handover --rrd cup.rrd && rerun cup.rrd\n"
         "  massviz log data_samples/glass_handover --spawn --k 3\n"
+        "  massviz log side_view_rgb_only/ --detector nanodet --rrd side.rrd   # no depth: detections and tracks\n"
         "  massviz log data_samples --rrd-dir out/samples && massviz serve out/samples\n"
         "  massviz log /data/CCM/train --view 3 --annotations ann.csv --rrd-dir out/train --engine ray\n"
         + PIPELINE_HELP + ENGINE_HELP)
@@ -74,8 +77,13 @@ def run(args) -> int:
         check_output_file(args.rrd, "--rrd")
     if args.ply:
         check_output_dir(args.ply, "--ply")
-    rec = open_recording(args.recording, allow_partial=args.allow_partial)
+    rec = open_recording(args.recording, allow_partial=args.allow_partial, rgb_only=True)
     pipeline = build(args)
+    rgb_only = getattr(rec, "rgb_only", False)
+    if rgb_only and pipeline.detector.name == "depth":
+        raise MassvizError("RGB only (no depth folder): the depth detector has nothing to work on; "
+                           "--detector nanodet (or maskrcnn) logs what it finds and its tracks, without mass",
+                           rec.path)
     ply_line = []
 
     def write_clouds(trace, stage):
@@ -95,11 +103,15 @@ def run(args) -> int:
     if ply_line:
         print(ply_line[0], file=sys.stderr)
     est = "not estimated" if trace.estimate < 0 else f"{trace.estimate:.1f} g"
+    if rgb_only:
+        dets = trace.detections
+        est = (f"RGB only (no depth): {len(dets)} detections in {len(set(dets.frame.tolist()))} of "
+               f"{len(trace.frames)} frames, {len(set(dets.track.tolist()))} tracks logged; no mass (d needs depth)")
     gt = trace.ground_truth_mass
     print(f"{rec.id}: {est}" + (f" (ground truth {gt:.1f} g)" if gt is not None else "")
           + (f"; wrote {args.rrd}" if args.rrd else "") + f" [logging took {stats.get('log_seconds', 0):.1f} s]",
           file=sys.stderr)
-    warning = flag_warning("log", trace)
+    warning = None if rgb_only else flag_warning("log", trace)
     if warning:
         print(warning, file=sys.stderr)
     return 0
