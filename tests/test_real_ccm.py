@@ -409,3 +409,36 @@ def test_rgb_only_recording_estimate_says_what_is_missing_log_shows_detections_a
     cups = trace.detections.class_id == CUP
     assert len(set(trace.detections.frame[cups].tolist())) == 12 and np.isnan(trace.detections.d).all()
     assert len(set(trace.detections.track[cups].tolist())) == 1 and trace.estimate == -1
+
+
+def test_a_chosen_object_not_container_like_by_shape_is_flagged(real, folder_618, tmp_path):
+    """The nearest object is not always the container (a cereal box lying in front of a cup, seen from above): when
+    the chosen one is 215 mm wide and 78 mm tall the flags say it is not container-like, whatever its track; the
+    real cup's patches carry no shape cue."""
+    import dataclasses
+
+    from massviz.core.flags import analyse
+    from massviz.io.recording import open_recording
+
+    trace = _pipeline(real, "nanodet", tmp_path).process(open_recording(folder_618), progress=False)
+    assert not any("shape" in p.cue_kinds for p in trace.flags.patches)
+    sel = [int(i) for i in trace.selection]
+    dets = trace.detections
+    fx = trace.recording.intrinsics.fx
+    x1, y1, x2, y2 = (int(v) for v in dets.xyxy[sel[0]])
+    w, h = round(215 * fx / dets.d[sel[0]]), round(78 * fx / dets.d[sel[0]])
+    xyxy = dets.xyxy.copy()
+    xyxy[sel[0]] = [x1, y2 - h, x1 + w, y2]  # lying on its side where the held cup was
+    boxed = dataclasses.replace(trace, detections=dataclasses.replace(dets, xyxy=xyxy))
+    flags = analyse(boxed)
+    first = flags.of(sel[0])
+    assert first.flagged and "shape" in first.cue_kinds and "not container-like" in first.reason
+    assert "215×78 mm" in first.reason
+    assert all(not p.flagged for p in flags.patches[1:])
+    # every chosen patch such a box: no plausible container, said as such
+    for i in sel:
+        x1, y1, x2, y2 = (int(v) for v in dets.xyxy[i])
+        w, h = round(215 * fx / dets.d[i]), round(78 * fx / dets.d[i])
+        xyxy[i] = [x1, y2 - h, min(1279, x1 + w), y2]
+    flags = analyse(dataclasses.replace(trace, detections=dataclasses.replace(dets, xyxy=xyxy)))
+    assert flags.estimate_without == -1 and "only not container-like objects" in flags.warning(), flags.warning()
