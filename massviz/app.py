@@ -1,7 +1,7 @@
 """One builder for the pipeline, shared by the CLI, the notebooks and every runner, and ``process``: the per-frame
 pipeline (``massviz.core.pipeline``) with the trace cache and the ground truth (both io), above detect and io.
 
-    options = PipelineOptions(detector="depth", threshold=0.4, k=5)        # or PipelineOptions.from_args(args)
+    options = PipelineOptions(detector="depth", k=5)   # threshold None: the detector's default; or .from_args(args)
     pipeline = build_pipeline(options)                                       # detector + mass CNN + trace cache
     trace = pipeline.process(open_recording("data_samples/cup_handover"))    # cached
     fp = pipeline.frame_pipeline(recording.info())                           # the per-frame step, for a runner
@@ -30,7 +30,8 @@ class PipelineOptions:
     """Every setting that decides what the pipeline computes (the CLI's pipeline options)."""
 
     detector: str = "auto"
-    threshold: float = 0.4
+    #: the score cut; None: the detector's own default (``massviz.core.detector.DEFAULT_THRESHOLDS``)
+    threshold: float | None = None
     k: int = 5
     stride: int = 1
     weights: str | None = None
@@ -51,7 +52,7 @@ class PipelineOptions:
 
     def check(self) -> "PipelineOptions":
         """``MassvizError`` naming the option when a value is out of range."""
-        if not 0.0 <= self.threshold < 1.0:
+        if self.threshold is not None and not 0.0 <= self.threshold < 1.0:
             raise MassvizError(f"--threshold must be in [0, 1), got {self.threshold}")
         if self.k < 1:
             raise MassvizError(f"--k must be >= 1, got {self.k}")
@@ -101,6 +102,11 @@ class Pipeline:
         selection = self.options.selection if selection is None else selection
         return process(recording, self.detector, self.model, selection=selection, cache=self.cache,
                        progress=progress, exclude=exclude, batch=self.batch, on_frame=on_frame)
+
+    @property
+    def threshold(self) -> float:
+        """The score cut this pipeline selects with: ``options.threshold``, else the detector's default."""
+        return float(self.detector.threshold if self.options.threshold is None else self.options.threshold)
 
     @property
     def batch(self) -> int:

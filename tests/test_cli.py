@@ -46,6 +46,8 @@ def bad_runs(tmp_path_factory, weights):
     for build in [*OPEN_ERRORS, corrupt_middle_depth]:
         for command in ("estimate", "log"):
             case = build.__name__
+            if (command, case) not in CASES:
+                continue
             work = base / command / case
             work.mkdir(parents=True)
             path, culprit, what = build(work / "rec")
@@ -60,7 +62,10 @@ def bad_runs(tmp_path_factory, weights):
     return {key: (results[key], *expect[key]) for key in calls}
 
 
-CASES = [(command, build.__name__) for build in [*OPEN_ERRORS, corrupt_middle_depth] for command in ("estimate", "log")]
+#: every malformed recording through both commands, except that 'log' runs on a recording without depth (RGB only:
+#: detections and tracks, test_real_ccm's test_rgb_only_recording_...)
+CASES = [(command, build.__name__) for build in [*OPEN_ERRORS, corrupt_middle_depth] for command in ("estimate", "log")
+         if (command, build.__name__) != ("log", "bad_missing_depth")]
 
 
 @pytest.mark.parametrize("command,case", CASES, ids=[f"{c}-{b}" for c, b in CASES])

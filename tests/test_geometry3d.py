@@ -303,3 +303,64 @@ def test_log_clouds_entities(ccm_real, tmp_path):
     components = RL.rrd_contents(tmp_path / "t.rrd")["/world/detections/0/box"]
     assert any("mat3x3" in c.lower() for c in components), components
     assert any("half_size" in c.lower() for c in components), components
+
+
+# ----------------------------------------------------------------------------- a detection without depth points
+@pytest.fixture
+def hole_recording(tmp_path, shared_dir):
+    """Two 160x120 frames at 800 mm with a 40x40 hole without depth, intrinsics, and a replay file whose frame 0 holds
+    a detection on depth (chosen) and one inside the hole (no depth points: d NaN, never chosen, but above the
+    threshold in the chosen frame, so 'cloud' and 'log --ply' make its cloud)."""
+    rec = tmp_path / "holes"
+    (rec / "rgb").mkdir(parents=True)
+    (rec / "depth").mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(2):
+        cv2.imwrite(str(rec / "rgb" / f"{i:06d}.png"), rng.integers(0, 255, (120, 160, 3), dtype=np.uint8))
+        depth = np.full((120, 160), 800, np.uint16)
+        depth[60:100, 100:140] = 0
+        depth[30:70, 30:70] = 600  # the object
+        cv2.imwrite(str(rec / "depth" / f"{i:06d}.png"), depth)
+    (rec / "intrinsics.json").write_text(json.dumps({"fx": 120.0, "fy": 120.0, "cx": 80.0, "cy": 60.0,
+                                                     "width": 160, "height": 120}))
+    replay = tmp_path / "dets.json"
+    replay.write_text(json.dumps({"detections": [{"frame": 0, "box": [30, 30, 70, 70], "score": 0.9, "class": "cup"},
+                                                 {"frame": 0, "box": [105, 65, 135, 95], "score": 0.9, "class": "cup"}]}))
+    weights = shared_dir / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch"
+    return rec, ["--detector", "replay", "--replay", str(replay), "--weights", str(weights), "--no-cache", "--quiet"]
+
+
+def test_cloud_writes_the_clouds_it_has_and_names_the_empty_one(hole_recording, tmp_path, capsys):
+    rec, opts = hole_recording
+    out = tmp_path / "out"
+    assert main(["cloud", str(rec), "--out", str(out), *opts]) == 0, capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "detection_1.ply not written: no depth points" in err
+    assert sorted(p.name for p in out.glob("*.ply")) == ["chosen_0.ply", "detection_0.ply", "scene_000000.ply"]
+    assert json.loads((out / "measurements.json").read_text())["not_written"] == {"detection_1.ply": "no depth points"}
+
+
+def test_log_ply_writes_both_outputs_or_neither(hole_recording, tmp_path, capsys, monkeypatch):
+    rec, opts = hole_recording
+    rrd, ply = tmp_path / "x.rrd", tmp_path / "ply"
+    assert main(["log", str(rec), "--rrd", str(rrd), "--ply", str(ply), *opts]) == 0, capsys.readouterr().err
+    assert rrd.is_file() and sorted(p.name for p in ply.glob("*.ply")) == ["chosen_0.ply", "detection_0.ply",
+                                                                           "scene_000000.ply"]
+    assert "detection_1.ply not written: no depth points" in capsys.readouterr().err
+    # a cloud that cannot be written (a full disk): no .rrd, no --ply folder, nothing hidden left beside them
+    calls = []
+
+    def failing(path, pcd):
+        calls.append(path)
+        if len(calls) == 2:
+            raise MassvizError("cannot write the point cloud (No space left on device)", path)
+        return real(path, pcd)
+
+    real = O3.save_cloud
+    monkeypatch.setattr(O3, "save_cloud", failing)
+    rrd2, ply2 = tmp_path / "y.rrd", tmp_path / "ply2"
+    assert main(["log", str(rec), "--rrd", str(rrd2), "--ply", str(ply2), *opts]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cannot write the point cloud" in err[0] and str(ply2) in err[0], err
+    assert not rrd2.exists() and not ply2.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["holes", "dets.json", "x.rrd", "ply"])

@@ -11,10 +11,10 @@ detectors (--detector):
             depth; never touches the network, always says which it chose and why (default)
   maskrcnn  paper fidelity: the paper's torchvision Mask R-CNN (cup, book, wine glass, bottle; score > threshold);
             ~3-4 s a 1280x720 frame on a 2-core CPU
-  nanodet   CPU / live / offline: OpenCV Zoo's NanoDet through cv2.dnn (the same classes and threshold; 3.8 MB
-            model, downloaded once, sha256-pinned); ~0.1 s a frame. Boxes only: the mask is the nearest coherent
-            depth surface in the box, so d is that surface's mean depth (the paper's d averages Mask R-CNN's
-            silhouette, wherever the sensor measured through or beside it)
+  nanodet   CPU / live / offline: OpenCV Zoo's NanoDet through cv2.dnn (the same classes, cut 0.3; 3.8 MB
+            model, downloaded once, sha256-pinned); ~0.1 s a frame. Boxes only: the mask is the surface grown
+            from the box's centre over continuous depth, the table it stands on left out, so d is that
+            surface's mean depth (the paper's d averages Mask R-CNN's silhouette)
   depth     no weights at all: the nearest free-standing object(s) in the depth map (no class; objects cut by the
             image border are not candidates); works offline
   replay    detections saved earlier (--replay trace.npz or a detections JSON file)
@@ -41,8 +41,9 @@ def add_pipeline_args(p: argparse.ArgumentParser, selection: bool = True) -> Non
     g.add_argument("--detector", default="auto", choices=["auto", "maskrcnn", "nanodet", "depth", "replay"],
                    help="which detector finds the containers (default: auto; see 'detectors' below)")
     if selection:
-        g.add_argument("--threshold", type=float, default=0.4, metavar="T",
-                       help="keep detections with score > T (default: 0.4, the paper's)")
+        g.add_argument("--threshold", type=float, default=None, metavar="T",
+                       help="keep detections with score > T (default: the detector's own cut: 0.4 for maskrcnn, the "
+                       "paper's; 0.3 for nanodet; 0.4 for depth; a replayed trace's own; README 'Detectors')")
         g.add_argument("--k", type=int, default=5, metavar="K",
                        help="average the predictions of the K nearest detections (default: 5, the paper's)")
     g.add_argument("--stride", type=int, default=1, metavar="N", help="process every N-th frame (default: 1)")

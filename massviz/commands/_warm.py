@@ -48,6 +48,17 @@ def _warm_class():
         """A ``massviz.app.Pipeline`` of named stand-ins (``warm_pipeline``) that opens recordings from their
         remembered identities (``massviz.io.identity.open_remembered``)."""
 
+        #: ``--detector auto``'s (name, reason), said by ``used`` (None for a named detector)
+        auto = None
+
+        def used(self) -> "WarmPipeline":
+            """This pipeline serves the command: say auto's choice as a cold run does (massviz.detect.announce_auto)."""
+            if self.auto is not None:
+                from massviz.detect import announce_auto
+
+                announce_auto(*self.auto)
+            return self
+
         def open_recording(self, path, allow_partial: bool = False):
             from massviz.io.identity import open_remembered
 
@@ -92,6 +103,7 @@ def build_remembering(args, threshold: float | None = None):
     with capture_reads() as reads:
         pipeline = build(args, threshold)
         resolved = {"name": pipeline.detector.name, "settings": pipeline.detector.settings(),
+                    "default_threshold": float(pipeline.detector.default_threshold),
                     "weights_id": getattr(pipeline.model, "weights_id", "")}
     try:
         remember_pipeline(root, _key(PipelineOptions.from_args(args)), resolved, reads)
@@ -120,12 +132,24 @@ def warm_pipeline(args, threshold: float | None = None):
     resolved = remembered_pipeline(root, _key(options))
     if resolved is None:
         return None
+    if options.detector == "auto":  # auto decides from local files now, as a cold run would, and says so
+        from massviz.detect import announce_auto, choose_auto
+
+        name, why = ("replay", f"--replay {options.replay} given") if options.replay is not None else \
+            choose_auto(options.detector_weights)
+        if name != resolved.get("name"):  # it would choose another detector today: the cold path builds that one
+            return None
+        auto = (name, f"{why} (traces from the cache)")
+    else:
+        auto = None
     try:
-        detector = _NamedDetector(str(resolved["name"]), options.threshold, dict(resolved["settings"]))
+        threshold = options.threshold if options.threshold is not None else float(resolved["default_threshold"])
+        detector = _NamedDetector(str(resolved["name"]), threshold, dict(resolved["settings"]))
         model = _NamedModel(str(resolved["weights_id"]))
     except (KeyError, TypeError, ValueError):
         return None
     pipeline = _Warm(options, detector, model, TraceCache(root))
+    pipeline.auto = auto
     return pipeline
 
 

@@ -90,7 +90,7 @@ def run(args) -> int:
         payload = {"recording": rec.id, "estimate_g": trace.estimate, "ground_truth": gt,
                    "axes": "camera frame, metres: x right, y down, z forward (OpenCV/RDF)",
                    "measurements": [{**m.to_dict(), **row} for m, row in zip(measurements_of(trace), rows)],
-                   "files": written}
+                   "files": written, "not_written": {n: "no depth points" for n in written.empty}}
         with atomic_path(stage / "measurements.json") as tmp:
             tmp.write_text(json.dumps(json_safe(payload), indent=1, allow_nan=False) + "\n")
     for row in rows:
@@ -102,5 +102,5 @@ def run(args) -> int:
                      f"{gt['width_top_mm']:.0f}/{gt['width_bottom_mm']:.0f} mm top/bottom "
                      f"({row['width_err_pct']:+.1f}% vs the larger)")
         print(line)
-    print(f"{rec.id}: {est}; wrote {len(written)} .ply files and measurements.csv/.json to {out}", file=sys.stderr)
+    print(f"{rec.id}: {est}; wrote {written.describe()} and measurements.csv/.json to {out}", file=sys.stderr)
     return 0

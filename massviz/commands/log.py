@@ -15,9 +15,12 @@ def register(sub) -> None:
         description="Run the pipeline on one recording (a massviz folder, a CCM .mp4 or a RealSense .db3/.bag) and "
         "log the trace to "
         "Rerun: frames, depth, detections, masks, point cloud, the chosen patches as the model saw them, "
-        "per-patch predictions, the estimate, the decisions and the stage timings (entity tree in the README).",
+        "per-patch predictions, the estimate, the decisions and the stage timings (entity tree in the README). "
+        "A recording without depth (no depth/ folder) is logged RGB only: what the detector finds and its tracks, "
+        "no mass (give --detector nanodet or maskrcnn; the depth detector needs depth).",
         epilog="examples:\n  massviz log data_samples/cup_handover --rrd cup.rrd && rerun cup.rrd\n"
         "  massviz log data_samples/glass_handover --spawn --k 3\n"
+        "  massviz log side_view_rgb_only/ --detector nanodet --rrd side.rrd   # no depth: detections and tracks\n"
         "  massviz log data_samples --rrd-dir out/samples && massviz serve out/samples\n"
         "  massviz log /data/CCM/train --view 3 --annotations ann.csv --rrd-dir out/train --engine ray\n"
         + PIPELINE_HELP + ENGINE_HELP)
@@ -54,6 +57,7 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
+    import contextlib
     from pathlib import Path
 
     from massviz.commands._common import build, flag_warning
@@ -67,31 +71,47 @@ def run(args) -> int:
         return run_rrd_dir(args)
     if not args.rrd and not args.spawn:
         raise MassvizError("say where to log: --rrd OUT.rrd, --spawn or --rrd-dir OUT")
-    from massviz.io.atomic import check_output_dir, check_output_file
+    from massviz.io.atomic import check_output_dir, check_output_file, staged_files
 
     if args.rrd:
         check_output_file(args.rrd, "--rrd")
     if args.ply:
         check_output_dir(args.ply, "--ply")
-    rec = open_recording(args.recording, allow_partial=args.allow_partial)
+    rec = open_recording(args.recording, allow_partial=args.allow_partial, rgb_only=True)
     pipeline = build(args)
-    threshold = pipeline.options.selection.threshold
-    # one pass: each frame is logged as the pipeline processes it (a trace from the cache is replayed once)
-    trace, stats = log_run(rec, lambda on_frame: pipeline.process(rec, on_frame=on_frame),
-                           rrd=Path(args.rrd) if args.rrd else None, spawn=args.spawn, progress=not args.quiet,
-                           video=args.video, points=args.points,
-                           threshold=float(pipeline.detector.threshold) if threshold is None else threshold,
-                           k=pipeline.options.selection.k)
-    if args.ply:
+    rgb_only = getattr(rec, "rgb_only", False)
+    if rgb_only and pipeline.detector.name == "depth":
+        raise MassvizError("RGB only (no depth folder): the depth detector has nothing to work on; "
+                           "--detector nanodet (or maskrcnn) logs what it finds and its tracks, without mass",
+                           rec.path)
+    ply_line = []
+
+    def write_clouds(trace, stage):
         from massviz.views.open3d_view import write_ply_or_skip
 
-        print(write_ply_or_skip(Path(args.ply), trace, rec), file=sys.stderr)
+        ply_line.append(write_ply_or_skip(stage, trace, rec).replace(str(stage), str(args.ply)))
+
+    # the .ply files go to a hidden folder moved into --ply at the end, and are written before the .rrd is renamed
+    # into place: a failure in either leaves neither (and no --ply folder this run created)
+    with staged_files(args.ply) if args.ply else contextlib.nullcontext() as stage:
+        # one pass: each frame is logged as the pipeline processes it (a trace from the cache is replayed once)
+        trace, stats = log_run(rec, lambda on_frame: pipeline.process(rec, on_frame=on_frame),
+                               rrd=Path(args.rrd) if args.rrd else None, spawn=args.spawn, progress=not args.quiet,
+                               video=args.video, points=args.points, threshold=pipeline.threshold,
+                               k=pipeline.options.selection.k,
+                               before_close=(lambda trace: write_clouds(trace, stage)) if args.ply else None)
+    if ply_line:
+        print(ply_line[0], file=sys.stderr)
     est = "not estimated" if trace.estimate < 0 else f"{trace.estimate:.1f} g"
+    if rgb_only:
+        dets = trace.detections
+        est = (f"RGB only (no depth): {len(dets)} detections in {len(set(dets.frame.tolist()))} of "
+               f"{len(trace.frames)} frames, {len(set(dets.track.tolist()))} tracks logged; no mass (d needs depth)")
     gt = trace.ground_truth_mass
     print(f"{rec.id}: {est}" + (f" (ground truth {gt:.1f} g)" if gt is not None else "")
           + (f"; wrote {args.rrd}" if args.rrd else "") + f" [logging took {stats.get('log_seconds', 0):.1f} s]",
           file=sys.stderr)
-    warning = flag_warning("log", trace)
+    warning = None if rgb_only else flag_warning("log", trace)
     if warning:
         print(warning, file=sys.stderr)
     return 0

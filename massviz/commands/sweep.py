@@ -111,6 +111,8 @@ def _warm_indexes(args, threshold: float):
     if not recordings:
         return None
     indexes = cached_indexes(pipeline, recordings, args.stride, threshold)
+    if indexes is not None:
+        pipeline.used()
     if indexes is not None and args.report:
         from massviz.runners.dataset import Outcome, write_report
 

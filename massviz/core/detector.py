@@ -5,6 +5,24 @@ from typing import Protocol, runtime_checkable
 
 from massviz.core.types import Detections, Frame
 
+#: the paper's score cut (Mask R-CNN's calibration): Mask R-CNN's default, the faithful mode's
+PAPER_THRESHOLD = 0.4
+#: each detector's default score cut (``--threshold`` overrides it), chosen from measurements on CCM 618 (its 8 RGB-D
+#: frames and 77-frame video), CCM view1 and the samples (README, "Detectors: which one when"). A replay's default is
+#: the cut of the run it replays (``massviz.detect.replay``).
+DEFAULT_THRESHOLDS = {"maskrcnn": PAPER_THRESHOLD, "nanodet": 0.3, "depth": 0.4}
+
+
+def describe_cut(detector: str, threshold: float) -> str:
+    """The score cut in words, for the trace's events: ``score > 0.3 (nanodet's default)``, or ``score > 0.35
+    (nanodet's default: 0.3)`` when another was asked for."""
+    default = DEFAULT_THRESHOLDS.get(detector)
+    if default is None:
+        return f"score > {threshold:g}"
+    if abs(float(threshold) - default) <= 1e-9:
+        return f"score > {threshold:g} ({detector}'s default)"
+    return f"score > {threshold:g} ({detector}'s default: {default:g})"
+
 
 @runtime_checkable
 class Detector(Protocol):
@@ -26,4 +44,4 @@ class Detector(Protocol):
     def settings(self) -> dict: ...
 
 
-__all__ = ["Detector"]
+__all__ = ["Detector", "PAPER_THRESHOLD", "DEFAULT_THRESHOLDS", "describe_cut"]

@@ -25,8 +25,14 @@ processed frames (at least :data:`END_MIN_FRAMES`). For each chosen patch:
   patch nor its box ratios a, b describe the whole object (the table's front corner, a gripper entering the view);
 * ``implausible``: its metric size (as for ``size``; needs intrinsics) is larger than :data:`MAX_CONTAINER_MM` in
   width or height: not a hand-held container.
+* ``shape``: not container-like by its box: more than :data:`MAX_WIDTH_RATIO` x as wide as tall (a box lying on its
+  side, e.g. a 215 x 78 mm cereal box in front of the cup), more than :data:`MAX_HEIGHT_RATIO` x as tall as wide, or
+  (with intrinsics) smaller than :data:`MIN_CONTAINER_MM` in both width and height. The containers of CCM are all
+  seen at most 1.0x as wide as tall, at most 3.6x as tall as wide, at least 69 mm. The paper's nearest-object
+  assumption then chose something else; the flags say so instead of staying silent.
 
-Without ground truth a patch is **flagged** when it is border-cut or implausibly sized (whatever its track), or when
+Without ground truth a patch is **flagged** when it is border-cut, implausibly sized or not container-like in
+shape (whatever its track), or when
 it is off the container's track *and* at least one other cue agrees; severity ``high`` with two or more cues besides
 the track, ``medium`` with one; ``low`` (not flagged) off the track alone (a container track broken by an occlusion
 must not be flagged for that only).
@@ -57,9 +63,16 @@ import numpy as np
 from massviz.core.tracks import metric_size, track_members
 from massviz.core.types import OBJECT_CLASS_ID, class_name
 
-CUE_KINDS = ("track", "size", "depth_jump", "time", "class", "border", "implausible")
+CUE_KINDS = ("track", "size", "depth_jump", "time", "class", "border", "implausible", "shape")
 #: cues that doubt a patch on their own, whatever its track.
-ABSOLUTE_CUES = ("border", "implausible")
+ABSOLUTE_CUES = ("border", "implausible", "shape")
+#: no container CCM hands over is seen this much wider than tall (its widest, seen from the front: 1.0x; a box lying
+#: on its side, a tray, a lid, a table edge are): the shape cue's bound on width / height
+MAX_WIDTH_RATIO = 1.6
+#: ... nor this much taller than wide (its slenderest, the wine glass: 3.6x; a bottle's neck, a spoon, a pen are)
+MAX_HEIGHT_RATIO = 5.0
+#: nor smaller than this in both width and height (mm; its smallest is 69 x 72 mm)
+MIN_CONTAINER_MM = 40.0
 #: a box within this many pixels of the image border is cut by it.
 BORDER_PX = 1
 #: no hand-held container is wider or taller than this (mm); CCM's largest are about 250 mm.
@@ -198,7 +211,8 @@ class Flags:
         elif not rest:
             absolute = sorted({c.kind for p in bad for c in p.cues if c.kind in ABSOLUTE_CUES})
             without = ("no plausible container: only " + " / ".join(
-                {"border": "border-cut", "implausible": "implausibly sized"}[k] for k in absolute) + " objects"
+                {"border": "border-cut", "implausible": "implausibly sized", "shape": "not container-like"}[k]
+                for k in absolute) + " objects"
                        if absolute and all(set(p.cue_kinds) & set(ABSOLUTE_CUES) for p in bad)
                        else "no patch left without them")
         else:
@@ -372,6 +386,16 @@ def _cues(trace, i: int, ref: int, ref_size, ref_class, n_frames: int) -> list[C
         if max(w, h) > MAX_CONTAINER_MM:
             cues.append(Cue("implausible", f"{w:.0f}×{h:.0f} mm: larger than any hand-held container "
                                            f"({MAX_CONTAINER_MM:.0f} mm)"))
+    if np.isfinite(dets.d[i]):
+        metric = trace.recording.intrinsics is not None
+        w, h = _mm(trace, i) if metric else (float(x2 - x1), float(y2 - y1))
+        unit = " mm" if metric else " px"
+        if w > MAX_WIDTH_RATIO * h or h > MAX_HEIGHT_RATIO * w:
+            cues.append(Cue("shape", f"{w:.0f}×{h:.0f}{unit}: {w / h:.1f}× as wide as tall, not container-like (no "
+                                     f"container is seen more than {MAX_WIDTH_RATIO:g}× as wide or "
+                                     f"{MAX_HEIGHT_RATIO:g}× as tall)"))
+        elif metric and max(w, h) < MIN_CONTAINER_MM:
+            cues.append(Cue("shape", f"{w:.0f}×{h:.0f} mm: smaller than any container ({MIN_CONTAINER_MM:.0f} mm)"))
     if ref_class is not None and t != ref and int(dets.class_id[i]) != ref_class:
         cues.append(Cue("class", f"a {class_name(dets.class_id[i])}; the container's track is mostly a "
                                  f"{class_name(ref_class)}"))
@@ -434,4 +458,4 @@ def analyse(trace, *, ground_truth: bool = True) -> Flags:
 
 __all__ = ["Cue", "PatchFlag", "Flags", "analyse", "selection_key", "container_track", "ground_truth_source",
            "has_ground_truth", "mask_overlap", "ground_truth_overlap", "CUE_KINDS", "SEVERITIES", "GT_MIN_IOU",
-           "ABSOLUTE_CUES", "BORDER_PX", "MAX_CONTAINER_MM"]
+           "ABSOLUTE_CUES", "BORDER_PX", "MAX_CONTAINER_MM", "MAX_WIDTH_RATIO", "MAX_HEIGHT_RATIO", "MIN_CONTAINER_MM"]

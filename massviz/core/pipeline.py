@@ -259,7 +259,8 @@ class FramePipeline:
             measurements = ranked_measurements(self._measure(selection), selection)
             timings["measure3d"] = time.perf_counter() - t6
         timings["total"] = time.perf_counter() - self._start
-        events = [*self.events, *describe_selection(detections, selection, estimate, self.k, self.events)]
+        events = [*self.events, *describe_selection(detections, selection, estimate, self.k, self.events,
+                                                    threshold=self.selection.threshold, detector=self.detector.name)]
         info = self.recording if self.recording is not None else RecordingInfo(id="live")
         return Trace(recording=info, detector={"name": self.detector.name, **self.detector.settings()},
                      detect_threshold=self.detect_threshold, threshold=self.selection.threshold,

@@ -24,6 +24,7 @@ from typing import NamedTuple
 import numpy as np
 
 from massviz.errors import MassvizError
+from massviz.core.detector import describe_cut
 from massviz.core.flags import Flags, analyse
 from massviz.core.selection import NearestOrder, Selection, estimate_mass, not_estimated_reason, select_k_nearest
 from massviz.core.tracks import assign_tracks
@@ -207,7 +208,8 @@ class Trace:
         selection = select_k_nearest(self.detections.d, self.detections.score, k, threshold, excluded)
         estimate = estimate_mass(self.detections.pred, selection)
         events = [e for e in self.events if not e.is_selection]
-        events.extend(describe_selection(self.detections, selection, estimate, k, events))
+        events.extend(describe_selection(self.detections, selection, estimate, k, events, threshold=threshold,
+                                         detector=str(self.detector.get("name", ""))))
         return dataclasses.replace(self, k=k, threshold=threshold, selection=selection, estimate=estimate,
                                    excluded=excluded, events=events,
                                    measurements=ranked_measurements(self.measurements, selection))
@@ -226,14 +228,18 @@ def describe_detection(dets: Detections, i: int) -> str:
             f"d={dets.d[i]:.0f}mm pred={dets.pred[i]:.1f}g")
 
 
-def describe_selection(dets: Detections, selection: np.ndarray, estimate: float, k: int, events=()) -> list[Event]:
+def describe_selection(dets: Detections, selection: np.ndarray, estimate: float, k: int, events=(), *,
+                       threshold: float | None = None, detector: str = "") -> list[Event]:
     """The selection stage's decisions: one ``chosen`` event per patch, then ``estimate`` or ``not_estimated`` (its
-    reason from ``massviz.core.selection.not_estimated_reason``, given the recording's other ``events``)."""
+    reason from ``massviz.core.selection.not_estimated_reason``, given the recording's other ``events``); the
+    estimate's names the score cut used (``threshold``, and whether it is ``detector``'s default)."""
     out = [Event(int(dets.frame[i]), f"chose patch {r} (of K={k}): {describe_detection(dets, i)}", "chosen",
                  "info", int(i)) for r, i in enumerate(selection)]
     last = int(dets.frame.max()) if len(dets) else 0
     if len(selection):
-        out.append(Event(last, f"estimate {estimate:.1f} g = mean of {len(selection)} patch predictions", "estimate"))
+        cut = "" if threshold is None else f" (K={k}, {describe_cut(detector, threshold)})"
+        out.append(Event(last, f"estimate {estimate:.1f} g = mean of {len(selection)} patch predictions{cut}",
+                         "estimate"))
     else:
         out.append(Event(last, not_estimated_reason(dets, events), "not_estimated", "warn"))
     return out

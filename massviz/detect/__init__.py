@@ -53,12 +53,21 @@ def choose_auto(detector_weights: str | Path | None = None) -> tuple[str, str]:
                      "offline copy")
 
 
-def make_detector(name: str = "auto", threshold: float = 0.4, *, detector_weights: str | Path | None = None,
+def announce_auto(name: str, why: str) -> None:
+    """The line ``--detector auto`` always prints (stderr), ``--quiet`` or not, whether its detector is built or its
+    traces are served from the cache."""
+    print(f"massviz: --detector auto: using {name}: {why}", file=sys.stderr)
+
+
+def make_detector(name: str = "auto", threshold: float | None = None, *, detector_weights: str | Path | None = None,
                   replay: str | Path | None = None, quiet: bool = False, precision: str = "fp32",
                   device=None) -> Detector:
     """Build a detector by name (see module docstring). ``precision`` (fp32, bf16, fp16) is Mask R-CNN's; the other
     detectors have only fp32. ``device``: Mask R-CNN's (default: CUDA when present); the other detectors run on the
-    CPU. ``quiet`` hides progress bars only: auto's choice is always printed (stderr)."""
+    CPU. ``quiet`` hides progress bars only: auto's choice is always printed (stderr). ``threshold`` None: the
+    detector's own default cut (``massviz.core.detector.DEFAULT_THRESHOLDS``; a replay's: the replayed run's)."""
+    from massviz.core.detector import DEFAULT_THRESHOLDS
+
     if name not in DETECTORS:
         raise MassvizError(f"unknown detector {name!r} (choose from {', '.join(DETECTORS)})")
     if name == "auto":
@@ -66,7 +75,9 @@ def make_detector(name: str = "auto", threshold: float = 0.4, *, detector_weight
             name, why = "replay", f"--replay {replay} given"
         else:
             name, why = choose_auto(detector_weights)
-        print(f"massviz: --detector auto: using {name}: {why}", file=sys.stderr)
+        announce_auto(name, why)
+    if threshold is None and name in DEFAULT_THRESHOLDS:
+        threshold = DEFAULT_THRESHOLDS[name]
     if name == "maskrcnn":
         from massviz.detect.maskrcnn import MaskRCNNDetector
 
@@ -90,4 +101,4 @@ def make_detector(name: str = "auto", threshold: float = 0.4, *, detector_weight
     return ReplayDetector(replay, threshold=threshold)
 
 
-__all__ = ["Detector", "DETECTORS", "make_detector", "choose_auto", "maskrcnn_weights_cached", "MASKRCNN_COCO_FILE"]
+__all__ = ["Detector", "DETECTORS", "make_detector", "choose_auto", "announce_auto", "maskrcnn_weights_cached", "MASKRCNN_COCO_FILE"]

@@ -43,6 +43,7 @@ import torch
 from torchvision.models.detection.roi_heads import RoIHeads
 from torchvision.models.detection.transform import GeneralizedRCNNTransform, resize_boxes
 
+from massviz.core.detector import PAPER_THRESHOLD
 from massviz.core.device import faithful_fp32
 from massviz.core.resample import to_unit_float
 from massviz.core.types import COCO_KEEP, PRECISIONS, Detections, Frame
@@ -407,8 +408,9 @@ class MaskRCNNDetector:
     """
 
     name = "maskrcnn"
+    default_threshold = PAPER_THRESHOLD
 
-    def __init__(self, threshold: float = 0.4, weights: str | Path | None = None, device: str | None = None,
+    def __init__(self, threshold: float = PAPER_THRESHOLD, weights: str | Path | None = None, device: str | None = None,
                  pretrained: bool = True, classes=tuple(COCO_KEEP.values()), precision: str = "fp32",
                  fused: bool = True):
         self.threshold = float(threshold)

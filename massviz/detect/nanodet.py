@@ -23,21 +23,31 @@ boxes mapped back to the frame (``blobRectsToImageRects``), clipped and truncate
 paper's code does with Mask R-CNN's boxes). Class ids are reported in torchvision's 91-id COCO numbering
 (``massviz.core.types.COCO_KEEP``), so a NanoDet cup and a Mask R-CNN cup carry the same id.
 
-**Masks from depth** (:func:`depth_mask`). NanoDet gives boxes only. Inside each box the container is taken to be
-the *nearest coherent depth surface*: the box's depth (``min_mm``..``max_mm``) is searched from near to far, in
-bins of :data:`BIN_MM` mm, for the first slab ``[z, z + 2·band]`` (band = ``max(band_mm, band_fraction·z)``) that
-holds at least ``mode_fraction`` of the box's pixels with depth (a stray near pixel or a thin strip of table edge
-does not); the surface's depth is the median of that slab's densest bin, the pixels within ± band of it form the
-candidate mask, and its largest 8-connected component is the mask. A box with
-too little depth (fewer than ``min_depth_fraction`` of its pixels) gets an empty mask: its d is NaN and the detection
-is never chosen (reported as skipped), rather than a guess.
+**Masks from depth** (:func:`depth_mask`). NanoDet gives boxes only; the mask must follow the object inside its
+box, not whatever is nearest in it (the table in front of a cup seen from above is nearer than the cup):
+
+1. **Support plane.** A plane is fitted by RANSAC in ``(u, v, 1/z)`` (:func:`support_plane`) to the depth around the
+   lower part of the box (the strip below it and beside its lower third); when it holds half of that region's depth
+   pixels it is the table the object stands on, and the box's pixels on it are left out.
+2. **Seed layer at the box's centre.** In the box's central region (``centre`` of its width and height), from near
+   to far, the first slab ``[z, z + 2·band]`` (band = ``max(band_mm, band_fraction·z)``) holding ``mode_fraction``
+   of the region's depth pixels; its median is the object's depth, and the central pixels within ± band of it are
+   the seeds (a stray near pixel, a strip of table at the box's bottom or the wall seen beside the object is not).
+3. **Grown over the surface.** From the seeds, a flood fill of ``log z`` through 8-neighbours whose depth differs by
+   at most ``max(step_fraction·z, step_mm)``: the mask follows a surface however deep it is (a mug seen from above
+   spans 100 mm and more of depth) and stops where the depth jumps (the background behind its outline) or where the
+   support plane was removed (its base). The largest 8-connected component is the mask.
+
+A box with too little depth (fewer than ``min_depth_fraction`` of its pixels) gets an empty mask: its d is NaN and
+the detection is never chosen (reported as skipped), rather than a guess. Measured on CCM 618 and on ray-cast mugs
+and boxes seen from 20-65° above (README, "Detectors").
 
 **How d differs from the paper's.** The paper's d is the mean depth over Mask R-CNN's instance mask: the object's
 silhouette as the network sees it, including whatever the depth sensor measured through or beside it (the wall
-behind a transparent glass, a sliver of background at the rim). Here d is the mean depth of the nearest coherent
-surface in the box: background, table and wall pixels inside the box never count, but anything at the container's
-depth touching it does (a hand holding it), and a transparent glass whose depth is missing or seen-through yields
-the depth of what is nearest behind it within the box (often the hand, or nothing: NaN). On an opaque container d
+behind a transparent glass, a sliver of background at the rim). Here d is the mean depth of the object's surface
+grown from the box's centre: background, table and wall pixels inside the box never count, but anything continuous
+with it does (a hand holding it, a cup's rim and the inside seen over it), and a transparent glass whose depth is
+missing or seen-through yields the depth of what is behind it at the box's centre (often the hand, or nothing: NaN). On an opaque container d
 is the mean of its visible surface, typically a little nearer than the paper's d. a and b (box ratios) depend on
 NanoDet's boxes, which are not Mask R-CNN's: the mass CNN was trained on Mask R-CNN crops, so estimates differ from
 the paper's even on the same frames (README, "Detectors").
@@ -49,6 +59,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from massviz.core.detector import DEFAULT_THRESHOLDS
 from massviz.core.types import COCO_KEEP, Detections, Frame
 from massviz.errors import WeightsError
 
@@ -67,8 +78,6 @@ NMS_IOU = 0.6
 MAX_DETECTIONS = 100
 #: the paper's classes in NanoDet's 80-class order (0-based) -> torchvision's 91-id COCO numbering (COCO_KEEP).
 COCO80_KEEP = {39: COCO_KEEP["bottle"], 40: COCO_KEEP["wine glass"], 41: COCO_KEEP["cup"], 73: COCO_KEEP["book"]}
-#: depth histogram bin (mm) of the depth masks.
-BIN_MM = 10.0
 
 
 # ------------------------------------------------------------------------------------------- pre-processing
@@ -165,42 +174,102 @@ def check_outputs(outputs, batch: int, path) -> tuple[list, list]:
 
 
 # ------------------------------------------------------------------------------------------- masks from depth
-def depth_mask(depth_box: np.ndarray, *, min_mm: float = 200.0, max_mm: float = 4000.0, band_mm: float = 40.0,
-               band_fraction: float = 0.05, mode_fraction: float = 0.15,
-               min_depth_fraction: float = 0.05) -> np.ndarray:
-    """The nearest coherent depth surface inside one box (``depth_box``: the box's depth, mm, 0 = none) as a bool
-    mask of the box's shape (module docstring); all False when the box has too little depth."""
-    z = np.asarray(depth_box, dtype=np.float64)
+#: RANSAC of the support plane: iterations, points sampled, inlier tolerance in 1/z (1/m; 0.01 is 5.6 mm at 0.75 m).
+PLANE_ITERATIONS = 100
+PLANE_POINTS = 1500
+PLANE_TOL = 0.01
+
+
+def _uv1(us: np.ndarray, vs: np.ndarray) -> np.ndarray:
+    return np.stack([us, vs, np.ones(len(us))], 1).astype(np.float64)
+
+
+def support_plane(depth: np.ndarray, box, *, min_mm: float = 200.0, max_mm: float = 4000.0, tol: float = PLANE_TOL,
+                  min_share: float = 0.5, seed: int = 0) -> np.ndarray | None:
+    """The box's pixels on the plane the object stands on (bool, the box's shape), or None when there is none.
+
+    The plane is fitted by RANSAC in ``(u, v, 1000/z)`` (a 3D plane is a plane there, and a stereo camera's noise
+    is about constant in 1/z) on what lies *around the lower part of the box*: the strip below it and its lower
+    third's sides, each a quarter of the box wide. It is a support only when it holds ``min_share`` of that
+    region's depth pixels: a table top continues beyond the box, the face of a box held or standing in it does not."""
+    h, w = depth.shape
+    x1, y1, x2, y2 = (int(v) for v in box)
+    bw, bh = x2 - x1, y2 - y1
+    mx, my = max(4, bw // 4), max(4, bh // 4)
+    rx1, rx2, ry1, ry2 = max(0, x1 - mx), min(w, x2 + mx), y1 + (2 * bh) // 3, min(h, y2 + my)
+    z = depth[ry1:ry2, rx1:rx2].astype(np.float64)
+    around = (z >= min_mm) & (z <= max_mm)
+    around[:y2 - ry1, x1 - rx1:x2 - rx1] = False  # the box itself is not the surroundings
+    vs, us = np.nonzero(around)
+    if len(us) < 50:
+        return None
+    rng = np.random.default_rng(seed)
+    if len(us) > PLANE_POINTS:
+        pick = rng.choice(len(us), PLANE_POINTS, replace=False)
+        us, vs = us[pick], vs[pick]
+    pts, inv = _uv1(us + rx1, vs + ry1), 1000.0 / z[vs, us]
+    tri = rng.integers(0, len(pts), size=(PLANE_ITERATIONS, 3))
+    a, b = pts[tri], inv[tri]
+    ok = np.abs(np.linalg.det(a)) > 1e-6
+    if not ok.any():
+        return None
+    coef = np.linalg.solve(a[ok], b[ok][..., None])[..., 0]
+    best = coef[int(np.argmax(np.count_nonzero(np.abs(pts @ coef.T - inv[:, None]) < tol, axis=0)))]
+    for _refine in range(2):  # least squares on its inliers
+        inl = np.abs(pts @ best - inv) < tol
+        best = np.linalg.lstsq(pts[inl], inv[inl], rcond=None)[0]
+    if np.mean(np.abs(pts @ best - inv) < tol) < min_share:
+        return None
+    zb = depth[y1:y2, x1:x2].astype(np.float64)
+    vv, uu = np.mgrid[y1:y2, x1:x2]
+    return (zb > 0) & (np.abs(1000.0 / np.maximum(zb, 1.0) - (best[0] * uu + best[1] * vv + best[2])) < tol)
+
+
+def depth_mask(depth: np.ndarray, box, *, min_mm: float = 200.0, max_mm: float = 4000.0, centre: float = 0.5,
+               mode_fraction: float = 0.25, band_mm: float = 40.0, band_fraction: float = 0.05,
+               step_fraction: float = 0.015, step_mm: float = 6.0, min_depth_fraction: float = 0.05) -> np.ndarray:
+    """The object in one box as a bool mask of the box's shape (module docstring): ``depth`` is the whole frame's
+    depth (mm, 0 = none), ``box`` (x1, y1, x2, y2) integers. All False when the box has too little depth."""
+    x1, y1, x2, y2 = (int(v) for v in box)
+    z = np.asarray(depth[y1:y2, x1:x2], dtype=np.float64)
     valid = (z >= min_mm) & (z <= max_mm)
-    n_valid = int(valid.sum())
     out = np.zeros(z.shape, dtype=bool)
-    if z.size == 0 or n_valid < max(10, min_depth_fraction * z.size):
+    if z.size == 0 or int(valid.sum()) < max(10, min_depth_fraction * z.size):
         return out
-    values = np.sort(z[valid])
-    edges = np.arange(values[0], values[-1] + 2 * BIN_MM, BIN_MM)
-    hist = np.histogram(values, bins=edges)[0]
-    need = mode_fraction * n_valid
-    mode = None
-    for i in np.flatnonzero(hist):  # near to far: the first slab [edge, edge + 2·half] holding enough of the box
-        start = edges[i]
-        half = max(band_mm, band_fraction * start)
-        inside = np.searchsorted(values, start + 2 * half, side="right") - np.searchsorted(values, start)
-        if inside >= need:
-            j = np.searchsorted(edges, start + 2 * half, side="right")
-            dense = i + int(np.argmax(hist[i:j]))  # its densest bin
-            lo, hi = np.searchsorted(values, edges[dense]), np.searchsorted(values, edges[dense + 1])
-            mode = float(np.median(values[lo:hi]))
-            break
-    if mode is None:  # no slab holds enough: the densest bin of the box
-        dense = int(np.argmax(hist))
-        mode = float(np.median(values[(values >= edges[dense]) & (values < edges[dense + 1])]))
-    half = max(band_mm, band_fraction * mode)
-    band = valid & (np.abs(z - mode) <= half)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(band.astype(np.uint8), connectivity=8)
+    plane = support_plane(depth, (x1, y1, x2, y2), min_mm=min_mm, max_mm=max_mm)
+    if plane is not None:
+        valid &= ~plane
+    h, w = z.shape
+    core = np.zeros_like(valid)
+    core[int(h * (1 - centre) / 2):int(np.ceil(h * (1 + centre) / 2)),
+         int(w * (1 - centre) / 2):int(np.ceil(w * (1 + centre) / 2))] = True
+    values = np.sort(z[valid & core])
+    if values.size < 10:  # the centre has (almost) no depth: the whole box
+        core, values = valid, np.sort(z[valid])
+        if values.size == 0:
+            return out
+    # the seed layer: from near to far, the first slab [v, v + 2·band] holding mode_fraction of the centre's depth
+    ends = np.searchsorted(values, values + 2 * np.maximum(band_mm, band_fraction * values), side="right")
+    enough = np.flatnonzero(ends - np.arange(values.size) >= mode_fraction * values.size)
+    i = int(enough[0]) if enough.size else 0
+    mode = float(np.median(values[i:ends[i]]))
+    seeds = valid & core & (np.abs(z - mode) <= max(band_mm, band_fraction * mode))
+    # grown from the seeds over neighbours whose depth differs by at most step (relative: a flood fill of log z)
+    logz = np.where(valid, np.log(np.maximum(z, 1.0)), 1e3).astype(np.float32)
+    step = float(np.log1p(max(step_fraction, step_mm / mode)))
+    grown = np.zeros((h + 2, w + 2), np.uint8)
+    flags = 8 | cv2.FLOODFILL_MASK_ONLY | (1 << 8)
+    ys, xs = np.nonzero(seeds)
+    centred = (ys - h / 2) ** 2 + (xs - w / 2) ** 2
+    while ys.size:  # from the seed nearest the box's centre, then any seed the fills have not reached
+        k = int(np.argmin(centred))
+        cv2.floodFill(logz, grown, (int(xs[k]), int(ys[k])), 0, step, step, flags)
+        left = grown[ys + 1, xs + 1] == 0
+        ys, xs, centred = ys[left], xs[left], centred[left]
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(grown[1:-1, 1:-1] & valid.astype(np.uint8), connectivity=8)
     if n <= 1:
         return out
-    best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    return labels == best
+    return labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
 
 
 # ------------------------------------------------------------------------------------------- the detector
@@ -252,15 +321,17 @@ class NanoDetDetector:
 
     name = "nanodet"
     default_batch = 1
+    default_threshold = DEFAULT_THRESHOLDS["nanodet"]
 
-    def __init__(self, threshold: float = 0.4, weights: str | Path | None = None, *, nms_iou: float = NMS_IOU,
-                 band_mm: float = 40.0, band_fraction: float = 0.05, mode_fraction: float = 0.15,
-                 progress: bool = True):
+    def __init__(self, threshold: float = DEFAULT_THRESHOLDS["nanodet"], weights: str | Path | None = None, *,
+                 nms_iou: float = NMS_IOU,
+                 band_mm: float = 40.0, band_fraction: float = 0.05, mode_fraction: float = 0.25,
+                 step_fraction: float = 0.015, progress: bool = True):
         self.threshold = float(threshold)
         self.weights = None if weights is None else Path(weights)
         self.nms_iou = float(nms_iou)
         self.mask = {"band_mm": float(band_mm), "band_fraction": float(band_fraction),
-                     "mode_fraction": float(mode_fraction)}
+                     "mode_fraction": float(mode_fraction), "step_fraction": float(step_fraction)}
         self.progress = progress
         self._net = None
         self._names = None
@@ -280,7 +351,7 @@ class NanoDetDetector:
         if self._digest is None:  # the model by content (the file is resolved, and checked, first)
             self._digest = file_digest(self.load()._path)
         return {"weights": f"nanodet:{self._digest}", "classes": sorted(COCO80_KEEP.values()),
-                "nms_iou": self.nms_iou, "input": INPUT_SIZE, "mask": dict(self.mask), "version": 1}
+                "nms_iou": self.nms_iou, "input": INPUT_SIZE, "mask": dict(self.mask), "version": 2}
 
     def detect(self, frame: Frame) -> Detections:
         return self.detect_batch([frame])[0]
@@ -307,10 +378,10 @@ class NanoDetDetector:
         ok = (xyxy[:, 2] > xyxy[:, 0]) & (xyxy[:, 3] > xyxy[:, 1])
         xyxy, scores, classes = xyxy[ok], scores[ok], classes[ok]
         depth = np.asarray(frame.depth)
-        masks = [depth_mask(depth[y1:y2, x1:x2], **self.mask) for x1, y1, x2, y2 in xyxy]
+        masks = [depth_mask(depth, b, **self.mask) for b in xyxy]
         return Detections(frame=np.full(len(xyxy), frame.index), xyxy=xyxy, score=scores.astype(np.float32),
                           class_id=np.array([COCO80_KEEP[int(c)] for c in classes], dtype=np.int64), masks=masks)
 
 
-__all__ = ["NanoDetDetector", "preprocess", "decode", "input_to_frame", "check_outputs", "depth_mask", "load_net",
+__all__ = ["NanoDetDetector", "preprocess", "decode", "input_to_frame", "check_outputs", "depth_mask", "support_plane", "load_net",
            "resolve_model", "cached_model", "NANODET_NAME", "NANODET_URL_BASE", "NANODET_SHA256", "COCO80_KEEP"]

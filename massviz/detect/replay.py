@@ -28,6 +28,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from massviz.core.detector import PAPER_THRESHOLD
 from massviz.core.types import COCO_KEEP, OBJECT_CLASS_ID, Detections, Frame, PackedMask
 from massviz.errors import DataError
 from massviz.io.trace_file import load_trace
@@ -98,23 +99,27 @@ def load_detections(path: str | Path) -> Detections:
     return _load(Path(path))[0]
 
 
-def _load(path: Path) -> tuple[Detections, list[Path]]:
+def _load(path: Path) -> tuple[Detections, list[Path], float]:
+    """The detections, the mask files they name and the default score cut: a trace's own selection cut (what the run
+    it replays chose with), a JSON file's the paper's."""
     if not path.is_file():
         raise DataError("replay file not found", path)
     if path.suffix == ".npz":
-        return load_trace(path).detections, []
-    return _load_json(path)
+        trace = load_trace(path)
+        return trace.detections, [], float(trace.threshold)
+    return (*_load_json(path), PAPER_THRESHOLD)
 
 
 class ReplayDetector:
-    """Returns, for each frame, the saved detections of that frame with score > threshold."""
+    """Returns, for each frame, the saved detections of that frame with score > threshold (default: a saved trace's
+    own selection cut, a JSON file's the paper's 0.4)."""
 
     name = "replay"
 
-    def __init__(self, source: str | Path, threshold: float = 0.4):
+    def __init__(self, source: str | Path, threshold: float | None = None):
         self.source = Path(source)
-        self.threshold = float(threshold)
-        dets, self._files = _load(self.source)
+        dets, self._files, self.default_threshold = _load(self.source)
+        self.threshold = self.default_threshold if threshold is None else float(threshold)
         self._by_frame = defaultdict(list)
         for i, f in enumerate(dets.frame):
             self._by_frame[int(f)].append(i)

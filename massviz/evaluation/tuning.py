@@ -139,14 +139,14 @@ def index_recordings(recordings, options=None, *, progress: bool = False, **kwar
     for r in recordings:
         rec = r if not isinstance(r, (str, Path)) else open_remembered(r, pipeline.cache.root,
                                                                        allow_partial=o.allow_partial)
-        index = pipeline.cache.load_index(rec, info, o.stride, o.threshold)
+        index = pipeline.cache.load_index(rec, info, o.stride, pipeline.threshold)
         if index is None or index.weights_id != getattr(pipeline.model, "weights_id", ""):
             if not hasattr(rec, "frames"):  # recognised, not opened: open it to process it
                 from massviz.io.recording import open_recording
 
                 rec = open_recording(r, allow_partial=o.allow_partial)
             pipeline.process(rec, progress=progress)
-            index = pipeline.cache.load_index(rec, info, o.stride, o.threshold)
+            index = pipeline.cache.load_index(rec, info, o.stride, pipeline.threshold)
         out.append(dataclasses.replace(index, recording=rec.info()))
     return out
 

@@ -44,12 +44,14 @@ from massviz.io.formats.folder import FrameFilesRecording, is_folder_recording, 
 from massviz.io.formats.realsense_decode import SUFFIXES as REALSENSE_SUFFIXES
 
 
-def open_recording(path: str | Path, *, allow_partial: bool = False) -> Recording:
+def open_recording(path: str | Path, *, allow_partial: bool = False, rgb_only: bool = False) -> Recording:
     """Open and check a recording: a massviz folder, a CCM video path (ROOT/viewN/rgb/NNNNNN.mp4) or a RealSense
     file (.db3 / .bag).
 
     ``allow_partial``: a video cut short is processed as far as it decodes (a warning on stderr and in
-    ``Recording.notes``) instead of being an error."""
+    ``Recording.notes``) instead of being an error. ``rgb_only``: a folder or CCM video without depth opens as an
+    RGB-only recording (``.rgb_only``: every depth frame is zeros, so nothing has a d and nothing is estimated)
+    instead of being an error that says what is missing ('massviz log' does: detections and tracks on RGB alone)."""
     path = Path(path)
     if not path.exists():
         raise RecordingError("no such file or directory", path)
@@ -61,8 +63,8 @@ def open_recording(path: str | Path, *, allow_partial: bool = False) -> Recordin
         if path.suffix.lower() != ".mp4":
             raise RecordingError("not a recording: give a recording folder, a CCM video (.../viewN/rgb/NNNNNN.mp4) "
                                  "or a RealSense file (.db3, .bag)", path)
-        return open_ccm(path, allow_partial)
-    return open_folder(path, allow_partial)
+        return open_ccm(path, allow_partial, rgb_only)
+    return open_folder(path, allow_partial, rgb_only)
 
 
 def collect_recordings(paths, view: int = 3, *, allow_partial: bool = False) -> list[Recording]:

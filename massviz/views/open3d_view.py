@@ -39,17 +39,35 @@ def save_cloud(path: str | Path, pcd: o3d.geometry.PointCloud) -> Path:
     return path
 
 
-def write_ply(out_dir: str | Path, trace, recording, *, frames=None, depth_trunc: float = DEPTH_TRUNC_M
-              ) -> dict[str, int]:
-    """Write .ply clouds into ``out_dir`` and return {file name: point count}.
+class PlyFiles(dict):
+    """{file name: point count} of the .ply files written, and ``empty``: the names of the clouds that had no point
+    (a detection whose mask has no depth, a frame without depth within range), which are not written: a .ply of no
+    point is no cloud, and Open3D refuses to write one."""
+
+    def __init__(self):
+        super().__init__()
+        self.empty: list[str] = []
+
+    def describe(self) -> str:
+        """``12 .ply files`` (+ ``; detection_3.ply not written: no depth points`` for the empty ones)."""
+        text = f"{len(self)} .ply files"
+        if self.empty:
+            text += f" ({', '.join(self.empty)} not written: no depth points)"
+        return text
+
+
+def write_ply(out_dir: str | Path, trace, recording, *, frames=None, depth_trunc: float = DEPTH_TRUNC_M) -> PlyFiles:
+    """Write .ply clouds into ``out_dir`` and return them (``PlyFiles``: {file name: point count}, and the empty
+    clouds left unwritten in ``.empty``).
 
     For each frame in ``frames`` (default: the frames of the chosen detections): ``scene_<frame>.ply`` (the whole
     frame) and ``detection_<id>.ply`` for every detection of that frame above the trace's threshold (``id`` = index
-    in ``trace.detections``); the chosen ones also as ``chosen_<rank>.ply``. Nothing is written (and {} returned)
-    for a recording without intrinsics.
+    in ``trace.detections``); the chosen ones also as ``chosen_<rank>.ply``. Nothing is written (and an empty
+    ``PlyFiles`` returned) for a recording without intrinsics.
     """
+    written = PlyFiles()
     if skip_reason(recording):
-        return {}
+        return written
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     intr, dets = recording.intrinsics, trace.detections
@@ -58,15 +76,20 @@ def write_ply(out_dir: str | Path, trace, recording, *, frames=None, depth_trunc
         frames = sorted({int(dets.frame[i]) for i in trace.selection})
     active = np.flatnonzero(trace.active())
     groups = _by_frame([i for i in active if int(dets.frame[i]) in set(int(f) for f in frames)], dets)
-    written: dict[str, int] = {}
+
+    def save(name: str, pcd) -> None:
+        if len(pcd.points) == 0:
+            written.empty.append(name)
+        else:
+            written[save_cloud(out_dir / name, pcd).name] = len(pcd.points)
+
     for frame in recording.frames(indices=frames):
-        scene = scene_cloud(frame, intr, depth_trunc=depth_trunc)
-        written[save_cloud(out_dir / f"scene_{frame.index:06d}.ply", scene).name] = len(scene.points)
+        save(f"scene_{frame.index:06d}.ply", scene_cloud(frame, intr, depth_trunc=depth_trunc))
         for i in groups.get(frame.index, []):
             pcd = detection_cloud(frame, dets, i, intr, depth_trunc=depth_trunc)
-            written[save_cloud(out_dir / f"detection_{i}.ply", pcd).name] = len(pcd.points)
+            save(f"detection_{i}.ply", pcd)
             if i in rank_of:
-                written[save_cloud(out_dir / f"chosen_{rank_of[i]}.ply", pcd).name] = len(pcd.points)
+                save(f"chosen_{rank_of[i]}.ply", pcd)
     return written
 
 
@@ -76,7 +99,7 @@ def write_ply_or_skip(out_dir: str | Path, trace, recording) -> str:
     if reason:
         return reason
     written = write_ply(out_dir, trace, recording)
-    return f"{recording.id}: wrote {len(written)} .ply files to {out_dir}"
+    return f"{recording.id}: wrote {written.describe()} to {out_dir}"
 
 
 def box_lineset(obb: o3d.geometry.OrientedBoundingBox, colour=BOX_COLOUR) -> o3d.geometry.LineSet:
@@ -289,5 +312,5 @@ def show(trace, recording, frame_index: int | None = None) -> int:
 
 
 
-__all__ = ["save_cloud", "write_ply", "write_ply_or_skip", "box_lineset", "frame_geometries", "render_png",
+__all__ = ["save_cloud", "PlyFiles", "write_ply", "write_ply_or_skip", "box_lineset", "frame_geometries", "render_png",
            "render_geometries", "view_extrinsic", "has_display", "require_display", "show"]

@@ -17,7 +17,7 @@ import numpy as np
 from massviz.core.types import Intrinsics
 from massviz.errors import RecordingError
 from massviz.io.formats.common import check_intrinsics, frame_files, read_depth_png, video_frames
-from massviz.io.formats.folder import FrameFilesRecording, check_counts
+from massviz.io.formats.folder import NO_DEPTH, FrameFilesRecording, check_counts
 from massviz.io.untrusted import load_calibration_pickle, text_id
 
 KIND = "ccm"
@@ -67,20 +67,22 @@ def intrinsics_ccm(path: Path, width: int, height: int) -> Intrinsics:
     return check_intrinsics({"fx": k[0, 0], "fy": k[1, 1], "cx": k[0, 2], "cy": k[1, 2]}, path, width, height)
 
 
-def open_ccm(video: Path, allow_partial: bool = False) -> CCMRecording:
-    """Open and check one CCM recording by its video path."""
+def open_ccm(video: Path, allow_partial: bool = False, rgb_only: bool = False) -> CCMRecording:
+    """Open and check one CCM recording by its video path (``rgb_only``: as ``open_folder``'s)."""
     view = video.parent.parent
     depth_dir = view / "depth" / video.stem
     text_id(video.stem, "recording id (the video's name)", video, RecordingError)
-    if not depth_dir.is_dir():
-        raise RecordingError(f"missing depth folder for this CCM video (expected {depth_dir})", video)
+    no_depth = not depth_dir.is_dir()
+    if no_depth and not rgb_only:
+        raise RecordingError(f"no depth (expected {depth_dir}): {NO_DEPTH}", video)
     width, height, n_rgb, fps, declared, notes = video_frames(video, allow_partial)
-    depth_files = frame_files(depth_dir, (".png",), what="depth frames")
-    check_counts(depth_dir, len(depth_files), n_rgb)
-    read_depth_png(depth_files[0], width, height, keep=True)
+    depth_files = [] if no_depth else frame_files(depth_dir, (".png",), what="depth frames")
+    if not no_depth:
+        check_counts(depth_dir, len(depth_files), n_rgb)
+        read_depth_png(depth_files[0], width, height, keep=True)
     calib = view / "calib" / f"{video.stem}.pickle"
     intr = intrinsics_ccm(calib, width, height) if calib.is_file() else None
     return CCMRecording(path=video, kind=KIND, id=video.stem, depth_files=depth_files, width=width, height=height,
                         num_frames=n_rgb, fps=fps, rgb_video=video, intrinsics=intr,
                         meta={"view": view.name, "dataset_root": str(view.parent)}, declared_frames=declared,
-                        notes=notes, allow_partial=allow_partial)
+                        notes=notes, allow_partial=allow_partial, rgb_only=no_depth)

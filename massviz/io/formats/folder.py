@@ -41,6 +41,9 @@ class FrameFilesRecording(RecordingBase):
     #: frames the video's header declares when fewer decode (``allow_partial``); None when all decode.
     declared_frames: int | None = None
     allow_partial: bool = False
+    #: no depth at all (opened with ``rgb_only=True``): every frame's depth is zeros (no depth), so detectors find
+    #: boxes and tracks but no detection has a d and nothing is estimated
+    rgb_only: bool = False
 
     def input_files(self) -> list[Path]:
         """Every file the frames are read from (RGB video or images, then depth images)."""
@@ -67,7 +70,9 @@ class FrameFilesRecording(RecordingBase):
         """Depth of frame ``index`` (H×W uint16, mm), checked: reads that frame's one PNG (O(1))."""
         return self._depth_with_bytes(index)[0]
 
-    def _depth_with_bytes(self, index: int) -> tuple[np.ndarray, bytes]:
+    def _depth_with_bytes(self, index: int) -> tuple[np.ndarray, bytes | None]:
+        if self.rgb_only:
+            return np.zeros((self.height, self.width), np.uint16), None
         if not 0 <= index < len(self.depth_files):
             raise RecordingError(f"no depth image for frame {index} ({len(self.depth_files)} depth frames)",
                                  self.depth_files[0].parent if self.depth_files else self.path)
@@ -141,6 +146,12 @@ class FrameFilesRecording(RecordingBase):
             warn_once(note)
 
 
+#: what a recording without depth is told (after "no depth (...)")
+NO_DEPTH = ("massviz estimates mass from RGB-D: it needs one 16-bit depth PNG per RGB frame (millimetres, aligned to "
+            "RGB); without depth, 'massviz log REC --rrd OUT.rrd --detector nanodet' shows what a detector finds and "
+            "its tracks (no mass)")
+
+
 def check_counts(depth_dir: Path, n_depth: int, n_rgb: int) -> None:
     if n_depth == 0:
         raise RecordingError("no depth frames (*.png) in the depth folder", depth_dir)
@@ -153,8 +164,9 @@ def is_folder_recording(path: Path) -> bool:
     return path.is_dir() and ((path / "rgb.mp4").is_file() or (path / "rgb").is_dir())
 
 
-def open_folder(folder: Path, allow_partial: bool = False) -> FrameFilesRecording:
-    """Open and check a massviz recording folder (see the module docstring)."""
+def open_folder(folder: Path, allow_partial: bool = False, rgb_only: bool = False) -> FrameFilesRecording:
+    """Open and check a massviz recording folder (see the module docstring). ``rgb_only``: a folder without depth/
+    opens as an RGB-only recording (``FrameFilesRecording.rgb_only``) instead of being an error."""
     video = folder / "rgb.mp4"
     rgb_dir = folder / "rgb"
     rgb_files = None
@@ -174,11 +186,13 @@ def open_folder(folder: Path, allow_partial: bool = False) -> FrameFilesRecordin
         raise RecordingError(f"not a recording ({what}): expected rgb.mp4 or rgb/*.png|*.jpg and depth/*.png",
                              folder)
     depth_dir = folder / "depth"
-    if not depth_dir.is_dir():
-        raise RecordingError("missing depth folder (depth/*.png, 16-bit mm)", folder)
-    depth_files = frame_files(depth_dir, (".png",), what="depth frames")
-    check_counts(depth_dir, len(depth_files), n_rgb)
-    read_depth_png(depth_files[0], width, height, keep=True)
+    no_depth = not depth_dir.is_dir()
+    if no_depth and not rgb_only:
+        raise RecordingError(f"no depth (no depth/ folder): {NO_DEPTH}", folder)
+    depth_files = [] if no_depth else frame_files(depth_dir, (".png",), what="depth frames")
+    if not no_depth:
+        check_counts(depth_dir, len(depth_files), n_rgb)
+        read_depth_png(depth_files[0], width, height, keep=True)
     meta = check_meta(load_json(folder / "meta.json"), folder / "meta.json", folder) \
         if (folder / "meta.json").is_file() else {}
     fps = float(meta.get("fps", fps))
@@ -193,7 +207,7 @@ def open_folder(folder: Path, allow_partial: bool = False) -> FrameFilesRecordin
     return FrameFilesRecording(path=folder, kind=KIND, id=rec_id, depth_files=depth_files, width=width,
                                height=height, num_frames=n_rgb, fps=fps, rgb_video=video, rgb_files=rgb_files,
                                intrinsics=intr, meta=meta, declared_frames=declared, notes=notes,
-                               allow_partial=allow_partial)
+                               allow_partial=allow_partial, rgb_only=no_depth)
 
 
 # ------------------------------------------------------------------------------------------------------ writer

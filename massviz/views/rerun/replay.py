@@ -219,13 +219,15 @@ def log_trace(trace: Trace, recording, *, rrd: str | Path | None = None, spawn: 
 
 def log_run(recording, process, *, rrd: str | Path | None = None, spawn: bool = False, progress: bool = False,
             video: str = "auto", points: bool = False, clouds: bool = True, threshold: float | None = None,
-            k: int = 5) -> tuple[Trace, dict]:
+            k: int = 5, before_close=None) -> tuple[Trace, dict]:
     """Run the pipeline and log it in one pass (``massviz log``): ``process(on_frame)`` runs the pipeline on
     ``recording`` with ``on_frame`` as its per-frame observer and returns the trace (e.g.
     ``lambda on_frame: pipeline.process(recording, on_frame=on_frame)``). Each frame is logged as it is processed, so
     no frame is read twice; a trace that comes from the cache (``on_frame`` never called) is replayed from the
     recording once. Outputs and options as ``log_trace`` (``threshold``: the selection's score threshold, ``k`` its
-    K: a first layout is sent before the frames, the final one at the end). Returns (trace, stats)."""
+    K: a first layout is sent before the frames, the final one at the end). ``before_close(trace)``: more output
+    made from the trace (``log --ply``), run before the .rrd is renamed into place, so that when it fails no .rrd
+    is left either. Returns (trace, stats)."""
     t0 = time.perf_counter()
     out = Output(rrd=rrd, spawn=spawn)
     try:
@@ -239,6 +241,8 @@ def log_run(recording, process, *, rrd: str | Path | None = None, spawn: bool = 
         stats = logger.finish(trace, points=points)
         log_timings(out.stream, {**trace.timings, "log": logger.seconds}, stats["frames"])
         out.flush()
+        if before_close is not None:
+            before_close(trace)
     except BaseException as err:
         out.close(err)
         raise
