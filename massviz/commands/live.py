@@ -18,7 +18,9 @@ Per processed frame: detect, features, predict, update the K nearest so far, and
 When the detector is slower than the camera, massviz takes the newest frame and drops the others: the drops are
 counted in /log and in the summary; nothing queues. Ctrl-C (or SIGTERM/SIGHUP), --duration or the end of a --file
 ends the session: the trace goes to the trace cache, --save writes the processed frames as a massviz recording
-folder, and the last line prints the estimate; a second Ctrl-C interrupts at once and writes nothing. Needs
+folder, and the last lines print the estimate and, when chosen patches look like another object, a warning with
+the estimate without them (the tiles of those patches are then marked flagged at the last frame); a second Ctrl-C
+interrupts at once and writes nothing. Needs
 pyrealsense2: pip install 'massviz[realsense]'.
 """ + PIPELINE_HELP
 
@@ -153,6 +155,7 @@ def run(args) -> int:
 
 def run_session(args, pipeline, stream, name: str) -> int:
     """The session itself (``massviz live`` after the source is open; tests call it with a stand-in camera)."""
+    from massviz.commands._common import flag_warning
     from massviz.core.types import RecordingInfo
     from massviz.runners.live import run_live
 
@@ -200,6 +203,9 @@ def run_session(args, pipeline, stream, name: str) -> int:
     n, k = len(trace.selection), int(trace.k)
     chosen = f"K={k}" if n >= k else f"{n} of K={k}"  # fewer detections than K: say how many were chosen
     print(f"{name}: {est} ({chosen}, {stats.processed} frames, {stats.dropped} dropped)", file=sys.stderr)
+    warning = flag_warning("live", trace)
+    if warning:
+        print(warning, file=sys.stderr)
     return 0
 
 
