@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import platform
 import re
 import shutil
 import signal
@@ -382,6 +383,11 @@ def open_and_run(page, lab: str, name: str, upto: str | None = None) -> float:
                            f"window.jupyterapp.shell.currentWidget.title.label === {json.dumps(name)}",
                            timeout=120_000)
     page.wait_for_function(KERNEL_IDLE, timeout=120_000)
+    page.wait_for_timeout(500)  # the kernel's language_info reaches the model just after it is idle
+    stored = json.loads((ROOT / "notebooks" / name).read_text())["metadata"]["language_info"]["version"]
+    if stored == platform.python_version():  # (another Python's version would be recorded: modified)
+        dirty = page.evaluate("() => window.jupyterapp.shell.currentWidget.context.model.dirty")
+        assert not dirty, f"{name} opened marked modified in JupyterLab"
     t0 = time.monotonic()
     n = page.evaluate("""(upto) => { const w = window.jupyterapp.shell.currentWidget;
       const cells = w.content.widgets; let n = 0, stop = cells.length;
