@@ -6,6 +6,8 @@ selection; no rank of the final selection is without data. At the end the tiles 
 flags and the command prints the flag warning, as ``massviz log`` does."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -64,22 +66,29 @@ def test_live_tiles_show_the_current_k_nearest(rs, played_db3, depth_detector, t
     assert any(not np.array_equal(a[: len(b)], b[: len(a)]) for a, b in zip(running, running[1:]))
 
 
-@pytest.mark.slow
-def test_live_tiles_and_the_last_lines_carry_the_flags(rs, played_db3, tmp_path, capsys):
-    """A chosen patch the flags doubt (here a box cut by the image's bottom edge: the ``border`` cue, whatever its
-    track) is marked in the live session as ``massviz log`` marks it: its tile, at the last frame, is flagged (the
-    outline's label says why), ``/log`` has the flag warnings and the command prints the warning line."""
+def flagged_session(played_db3, tmp_path) -> Path:
+    """``massviz live --file played.db3 --rrd live.rrd`` (in-process) where the nearest chosen patch is flagged: a
+    box on the table's front edge at ~0.8 m touching the bottom edge (frame 0 only; the ``border`` cue flags it
+    whatever its track), then one at ~1.1 m on every frame (the container's track). Returns the .rrd."""
     from test_selection import ListDetector
 
     from massviz.commands.live import run_session
     from massviz.io.realsense import open_file_stream
 
-    # frame 0 only: a box on the table's front edge at ~0.8 m (touching the bottom edge); every frame: one at ~1.1 m
     per_frame = {i: [((150, 100, 250, 200), 0.9, None)] for i in range(60)}
     per_frame[0] = [((100, 210, 200, 270), 0.9, None), *per_frame[0]]
     p = live_pipeline(ListDetector(per_frame), tmp_path)
     args = session_args(file=str(played_db3), rrd=str(tmp_path / "live.rrd"))
     assert run_session(args, p, open_file_stream(played_db3), "played") == 0
+    return tmp_path / "live.rrd"
+
+
+@pytest.mark.slow
+def test_live_tiles_and_the_last_lines_carry_the_flags(rs, played_db3, tmp_path, capsys):
+    """A chosen patch the flags doubt (here a box cut by the image's bottom edge: the ``border`` cue, whatever its
+    track) is marked in the live session as ``massviz log`` marks it: its tile, at the last frame, is flagged (the
+    outline's label says why), ``/log`` has the flag warnings and the command prints the warning line."""
+    flagged_session(played_db3, tmp_path)
     err = capsys.readouterr().err
     warnings = [line for line in err.splitlines() if line.startswith("massviz live: warning: played: ")]
     assert len(warnings) == 1 and "1 of 5 chosen patches looks like another object" in warnings[0], err

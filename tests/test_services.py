@@ -138,3 +138,60 @@ def test_a_silent_camera_is_one_line_naming_the_option(monkeypatch, weights, tmp
     assert last == "massviz live: error: --camera 4242: stand-in camera #4242: no frame arrived in 5 s", err
     assert "Traceback" not in err
     assert not (tmp_path / "live.rrd").exists() and not (tmp_path / "rec").exists()
+
+
+# ------------------------------------------------------------------------------------------------- massviz view
+def test_view_bad_input_is_one_line(tmp_path):
+    not_rrd = tmp_path / "notes.rrd"
+    not_rrd.write_text("hello")
+    for path, why in ((tmp_path / "missing.rrd", "no such .rrd file"), (not_rrd, "not a Rerun .rrd file")):
+        run = run_massviz("view", path)
+        assert run.returncode == 2 and error_lines(run.stderr) == [f"massviz view: error: {path}: {why}"
+                                                                  + (" (make one with: massviz log REC --rrd OUT.rrd)"
+                                                                     if "not a" in why else "")], run.stderr
+
+
+@pytest.mark.slow
+def test_view_serves_on_localhost_only_and_ends_whole_on_sigterm(tmp_path):
+    """``massviz view OUT.rrd``: two listening sockets (the web viewer, the file), both on 127.0.0.1; the file is
+    readable by the viewer's page only (CORS); SIGTERM ends it with exit 0 and no process of it left."""
+    import os
+    import re
+    import signal
+    import subprocess
+    import sys
+    import urllib.parse
+    import urllib.request
+
+    import psutil
+    import rerun as rr
+
+    rrd = tmp_path / "x.rrd"
+    rec = rr.RecordingStream("massviz")
+    rec.save(rrd)
+    rec.log("/a", rr.Scalars(1.0))
+    rec.flush()
+    rec.disconnect()
+    env = {k: v for k, v in os.environ.items() if k != "MASSVIZ_DEBUG"}
+    proc = subprocess.Popen([sys.executable, "-m", "massviz", "view", str(rrd)], cwd=SAMPLES.parent,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        lines = []
+        while not any("Ctrl-C" in line for line in lines):
+            lines.append(proc.stdout.readline())
+            assert lines[-1] or proc.poll() is None, proc.stderr.read()
+        page = re.search(r"open in a browser: (\S+)", "".join(lines)).group(1)
+        tree = [psutil.Process(proc.pid), *psutil.Process(proc.pid).children(recursive=True)]
+        listening = [c.laddr for p in tree for c in p.net_connections(kind="inet") if c.status == psutil.CONN_LISTEN]
+        file_url = urllib.parse.parse_qs(urllib.parse.urlsplit(page).query)["url"][0]
+        with urllib.request.urlopen(file_url) as r:
+            assert r.read() == rrd.read_bytes()
+            origin = r.headers["Access-Control-Allow-Origin"]
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        code = proc.wait(30)
+    assert len(listening) == 2 and {a.ip for a in listening} == {"127.0.0.1"}, listening
+    assert origin == page.split("?")[0].rstrip("/"), (origin, page)
+    assert code == 0 and "massviz view: stopped" in proc.stderr.read()
+    time.sleep(0.5)
+    assert not [p for p in tree if p.is_running() and p.status() != psutil.STATUS_ZOMBIE], tree

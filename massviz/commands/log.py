@@ -16,7 +16,7 @@ def register(sub) -> None:
         "log the trace to "
         "Rerun: frames, depth, detections, masks, point cloud, the chosen patches as the model saw them, "
         "per-patch predictions, the estimate, the decisions and the stage timings (entity tree in the README).",
-        epilog="examples:\n  massviz log data_samples/cup_handover --rrd cup.rrd && rerun cup.rrd\n"
+        epilog="examples:\n  massviz log data_samples/cup_handover --rrd cup.rrd && massviz view cup.rrd\n"
         "  massviz log data_samples/glass_handover --spawn --k 3\n"
         "  massviz log data_samples --rrd-dir out/samples && massviz serve out/samples\n"
         "  massviz log /data/CCM/train --view 3 --annotations ann.csv --rrd-dir out/train --engine ray\n"

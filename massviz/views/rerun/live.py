@@ -55,8 +55,8 @@ class LiveLogger:
         self.rec = self.out.stream
         try:  # an error or a signal from here on: nothing is left at the .rrd path
             self.rec.send_recording_name(f"massviz live {name}")
-            size = None if intrinsics is None else (int(intrinsics.width), int(intrinsics.height))
-            self.rec.send_blueprint(default_blueprint(k, has_3d=intrinsics is not None, image_size=size),
+            self._size = None if intrinsics is None else (int(intrinsics.width), int(intrinsics.height))
+            self.rec.send_blueprint(default_blueprint(k, has_3d=intrinsics is not None, image_size=self._size),
                                     make_active=True, make_default=True)
             log_annotation_context(self.rec, k)
             self.rec.log("/predictions/running_estimate", rr.SeriesLines(
@@ -161,6 +161,10 @@ class LiveLogger:
             if patch is not None and patch.size:
                 log_patch(self.rec, rank, dets, int(i), patch, flag)
         log_flags(self.rec, trace)
+        # the layout's tile titles say it too ("★0 ⚑ flagged"), as in massviz log's layout
+        self.rec.send_blueprint(default_blueprint(self.k, has_3d=self.intrinsics is not None, image_size=self._size,
+                                                  flagged=[p.rank for p in trace.flags.flagged]),
+                                make_active=True, make_default=True)
 
     def abort(self, err: BaseException) -> None:
         """End without finishing: nothing is left at the .rrd path."""
