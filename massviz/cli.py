@@ -28,7 +28,7 @@ from massviz import __version__
 from massviz.errors import MassvizError
 
 # Order in ``massviz --help``; modules not listed here are appended alphabetically.
-_ORDER = ["log", "estimate", "score", "sweep", "baseline", "samples", "cloud", "render", "view3d", "extract", "train"]
+_ORDER = ["log", "view", "estimate", "score", "sweep", "baseline", "samples", "cloud", "render", "view3d", "extract", "train"]
 
 
 def _command_modules():

@@ -56,7 +56,7 @@ if [ -z "${MASSVIZ_WEIGHTS:-}" ] && [ -f "$ref" ]; then export MASSVIZ_WEIGHTS="
 if [ "$job" = demo ]; then
   mkdir -p out
   .venv/bin/massviz log data_samples/cup_handover --detector depth --rrd out/cup_handover.rrd
-  echo "setup: open it with: .venv/bin/rerun out/cup_handover.rrd" >&2
+  echo "setup: open it with: .venv/bin/massviz view out/cup_handover.rrd (a browser page; with a display: .venv/bin/rerun out/cup_handover.rrd)" >&2
 else
   set +e
   # two workers (pytest-xdist; 2 cores in CI), a test file whole on one: its module fixtures (the Ray cluster, a

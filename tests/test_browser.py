@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import platform
 import re
 import shutil
 import signal
@@ -165,6 +166,47 @@ def record_timing(key: str, value) -> None:
     path.write_text(json.dumps(data, indent=1) + "\n")
 
 
+def picture_difference(a: np.ndarray, b: np.ndarray, px: int = 40, panel: float = 0.766) -> float:
+    """How much two screenshots of the viewer differ where it matters: the largest mean absolute difference (0-255) of
+    any ``px``-pixel block, left of Rerun's selection panel (the right ``1 - panel`` of the page, which shows each
+    run's recording id, times and URL). A plot left empty, an empty table, another title or tile colour: tens."""
+    if a is None or a.shape != b.shape:
+        return 255.0
+    w = int(a.shape[1] * panel)
+    d = np.abs(a[:, :w].astype(np.int16) - b[:, :w].astype(np.int16)).mean(axis=2)
+    return float(max(d[y:y + px, x:x + px].mean() for y in range(0, d.shape[0], px) for x in range(0, w, px)))
+
+
+def settle(page, name: str, timeout: float = 30.0, locator=None) -> np.ndarray:
+    """Screenshots until two in a row are the same (``picture_difference`` ≤ 2: the viewer has stopped playing and
+    loading) or ``timeout``; returns the last, saved as ``name``."""
+    t0, before = time.monotonic(), shot(page, name, locator)
+    while time.monotonic() - t0 < timeout:
+        page.wait_for_timeout(1500)
+        now = shot(page, name, locator)
+        if picture_difference(before, now) <= 2.0:
+            return now
+        before = now
+    return before
+
+
+#: README's screenshots are the browser tests' own: a committed one differing more than this from a fresh one is stale
+DOCS_MAX_DIFFERENCE = 20.0
+
+
+def check_docs_picture(fresh: np.ndarray, name: str, **kw) -> None:
+    """README's ``docs/NAME`` must look like the screenshot a browser test just took (``picture_difference``);
+    ``MASSVIZ_REFRESH_DOCS=1`` copies the fresh one there first."""
+    docs = ROOT / "docs" / name
+    if os.environ.get("MASSVIZ_REFRESH_DOCS"):
+        cv2.imwrite(str(docs), fresh)
+    diff = picture_difference(cv2.imread(str(docs)), fresh, **kw)
+    record_timing(f"docs_{name}_difference", round(diff, 1))
+    print(f"docs/{name} against this run's screenshot: largest block difference {diff:.1f}")
+    assert diff <= DOCS_MAX_DIFFERENCE, (f"docs/{name} is stale (a block differs by {diff:.0f} from this run's "
+                                         "screenshot): run this test with MASSVIZ_REFRESH_DOCS=1 and commit it")
+
+
 # ------------------------------------------------------------------------------------------------------ fixtures
 
 
@@ -295,23 +337,53 @@ def wait_for_viewer(page, name: str, expected, timeout: float = LOAD_TIMEOUT_S, 
         page.wait_for_timeout(2000)
 
 
+@contextlib.contextmanager
+def massviz_view(rrd: Path, log: Path):
+    """``massviz view RRD`` as a user starts it; yields (its process, the page URL it printed). Ended by SIGTERM, as
+    a service manager or ``kill PID`` ends it, when the block ends."""
+    with open(log, "w") as err:
+        proc = subprocess.Popen([sys.executable, "-m", "massviz", "view", str(rrd)], cwd=ROOT, stdout=subprocess.PIPE,
+                                stderr=err, text=True)
+    try:
+        lines = []
+        while not any("Ctrl-C" in line for line in lines):
+            lines.append(proc.stdout.readline())
+            assert lines[-1] or proc.poll() is None, f"massviz view exited: {log.read_text()}"
+        yield proc, re.search(r"open in a browser: (\S+)", "".join(lines)).group(1)
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+        proc.wait(30)
+
+
 @pytest.mark.slow
 def test_rerun_web_viewer_shows_the_demo_recording(browser, demo_rrd, cup, tmp_path):
-    import rerun_cli
+    """README's way to look at a recording on a machine without a display, ``massviz view OUT.rrd``: the page it
+    prints shows the recording in Chromium; it listens on 127.0.0.1 only, costs no CPU while the page is open and
+    idle, and ends whole on SIGTERM (``rerun --serve-web FILE``, what this test ran before, kept a core busy and,
+    started through Rerun's Python wrapper, left its server running when the wrapper was killed)."""
+    import psutil
 
     rec, trace = cup
     expected = expected_views(rec, trace)
-    exe = Path(rerun_cli.__file__).parent / "rerun"  # the binary itself: the `rerun` script would leave it running
-    web, grpc = free_port(), free_port()
-    # the viewer opens the .rrd by URL from a local file server: ``rerun --serve-web FILE`` (rerun 0.41) keeps one
-    # core busy while it serves a file (a tokio task spinning on ``yield_now``; rerun-io/rerun PR 10944), which
-    # slowed this test and the whole suite; served without a file it idles
-    cmd = [str(exe), "--serve-web", "--bind", "127.0.0.1", "--web-viewer-port", str(web), "--port", str(grpc),
-           "--server-memory-limit", "512MiB"]
-    with server(cmd, f"http://127.0.0.1:{web}/", tmp_path / "rerun.log"), file_server(demo_rrd) as rrd_url, \
+    with massviz_view(demo_rrd, tmp_path / "view.log") as (proc, url), \
             offline_page(browser, VIEWER) as (page, messages, _):
-        page.goto(f"http://127.0.0.1:{web}/?url={quote(rrd_url, safe='')}")
+        tree = [psutil.Process(proc.pid), *psutil.Process(proc.pid).children(recursive=True)]
+        listening = [(p.name(), c.laddr.ip) for p in tree for c in p.net_connections(kind="inet")
+                     if c.status == psutil.CONN_LISTEN]
+        page.goto(url)
         result = wait_for_viewer(page, "rerun_web_viewer", expected)
+        settle(page, "rerun_web_viewer")  # (the time cursor plays to the end of the recording, then stops)
+        for p in tree:
+            p.cpu_percent()
+        time.sleep(3)
+        idle_cpu = {p.name(): p.cpu_percent() for p in tree}
+        record_timing("massviz_view_idle_cpu_percent", idle_cpu)
+        print("massviz view: listening on", listening, "; CPU while idle (%, over 3 s):", idle_cpu)
+    assert proc.returncode == 0, (tmp_path / "view.log").read_text()
+    assert len(listening) == 2 and all(ip == "127.0.0.1" for _, ip in listening), listening
+    assert sum(idle_cpu.values()) < 5.0, idle_cpu
+    assert not [p for p in tree if p.is_running() and p.status() != psutil.STATUS_ZOMBIE], tree
     print("rerun web viewer:", result)
     assert not result["failures"], f"{result} (see {ARTIFACTS / 'rerun_web_viewer.png'})"
     # the 2D view fits the whole image (issue 20: its right edge was cropped): the frame's right-most tenth is found
@@ -323,11 +395,55 @@ def test_rerun_web_viewer_shows_the_demo_recording(browser, demo_rrd, cup, tmp_p
     strip = frame[:, -frame.shape[1] // 10:]
     s_strip, (sx1, _, sx2, _) = find(image, strip, [scale])
     assert s_strip > 0.6 and abs(sx2 - x2) <= max(4, 0.02 * (x2 - x1)), (s_strip, (sx1, sx2), (x1, x2))
-    if os.environ.get("MASSVIZ_REFRESH_DOCS"):  # README's screenshot, refreshed from this test
-        shutil.copyfile(ARTIFACTS / "rerun_web_viewer.png", ROOT / "docs" / "rerun_viewer.png")
+    check_docs_picture(image, "rerun_viewer.png")
     errors = [(t, m[:300]) for t, m in messages if t in ("error", "pageerror") and not BENIGN.search(m)]
     about_data = [(t, m[:300]) for t, m in messages if t in ("error", "warning") and OUR_ENTITIES.search(m)]
     assert not errors and not about_data, errors + about_data
+
+
+@pytest.fixture(scope="module")
+def rs_module():
+    from test_realsense import need_realsense
+
+    return need_realsense()
+
+
+@pytest.mark.slow
+def test_live_tiles_show_the_flag_in_the_browser(browser, rs_module, tmp_path_factory, tmp_path):
+    """A live session whose nearest chosen patch is flagged (tests/test_live_tiles.py ``flagged_session``), opened
+    with ``massviz view``: at the session's end the tile ★0 has the flagged colour's outline; the other tiles the
+    chosen colour's (live logged every tile plain, whatever the flags said at the end)."""
+    from test_live_tiles import flagged_session
+    from test_recording import write_recording
+
+    from massviz.io.realsense import write_realsense
+    from massviz.io.recording import open_recording
+    from massviz.views.palette import CHOSEN_COLOUR, FLAGGED_COLOUR, rgb255
+    from massviz.views.rerun.rrd_reader import rrd_rows
+
+    sample = open_recording(ROOT / "data_samples" / "cup_handover")
+    frames = list(sample.frames(indices=range(18, 30)))
+    played = write_recording(tmp_path / "played", [f.rgb for f in frames], [f.depth for f in frames],
+                             intrinsics=sample.intrinsics.to_dict(), meta={"id": "played", "fps": 10})
+    db3 = write_realsense(open_recording(played), tmp_path / "played.db3")
+    rrd = flagged_session(db3, tmp_path)
+    patch0 = [row for row in rrd_rows(rrd, "/patches/0") if "d_mm" in row][-1]
+    assert patch0["flagged"] == [True]
+    with massviz_view(rrd, tmp_path / "view.log") as (proc, url), offline_page(browser, VIEWER) as (page, _, _):
+        page.goto(url)
+        t0, red = time.monotonic(), 0
+        while time.monotonic() - t0 < LOAD_TIMEOUT_S:
+            page.wait_for_timeout(2000)
+            image = shot(page, "live_flagged_tiles")
+            h, w = image.shape[:2]  # the tiles: above the predictions plot, between the 2D view and the side panel
+            tiles = image[int(0.05 * h):int(0.3 * h), int(0.51 * w):int(0.77 * w)]
+            red = colour_pixels(tiles, rgb255(FLAGGED_COLOUR), tol=30)
+            pink = colour_pixels(tiles, rgb255(CHOSEN_COLOUR), tol=30)
+            if red > 100 and pink > 100:
+                break
+    print(f"live tiles in the browser: {red} flagged-colour and {pink} chosen-colour pixels in the tiles' area")
+    assert red > 100, f"no flagged tile outline in the browser ({red} pixels; see live_flagged_tiles.png)"
+    assert pink > 100, f"no plain chosen tile outline ({pink} pixels; see live_flagged_tiles.png)"
 
 
 # ------------------------------------------------------------------------------------------------ 2./3. notebooks
@@ -382,6 +498,11 @@ def open_and_run(page, lab: str, name: str, upto: str | None = None) -> float:
                            f"window.jupyterapp.shell.currentWidget.title.label === {json.dumps(name)}",
                            timeout=120_000)
     page.wait_for_function(KERNEL_IDLE, timeout=120_000)
+    page.wait_for_timeout(500)  # the kernel's language_info reaches the model just after it is idle
+    stored = json.loads((ROOT / "notebooks" / name).read_text())["metadata"]["language_info"]["version"]
+    if stored == platform.python_version():  # (another Python's version would be recorded: modified)
+        dirty = page.evaluate("() => window.jupyterapp.shell.currentWidget.context.model.dirty")
+        assert not dirty, f"{name} opened marked modified in JupyterLab"
     t0 = time.monotonic()
     n = page.evaluate("""(upto) => { const w = window.jupyterapp.shell.currentWidget;
       const cells = w.content.widgets; let n = 0, stop = cells.length;

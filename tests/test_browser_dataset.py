@@ -23,7 +23,8 @@ from urllib.parse import quote
 import cv2
 import numpy as np
 import pytest
-from test_browser import ARTIFACTS, BENIGN, find, lab, offline_page, open_and_run, shot  # noqa: F401
+from test_browser import (ARTIFACTS, BENIGN, check_docs_picture, find, lab, offline_page,  # noqa: F401
+                          open_and_run, settle, shot)
 from test_dataset_catalog import env, logged  # noqa: F401
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]  # ~50 s: a dataset of 4 recordings, a server, JupyterLab
@@ -98,6 +99,7 @@ def test_viewer_shows_the_dataset_table_and_opens_a_recording(browser, served, s
               f"after {time.monotonic() - t0:.0f} s")
         assert score > 0.8, f"no rel_error column in the table (best match {score:.2f}; see dataset_table.png)"
         assert rows >= 4, f"{rows} rows in the dataset's table (see dataset_table.png)"
+        check_docs_picture(settle(page, "dataset_table"), "dataset_table.png", panel=1.0)  # README's picture
 
         # open one: the worst recording (cup_handover) at the frame of its nearest chosen patch, as its row links
         import pandas as pd

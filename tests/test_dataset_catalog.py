@@ -99,8 +99,8 @@ def test_log_rrd_dir_writes_one_recording_per_input_with_properties(rrd_dir, dat
     assert set(PROPS) <= set(cup), set(PROPS) - set(cup)
     assert cup["id"] == "cup_handover" and cup["container_class"] == "cup" and cup["n_flagged"] == 3
     assert cup["gt_mass_g"] == 9.0 and abs(cup["estimate_g"] - 57.4) < 0.05
-    assert abs(cup["rel_error"] - abs(cup["estimate_g"] - 9.0) / 9.0) < 1e-9
-    assert abs(cup["score"] - math.exp(-cup["rel_error"])) < 1e-9
+    assert abs(cup["rel_error"] - abs(cup["estimate_g"] - 9.0) / 9.0) < 1e-3  # (both rounded)
+    assert abs(cup["score"] - math.exp(-cup["rel_error"])) < 1e-4
     assert cup["detector"] == "depth" and cup["k"] == 5 and cup["stride"] == 1 and cup["view"] == 0
     assert "ground truth" in cup["cues"] and cup["source"].endswith("cup_handover")
     real = rrd_properties(out / "618.rrd")
@@ -116,6 +116,37 @@ def test_log_rrd_dir_writes_one_recording_per_input_with_properties(rrd_dir, dat
     patches = pd.read_csv(out / "patches.csv", dtype={"recording": str})
     assert len(patches) == 20 and patches["flagged"].sum() >= 3
     assert all((out / t).is_file() for t in patches["thumb"])
+
+
+def test_light_recordings_read_well_in_the_catalog(rrd_dir):
+    """What a person sees opening a light recording from the dataset's table: numbers rounded as shown (the table
+    showed 5.376 494 810 316 3), every chosen patch's tile whatever the time cursor (opened at frame 24, tiles ★3/★4
+    of frames 31/35 were empty), and a predictions plot without the legend that covered it."""
+    import rerun.blueprint as rrb
+
+    from massviz.views.rerun.rrd_reader import rrd_rows
+    from massviz.views.rerun_dataset import light_blueprint
+
+    out, _ = rrd_dir
+    for rrd in sorted(out.glob("*.rrd")):
+        props = rrd_properties(rrd)
+        for name, value in props.items():
+            if isinstance(value, float):
+                assert round(value, 4) == value, (rrd.name, name, value)
+        ranks = int(props["k"]) if props.get("estimated") else 0
+        for r in range(min(ranks, 5)):
+            # (the outline: the tile's values have a field named like the timeline, ``frame``)
+            rows = rrd_rows(rrd, f"/patches/{r}/outline")
+            assert rows and all(row["time"] is None for row in rows), (rrd.name, r, [row["time"] for row in rows])
+
+    def views(node):
+        yield node
+        for child in getattr(node, "contents", None) or []:
+            if not isinstance(child, str):
+                yield from views(child)
+
+    plots = [v for v in views(light_blueprint(5).root_container) if isinstance(v, rrb.TimeSeriesView)]
+    assert plots and all(v.properties["PlotLegend"].visible.as_arrow_array().to_pylist() == [False] for v in plots)
 
 
 def test_serve_answers_a_segment_table_query_and_leaves_nothing_running(rrd_dir):

@@ -2,8 +2,11 @@
 (``massviz live --file X.db3 --detector depth --rrd live.rrd``, run in-process as the command runs it) is read back
 from its .rrd: at every processed frame, tile ``/patches/<rank>`` shows the detection holding that rank in the
 running selection then (the trace's ``running_selections``), and the last value of each tile is the final
-selection; no rank of the final selection is without data."""
+selection; no rank of the final selection is without data. At the end the tiles of flagged patches carry their
+flags and the command prints the flag warning, as ``massviz log`` does."""
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -61,3 +64,41 @@ def test_live_tiles_show_the_current_k_nearest(rs, played_db3, depth_detector, t
         assert rows[-1]["d_mm"] == [pytest.approx(float(trace.detections.d[int(i)]), abs=0.01)]
     # the ranks did change during the session (else this test would prove nothing about stale tiles)
     assert any(not np.array_equal(a[: len(b)], b[: len(a)]) for a, b in zip(running, running[1:]))
+
+
+def flagged_session(played_db3, tmp_path) -> Path:
+    """``massviz live --file played.db3 --rrd live.rrd`` (in-process) where the nearest chosen patch is flagged: a
+    box on the table's front edge at ~0.8 m touching the bottom edge (frame 0 only; the ``border`` cue flags it
+    whatever its track), then one at ~1.1 m on every frame (the container's track). Returns the .rrd."""
+    from test_selection import ListDetector
+
+    from massviz.commands.live import run_session
+    from massviz.io.realsense import open_file_stream
+
+    per_frame = {i: [((150, 100, 250, 200), 0.9, None)] for i in range(60)}
+    per_frame[0] = [((100, 210, 200, 270), 0.9, None), *per_frame[0]]
+    p = live_pipeline(ListDetector(per_frame), tmp_path)
+    args = session_args(file=str(played_db3), rrd=str(tmp_path / "live.rrd"))
+    assert run_session(args, p, open_file_stream(played_db3), "played") == 0
+    return tmp_path / "live.rrd"
+
+
+@pytest.mark.slow
+def test_live_tiles_and_the_last_lines_carry_the_flags(rs, played_db3, tmp_path, capsys):
+    """A chosen patch the flags doubt (here a box cut by the image's bottom edge: the ``border`` cue, whatever its
+    track) is marked in the live session as ``massviz log`` marks it: its tile, at the last frame, is flagged (the
+    outline's label says why), ``/log`` has the flag warnings and the command prints the warning line."""
+    flagged_session(played_db3, tmp_path)
+    err = capsys.readouterr().err
+    warnings = [line for line in err.splitlines() if line.startswith("massviz live: warning: played: ")]
+    assert len(warnings) == 1 and "1 of 5 chosen patches looks like another object" in warnings[0], err
+    tile = [row for row in rrd_rows(tmp_path / "live.rrd", "/patches/0") if "d_mm" in row]
+    assert tile[-1]["flagged"] == [True] and "border" in tile[-1]["flag"][0], tile[-1]
+    assert tile[-1]["d_mm"][0] < 900  # the box on the table's edge, the nearest
+    outline = [row for row in rrd_rows(tmp_path / "live.rrd", "/patches/0/outline") if "Boxes2D:labels" in row]
+    assert outline[-1]["Boxes2D:labels"][0].startswith("★0 ⚑ flagged"), outline[-1]
+    for r in range(1, 5):  # the others are the container's track: not flagged
+        rows = [row for row in rrd_rows(tmp_path / "live.rrd", f"/patches/{r}") if "d_mm" in row]
+        assert rows[-1]["flagged"] == [False]
+    log = [row["TextLog:text"][0] for row in rrd_rows(tmp_path / "live.rrd", "/log") if "TextLog:text" in row]
+    assert any(text.startswith("flagged patch ★0") for text in log), log[-5:]

@@ -114,17 +114,22 @@ def error_lines(stderr: str) -> list[str]:
     return [line for line in stderr.splitlines() if "error" in line.lower()]
 
 
-def test_cloud_without_intrinsics_exits_2_and_writes_nothing(samples_dir, tmp_path):
+@pytest.mark.parametrize("command, out", [("cloud", "clouds"), ("render", "scene.png")])
+def test_3d_commands_without_intrinsics_exit_2_up_front_and_write_nothing(command, out, samples_dir, tmp_path):
+    """``cloud`` and ``render`` need the intrinsics: without them one line before any work (the weights, which do
+    not exist here, are never loaded; ``render`` ran the whole pipeline, ~3.6 s, then failed with a warning's text)."""
     import shutil
 
     rec = tmp_path / "no_intrinsics"
     shutil.copytree(samples_dir / "cup_handover", rec)
     (rec / "intrinsics.json").unlink()
-    out = tmp_path / "clouds"
-    run = massviz_cli("cloud", rec, "--detector", "depth", "--out", out, "--no-cache", "--quiet")
+    out = tmp_path / out
+    run = massviz_cli(command, rec, "--detector", "depth", "--out", out, "--no-cache", "--quiet",
+                      "--weights", tmp_path / "missing.torch")
     assert run.returncode == 2, (run.returncode, run.stderr)
     lines = run.stderr.strip().splitlines()
-    assert len(lines) == 1 and "intrinsics" in lines[0] and "no_intrinsics" in lines[0], lines
+    assert len(lines) == 1 and "no_intrinsics" in lines[0], lines
+    assert f"no camera intrinsics (intrinsics.json in the recording folder): massviz {command} needs them" in lines[0]
     assert "Traceback" not in run.stderr and not out.exists()
 
 
@@ -261,3 +266,34 @@ def test_readme_setup_stays_two_commands_and_documents_cpu():
     assert [line.split("#")[0].strip() for line in block.strip().splitlines()] == [
         "bash scripts/setup.sh demo", "bash scripts/setup.sh test"]
     assert "MASSVIZ_TORCH=cpu" in section
+
+
+# ------------------------------------------------------------------------- examples whose next command never runs
+#: commands that run until Ctrl-C: ``A && B`` after one of them never runs B
+UNTIL_STOPPED = ("massviz serve", "massviz view")
+
+
+def _help_texts() -> dict[str, str]:
+    import argparse
+
+    from massviz.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return {name: p.format_help() for name, p in sub.choices.items()}
+
+
+def test_no_example_chains_a_command_after_one_that_runs_until_stopped():
+    """``massviz serve … && rerun …`` (serve --help's example) never ran the second command: serve runs until
+    Ctrl-C. No --help text nor the README chains anything after such a command (or after a live session with no end:
+    no --duration, no --file)."""
+    texts = {**{f"massviz {n} --help": t for n, t in _help_texts().items()},
+             "README.md": (ROOT / "README.md").read_text()}
+    bad = []
+    for where, text in texts.items():
+        for line in text.splitlines():
+            for first in line.split("&&")[:-1]:
+                cmd = first.split("$ ")[-1].strip().strip("`")
+                endless_live = cmd.startswith("massviz live") and "--duration" not in cmd and "--file" not in cmd
+                if cmd.startswith(UNTIL_STOPPED) or endless_live:
+                    bad.append(f"{where}: {line.strip()}")
+    assert not bad, bad

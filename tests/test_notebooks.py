@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import sys
 import time
 from pathlib import Path
@@ -30,6 +31,21 @@ def test_notebook_is_stored_without_outputs(name):
     for cell in code:
         assert cell.outputs == [], f"{name}: a code cell has stored outputs (clear them before committing)"
         assert cell.execution_count is None, f"{name}: a code cell has an execution count"
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_notebook_metadata_is_what_jupyterlab_would_write(name):
+    """When its kernel starts, JupyterLab writes the kernel's ``language_info`` into the notebook: a notebook stored
+    with less (``{"name": "python"}``) opened marked modified. They are stored as ipykernel reports them for the
+    project's Python 3.11 (JupyterLab compares the whole object: with another Python version it still records that
+    version). The browser tests check that a notebook opens unmodified (``test_browser.open_and_run``)."""
+    from ipykernel.ipkernel import IPythonKernel
+
+    meta = nbformat.read(NOTEBOOKS / name, as_version=4).metadata
+    assert meta.kernelspec == {"display_name": "Python 3 (ipykernel)", "language": "python", "name": "python3"}
+    expected = {k: v for k, v in IPythonKernel.language_info.items() if k != "version"}
+    assert {k: v for k, v in meta.language_info.items() if k != "version"} == expected
+    assert re.fullmatch(r"3\.11\.\d+", meta.language_info.get("version", "")), meta.language_info
 
 
 def _kernel_env(weights: Path, cache: Path) -> dict:

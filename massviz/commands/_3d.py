@@ -11,9 +11,10 @@ def add_3d_args(p) -> None:
     add_pipeline_args(p)
 
 
-def measured_trace(args):
+def measured_trace(args, needs_intrinsics: str | None = None):
     """(recording, trace with measurements) for ``args.recording``; a recording without intrinsics gets one line on
-    stderr and a trace without measurements."""
+    stderr and a trace without measurements, or, for a command that cannot work without them
+    (``needs_intrinsics``: its name), one error line before the pipeline runs."""
     from massviz.commands._common import build
     from massviz.core.geometry import skip_reason, with_measurements
     from massviz.io.recording import open_recording
@@ -21,6 +22,9 @@ def measured_trace(args):
     from massviz.errors import MassvizError
 
     rec = open_recording(args.recording, allow_partial=args.allow_partial)
+    if needs_intrinsics and skip_reason(rec):
+        what = skip_reason(rec).split(": ", 1)[-1].split(", so no 3D")[0]  # "no camera intrinsics (where ...)"
+        raise MassvizError(f"{what}: massviz {needs_intrinsics} needs them, nothing written", args.recording)
     frame = getattr(args, "frame", None)
     if frame is not None and not 0 <= frame < rec.num_frames:
         raise MassvizError(f"--frame must be >= 0 and < {rec.num_frames} (the recording's frames), got {frame}")

@@ -32,7 +32,8 @@ def add_engine_args(p: argparse.ArgumentParser) -> None:
                    help="where the recordings are processed: local (default, in this process) or ray")
     g.add_argument("--ray-address", metavar="ADDR",
                    help="with --engine ray: 'auto' (join the running cluster) or HOST:PORT of its head (default: "
-                   "start a local Ray instance with this machine's cores)")
+                   "start a local Ray instance with this machine's cores); nothing answering there within 10 s is "
+                   "an error")
     g.add_argument("--workers", type=int, metavar="N",
                    help="with --engine ray: number of worker actors (default: one per GPU when the cluster has "
                    "GPUs, else one per CPU)")

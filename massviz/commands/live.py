@@ -18,7 +18,9 @@ Per processed frame: detect, features, predict, update the K nearest so far, and
 When the detector is slower than the camera, massviz takes the newest frame and drops the others: the drops are
 counted in /log and in the summary; nothing queues. Ctrl-C (or SIGTERM/SIGHUP), --duration or the end of a --file
 ends the session: the trace goes to the trace cache, --save writes the processed frames as a massviz recording
-folder, and the last line prints the estimate; a second Ctrl-C interrupts at once and writes nothing. Needs
+folder, and the last lines print the estimate and, when chosen patches look like another object, a warning with
+the estimate without them (the tiles of those patches are then marked flagged at the last frame); a second Ctrl-C
+interrupts at once and writes nothing. Needs
 pyrealsense2: pip install 'massviz[realsense]'.
 """ + PIPELINE_HELP
 
@@ -125,13 +127,24 @@ def run(args) -> int:
         raise MassvizError(f"cannot write: folder {Path(args.rrd).parent} does not exist", args.rrd)
     if args.save and Path(args.save).exists() and (not Path(args.save).is_dir() or any(Path(args.save).iterdir())):
         raise MassvizError("exists and is not an empty folder; --save needs a new folder", args.save)
+    if args.serve_web and args.connect:
+        raise MassvizError("give --connect or --serve-web, not both")
+    if args.connect:  # else Rerun's sink retries in the background, then drops what it could not send
+        from massviz.io.endpoint import host_port, reach_grpc
+
+        host, port = host_port(args.connect, "--connect")
+        reach_grpc("--connect", args.connect, host, port, hint="start a viewer first (`rerun` listens on "
+                   "rerun+http://127.0.0.1:9876/proxy), or use --serve-web or --rrd")
     realsense.import_rs()
     if args.file:
         stream = realsense.open_file_stream(args.file)
         name = Path(args.file).stem
+        stream.option = f"--file {args.file}"
     else:
         stream = realsense.open_camera(args.camera or None, args.width, args.height, args.fps)
-        name = f"camera-{stream.info.device.get('serial', 'realsense')}"
+        serial = stream.info.device.get('serial', 'realsense')
+        name = f"camera-{serial}"
+        stream.option = f"--camera {args.camera or serial}"
     try:
         pipeline = build(args)
     except BaseException:
@@ -142,8 +155,8 @@ def run(args) -> int:
 
 def run_session(args, pipeline, stream, name: str) -> int:
     """The session itself (``massviz live`` after the source is open; tests call it with a stand-in camera)."""
+    from massviz.commands._common import flag_warning
     from massviz.core.types import RecordingInfo
-    from massviz.errors import MassvizError
     from massviz.runners.live import run_live
 
     info = stream.info
@@ -156,8 +169,6 @@ def run_session(args, pipeline, stream, name: str) -> int:
     try:  # the web server ends with the session, however it ends
         try:
             connect = args.connect
-            if args.serve_web and args.connect:
-                raise MassvizError("give --connect or --serve-web, not both")
             if args.serve_web:
                 web = _WebServer(args.web_port, args.grpc_port)
                 connect = connect or web.grpc
@@ -192,6 +203,9 @@ def run_session(args, pipeline, stream, name: str) -> int:
     n, k = len(trace.selection), int(trace.k)
     chosen = f"K={k}" if n >= k else f"{n} of K={k}"  # fewer detections than K: say how many were chosen
     print(f"{name}: {est} ({chosen}, {stats.processed} frames, {stats.dropped} dropped)", file=sys.stderr)
+    warning = flag_warning("live", trace)
+    if warning:
+        print(warning, file=sys.stderr)
     return 0
 
 

@@ -18,7 +18,7 @@ def register(sub) -> None:
         "per-patch predictions, the estimate, the decisions and the stage timings (entity tree in the README). "
         "A recording without depth (no depth/ folder) is logged RGB only: what the detector finds and its tracks, "
         "no mass (give --detector nanodet or maskrcnn; the depth detector needs depth).",
-        epilog="examples:\n  massviz log data_samples/cup_handover --rrd cup.rrd && rerun cup.rrd\n"
+        epilog="examples:\n  massviz log data_samples/cup_handover --rrd cup.rrd && massviz view cup.rrd\n"
         "  massviz log data_samples/glass_handover --spawn --k 3\n"
         "  massviz log side_view_rgb_only/ --detector nanodet --rrd side.rrd   # no depth: detections and tracks\n"
         "  massviz log data_samples --rrd-dir out/samples && massviz serve out/samples\n"

@@ -47,7 +47,6 @@ def run(args) -> int:
 
     from massviz.commands._3d import measured_trace
     from massviz.errors import MassvizError
-    from massviz.core.geometry import require_intrinsics
     from massviz.views.open3d_view import render_png
 
     from massviz.io.atomic import check_output_file
@@ -61,8 +60,7 @@ def run(args) -> int:
     if not (math.isfinite(args.pitch) and -90 < args.pitch < 90):
         raise MassvizError(f"--pitch must be a finite number of degrees > -90 and < 90, got {args.pitch}")
     check_output_file(out, "--out")
-    rec, trace = measured_trace(args)
-    require_intrinsics(rec)
+    rec, trace = measured_trace(args, needs_intrinsics="render")
     info = render_png(trace, rec, out, frame_index=args.frame, width=width, height=height, yaw_deg=args.yaw,
                       pitch_deg=args.pitch)
     print(f"{rec.id}: wrote {out} (frame {info['frame']}, rendered in {info['seconds']:.1f} s)", file=sys.stderr)

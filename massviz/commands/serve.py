@@ -17,7 +17,8 @@ def register(sub) -> None:
         "viewer stop and nothing is left running.",
         epilog="examples:\n  massviz log data_samples --detector depth --rrd-dir out/samples\n"
         "  massviz serve out/samples                 # then open the printed http://127.0.0.1:... URL\n"
-        "  massviz serve out/samples --no-web-viewer --port 51234 && rerun rerun+http://127.0.0.1:51234")
+        "  massviz serve out/samples --no-web-viewer --port 51234   # it runs until Ctrl-C; then, in another\n"
+        "  rerun rerun+http://127.0.0.1:51234                         # terminal, a native viewer (needs a display)")
     p.add_argument("folder", metavar="OUT", help="folder of .rrd files (massviz log DATASET --rrd-dir OUT)")
     p.add_argument("--name", default=None, help="dataset name (default: the folder's name)")
     p.add_argument("--port", type=int, default=0, help="catalog server port (default: a free one)")

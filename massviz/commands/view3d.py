@@ -22,11 +22,9 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from massviz.commands._3d import measured_trace
-    from massviz.core.geometry import require_intrinsics
     from massviz.views.open3d_view import require_display, show
 
     require_display()  # say so before running anything
-    rec, trace = measured_trace(args)
-    require_intrinsics(rec)
+    rec, trace = measured_trace(args, needs_intrinsics="view3d")
     show(trace, rec, frame_index=args.frame)
     return 0

@@ -68,13 +68,15 @@ def recording_properties(trace: Trace, *, source: str = "", view: int = 0, n_inp
              "weights_id": trace.weights_id or "", "view": int(view), "source": source or trace.recording.path,
              "frames": len(trace.frames), "detections": len(trace.detections), "best_frame": best_frame(trace),
              "estimated": est >= 0, "input_bytes": int(n_input_bytes), "kind": kind}
+    # rounded as shown (a table of 15-digit numbers is unreadable): grams to 0.01 g, ratios to 4 decimals
     if est >= 0:
-        props["estimate_g"] = est
+        props["estimate_g"] = round(est, 2)
     if true is not None and true > 0:
-        props["gt_mass_g"] = float(true)
-        props["score"] = math.exp(-abs(est - true) / true) if est >= 0 else 0.0
+        props["gt_mass_g"] = round(float(true), 2)
+        props["score"] = round(math.exp(-abs(est - true) / true), 4) if est >= 0 else 0.0
         if est >= 0:
-            props["rel_error"] = abs(est - true) / true
+            props["rel_error"] = round(abs(est - true) / true, 4)
+    props["threshold"] = round(props["threshold"], 4)
     return props
 
 

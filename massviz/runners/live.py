@@ -258,7 +258,7 @@ def run_live(stream, frame_pipeline, *, logger=None, duration: float | None = No
                     stats.stopped = f"{max_frames} frames"
                     break
                 if stream.reader.error is not None:
-                    raise MassvizError(f"{stream.description}: cannot read frames ({stream.reader.error})")
+                    raise MassvizError(f"{source_name(stream)}: cannot read frames ({stream.reader.error})")
                 item = slot.take(timeout=0.05)
                 if item is None:
                     if stream.is_file and stream.finished() and len(slot) == 0:
@@ -266,7 +266,7 @@ def run_live(stream, frame_pipeline, *, logger=None, duration: float | None = No
                         break
                     if time.perf_counter() - last_arrival > SILENCE_S:
                         if stats.processed == 0:
-                            raise MassvizError(f"{stream.description}: no frame arrived in {SILENCE_S:g} s")
+                            raise MassvizError(f"{source_name(stream)}: no frame arrived in {SILENCE_S:g} s")
                         stats.stopped = f"no frame for {SILENCE_S:g} s (camera disconnected?)"
                         if logger is not None:
                             logger.note(f"session ended: {stats.stopped}", "warn")
@@ -340,6 +340,12 @@ def run_live(stream, frame_pipeline, *, logger=None, duration: float | None = No
     finally:
         if bar is not None:
             bar.close()
+
+
+def source_name(stream) -> str:
+    """The source as its errors name it: the option that chose it (when known) and its description."""
+    option = getattr(stream, "option", "")
+    return f"{option}: {stream.description}" if option else stream.description
 
 
 def warm_up(fp, info) -> None:

@@ -2,8 +2,10 @@
 
 * Connection: ``address=None`` starts a local Ray instance with this machine's cores (no dashboard, every Ray
   server bound to 127.0.0.1) and shuts it down at the end; ``"auto"`` joins the cluster this machine belongs to
-  (``ray start --head`` / ``ray start --address``); ``HOST:PORT`` joins that cluster's head. A Ray already
-  initialised in this process (a notebook, the tests) is used as it is and left running.
+  (``ray start --head`` / ``ray start --address``); ``HOST:PORT`` joins that cluster's head. An address where no
+  Ray answers within ``CONNECT_TIMEOUT_S`` (10 s) is one line naming --ray-address (``check_address``), not Ray's
+  endless retries. A Ray already initialised in this process (a notebook, the tests) is used as it is and left
+  running.
 * Workers: a pool of ``RayWorker`` actors; each builds the pipeline once (detector and mass-CNN weights loaded once
   per actor). With GPUs in the cluster: one actor per GPU (``num_gpus=1``) unless ``workers`` says otherwise; else
   ``workers`` CPU actors (default: one per CPU) sharing the CPUs (torch threads per actor = CPUs // actors).
@@ -29,6 +31,7 @@ import time
 from collections import deque
 
 from massviz.errors import MassvizError
+from massviz.io.endpoint import CONNECT_TIMEOUT_S, host_port, reach_grpc
 from massviz.runners.worker import FAULT_ENV, Outcome, RecordingWorker
 
 #: restarts of a dead actor process, and retries of each call it was running, that Ray makes.
@@ -50,12 +53,36 @@ def import_ray(local: bool):
     return ray
 
 
-def connect(address: str | None, log=None):
-    """(the ray module, whether this call started or joined Ray and must shut it down)."""
+#: what to do when nothing answers at --ray-address.
+ADDRESS_HINT = ("pass --ray-address HOST:PORT of a running cluster (`ray start --head` starts one), or leave "
+                "--ray-address out to start a local Ray instance")
+
+
+def check_address(address: str, timeout: float = CONNECT_TIMEOUT_S) -> None:
+    """Before ``ray.init`` (which waits on an address where nothing answers for as long as it is left running): the
+    address Ray would connect to for ``address`` (``auto``: the cluster this machine runs; ``ray://``: a Ray Client
+    server) answers as a gRPC server within ``timeout`` seconds, else one ``MassvizError`` naming --ray-address."""
+    from ray._private.services import canonicalize_bootstrap_address
+
+    target = address
+    if not address.startswith("ray://"):
+        try:
+            target = canonicalize_bootstrap_address(address) or address
+        except Exception:  # noqa: BLE001 - "auto" with no cluster, a malformed address: ray.init says why
+            return
+    host, port = host_port(target, "--ray-address")
+    reach_grpc("--ray-address", address, host, port, timeout, ADDRESS_HINT)
+
+
+def connect(address: str | None, log=None, timeout: float = CONNECT_TIMEOUT_S):
+    """(the ray module, whether this call started or joined Ray and must shut it down). Joining ``address`` waits
+    at most ``timeout`` seconds for it to answer (``check_address``)."""
     ray = import_ray(local=address is None)
     if ray.is_initialized():
         return ray, False
     t0 = time.perf_counter()
+    if address is not None:
+        check_address(address, timeout)
     for attempt in (1, 2):  # Ray gives its raylet 30 s to register (hard-coded): a loaded machine may need a retry
         try:
             if address is None:
@@ -75,9 +102,8 @@ def connect(address: str | None, log=None):
             # Ray's own advice names Ray's options (its `--address` flag, RAY_ADDRESS), not massviz's --ray-address
             first = re.sub(r"\.?\s*Please specify[^.]*`?--address`?[^.]*\.?", "", first)
             first = first.replace("--address", "--ray-address")
-            raise MassvizError(f"cannot join the Ray cluster at {address}: {first.rstrip('.')}. Pass --ray-address "
-                               "HOST:PORT of a running cluster (`ray start --head` starts one), or leave "
-                               "--ray-address out to start a local Ray instance") from None
+            raise MassvizError(f"cannot join the Ray cluster at {address}: {first.rstrip('.')}. "
+                               f"{ADDRESS_HINT[0].upper()}{ADDRESS_HINT[1:]}") from None
     if log is not None:
         res = ray.cluster_resources()
         what = "started a local Ray instance" if address is None else f"joined the Ray cluster at {address}"
@@ -246,4 +272,4 @@ def _dispatch(ray, actors, tasks, record, collect) -> bool:
     return len(alive) == len(actors)
 
 
-__all__ = ["MAX_RETRIES", "LOCAL_ONLY_ENV", "KEEP_ENV", "RayWorker", "connect", "plan", "release_pools", "run_ray"]
+__all__ = ["MAX_RETRIES", "LOCAL_ONLY_ENV", "KEEP_ENV", "RayWorker", "check_address", "connect", "plan", "release_pools", "run_ray"]

@@ -5,7 +5,7 @@ local or Ray) and ``write_index`` at the end. OUT then holds:
 
 * ``<id>.rrd`` — one recording per input recording (Rerun recording id = segment id = the recording's id). By
   default a **light** recording: the overlays (``/camera/detections`` of every processed frame), the chosen patches
-  (``/patches/<rank>``), the predictions, decisions and summary, a JPEG of the best frame (the frame of the nearest
+  (``/patches/<rank>``, static: shown whatever the time cursor), the predictions, decisions and summary, a JPEG of the best frame (the frame of the nearest
   chosen patch, at ``/camera/rgb``, and a small ``/thumbnail``) and ``/source`` (a ``TextDocument`` naming the source
   frames, which are *referenced*, not copied: the path is also the ``source`` property). ``full=True`` logs
   everything ``massviz log`` logs (``massviz.views.rerun_log.log_trace``: every frame, depth, masks, 3D clouds).
@@ -134,10 +134,12 @@ def log_light(stream: rr.RecordingStream, trace: Trace, recording, patches: dict
         idx = by_frame.get(f, [])
         class_ids = rl.detection_class_ids(dets, idx, rank_of, trace.threshold, flagged)
         rl.log_detections(stream, dets, idx, class_ids, rank_of)
-        for i in idx:
-            if i in rank_of and i in patches:
-                rl.log_patch(stream, rank_of[i], dets, i, patches[i], flag_of.get(i))
+    # the chosen patches are static: every tile shows its patch whatever the time cursor (a recording opens at its
+    # best frame, before the frames some patches come from); each says its frame (``frame`` in its values)
     stream.reset_time()
+    for i, rank in rank_of.items():
+        if i in patches:
+            rl.log_patch(stream, rank, dets, i, patches[i], flag_of.get(i), static=True)
     rl.log_predictions(stream, trace)
     rl.log_running(stream, trace)
     rl.log_events(stream, trace.events, first)
@@ -163,7 +165,9 @@ def light_blueprint(n_patches: int, flagged=()) -> rrb.Blueprint:
                     rrb.TextDocumentView(name="Timings", origin="/timings"))
     return rrb.Blueprint(
         rrb.Horizontal(rrb.Vertical(camera, text, row_shares=[3, 2]),
-                       rrb.Vertical(tiles, rrb.TimeSeriesView(name="Predictions (g)", origin="/predictions"),
+                       rrb.Vertical(tiles, rrb.TimeSeriesView(name="Predictions (g)", origin="/predictions",
+                                                         # (the legend covered the small plot)
+                                                         plot_legend=rrb.PlotLegend(visible=False)),
                                     row_shares=[1, 1]),
                        column_shares=[3, 2]),
         rrb.TimePanel(timeline="frame"), collapse_panels=False)

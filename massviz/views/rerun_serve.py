@@ -3,20 +3,27 @@ massviz's layouts as the dataset's defaults and a Rerun web viewer, all bound to
 
 ``open_catalog(folder)`` / ``catalog(folder)`` (a context manager) is the in-process part (the server, its dataset
 entry and a DataFusion-backed client; needs ``rerun-sdk[catalog]``), ``serve`` the blocking command (``massviz serve``). The web viewer is Rerun's
-own binary (``rerun --web-viewer --bind 127.0.0.1 URL``) in a child process that dies with this one (Linux
-``PR_SET_PDEATHSIG``) and is stopped and waited for when the server stops; nothing is left running.
+own binary (``rerun --serve-web --bind 127.0.0.1 URL``: given a URL it serves only the viewer's page, no gRPC server,
+and opens no browser) in a child process that dies with this one (Linux ``PR_SET_PDEATHSIG``) and is stopped and
+waited for when the server stops; nothing is left running.
+
+``view(rrd)`` (``massviz view``) is the same web viewer for one .rrd file, which a ``FileServer`` thread of this
+process serves over HTTP (only to the viewer's page): no display needed, and idle it costs no CPU (``rerun
+--serve-web FILE`` kept a core busy while serving a file, rerun 0.41).
 """
 from __future__ import annotations
 
 import contextlib
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
 import tempfile
 import threading
 import time
+import urllib.parse
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -150,7 +157,7 @@ class WebViewer:
     ``url``; ``.url`` is the page to open. ``stop()`` terminates it and waits."""
 
     def __init__(self, url: str, port: int = 0, timeout: float = 60.0):
-        cmd = [str(_viewer_binary()), "--web-viewer", "--bind", HOST, "--web-viewer-port", str(port), url]
+        cmd = [str(_viewer_binary()), "--serve-web", "--bind", HOST, "--web-viewer-port", str(port), url]
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                                      preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
                                      # its log line says where it serves: on even when massviz quiets Rerun's logs
@@ -190,41 +197,159 @@ class _Stop(Exception):
     pass
 
 
+@contextlib.contextmanager
+def _until_stopped():
+    """Run the block until Ctrl-C or SIGTERM (``_Stop``), whichever comes; the SIGTERM handler is restored after."""
+
+    def stop(signum, frame):
+        raise _Stop()
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _wait(viewer: "WebViewer") -> None:
+    """Block while the viewer runs (a wake-up a second: no CPU to speak of)."""
+    while viewer is None or viewer.alive():
+        time.sleep(1.0)
+
+
 def serve(folder: str | Path, *, name: str | None = None, port: int = 0, web_port: int = 0, web_viewer: bool = True,
           k: int = 5, out=None, ready=None) -> int:
     """``massviz serve``: run the catalog (and web viewer) until Ctrl-C or SIGTERM; print how to open it.
     ``ready(catalog, page_url)`` (tests, benchmarks) is called once everything is up."""
     out = out or sys.stdout
 
-    def stop(signum, frame):
-        raise _Stop()
+    def start(stack: contextlib.ExitStack):
+        cat = stack.enter_context(catalog(folder, name=name, port=port, k=k))
+        n = len(cat.dataset.segment_ids())
+        lines = [f"massviz serve: dataset {cat.name!r}: {n} recording(s) from {Path(folder).resolve()}",
+                 f"  catalog server: {cat.url}",
+                 f"  native viewer:  rerun {cat.dataset_url}"]
+        viewer = None
+        if web_viewer:
+            viewer = WebViewer(cat.dataset_url, web_port)
+            stack.callback(viewer.stop)
+            lines.append(f"  web viewer:     {viewer.url}")
+        lines.append("  Ctrl-C stops the server" + (" and the web viewer" if viewer else ""))
+        print("\n".join(lines), file=out, flush=True)
+        if ready is not None:
+            ready(cat, viewer.url if viewer else None)
+        return viewer
 
-    previous = signal.signal(signal.SIGTERM, stop)
-    viewer = None
+    return _run_until_stopped("serve", start)
+
+
+def _run_until_stopped(command: str, start) -> int:
+    """``start(stack)`` starts the servers (their clean-ups on the ``ExitStack``) and returns the web viewer (or
+    None); then wait until Ctrl-C or SIGTERM (exit 0) or until the viewer exits (exit 1); everything started is
+    stopped either way."""
     try:
-        with catalog(folder, name=name, port=port, k=k) as cat:
-            n = len(cat.dataset.segment_ids())
-            lines = [f"massviz serve: dataset {cat.name!r}: {n} recording(s) from {Path(folder).resolve()}",
-                     f"  catalog server: {cat.url}",
-                     f"  native viewer:  rerun {cat.dataset_url}"]
-            if web_viewer:
-                viewer = WebViewer(cat.dataset_url, web_port)
-                lines.append(f"  web viewer:     {viewer.url}")
-            lines.append("  Ctrl-C stops the server" + (" and the web viewer" if viewer else ""))
-            print("\n".join(lines), file=out, flush=True)
-            if ready is not None:
-                ready(cat, viewer.url if viewer else None)
-            while viewer is None or viewer.alive():
-                time.sleep(0.3)
-            print("massviz serve: the web viewer exited; stopping", file=sys.stderr)
+        with _until_stopped(), contextlib.ExitStack() as stack:
+            _wait(start(stack))
+            print(f"massviz {command}: the web viewer exited; stopping", file=sys.stderr)
             return 1
     except (KeyboardInterrupt, _Stop):
-        print("massviz serve: stopped", file=sys.stderr)
+        print(f"massviz {command}: stopped", file=sys.stderr)
         return 0
-    finally:
-        if viewer is not None:
-            viewer.stop()
-        signal.signal(signal.SIGTERM, previous)
 
 
-__all__ = ["Catalog", "open_catalog", "catalog", "WebViewer", "serve", "HOST"]
+#: the first bytes of an .rrd file (Rerun's stream header, "RRF2" since 0.x)
+RRD_MAGIC = b"RRF2"
+
+
+def check_rrd(path: str | Path) -> Path:
+    """``path`` as a readable .rrd file (its first bytes are Rerun's header), else one ``MassvizError`` line."""
+    path = Path(path)
+    if not path.is_file():
+        raise MassvizError("no such .rrd file" if not path.exists() else "is not a file", path)
+    try:
+        with open(path, "rb") as f:
+            head = f.read(len(RRD_MAGIC))
+    except OSError as err:
+        raise MassvizError(f"cannot read ({err.strerror or err})", path) from None
+    if head != RRD_MAGIC:
+        raise MassvizError("not a Rerun .rrd file (make one with: massviz log REC --rrd OUT.rrd)", path)
+    return path.resolve()
+
+
+class FileServer:
+    """One file over HTTP on 127.0.0.1 (a thread of this process), readable by pages of ``origin`` (CORS; set it to
+    the viewer's): ``url`` is the file's address, ``port`` its port; every other path is 404. ``close()`` stops
+    it."""
+
+    def __init__(self, path: Path, port: int = 0):
+        import http.server
+
+        name = urllib.parse.quote(path.name)
+        self.origin = "*"
+
+        class Handler(http.server.BaseHTTPRequestHandler):
+            def do_GET(handler):  # noqa: N805 - the handler instance
+                if urllib.parse.urlsplit(handler.path).path != f"/{name}":
+                    handler.send_error(404)
+                    return
+                try:
+                    f = open(path, "rb")
+                except OSError:
+                    handler.send_error(404)
+                    return
+                with f:
+                    handler.send_response(200)
+                    handler.send_header("Content-Type", "application/octet-stream")
+                    handler.send_header("Content-Length", str(os.fstat(f.fileno()).st_size))
+                    handler.send_header("Access-Control-Allow-Origin", self.origin)
+                    handler.end_headers()
+                    with contextlib.suppress(ConnectionError):
+                        shutil.copyfileobj(f, handler.wfile)
+
+            def log_message(handler, *args):  # noqa: N805
+                pass
+
+        try:
+            self.httpd = http.server.ThreadingHTTPServer((HOST, port), Handler)
+        except OSError as err:
+            raise MassvizError(f"cannot serve the file on {HOST}:{port} ({err.strerror or err})", path) from None
+        self.httpd.daemon_threads = True
+        self.port = int(self.httpd.server_address[1])
+        self.url = f"http://{HOST}:{self.port}/{name}"
+        self._thread = threading.Thread(target=self.httpd.serve_forever, kwargs={"poll_interval": 1.0},
+                                        name="massviz-view-file", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self.httpd.shutdown()
+        self.httpd.server_close()
+        self._thread.join(5)
+
+
+def view(path: str | Path, *, port: int = 0, web_port: int = 0, out=None, ready=None) -> int:
+    """``massviz view``: serve one .rrd to a browser from this machine (no display needed): the file from a small
+    HTTP server and Rerun's web viewer (its own binary, ``WebViewer``), both on 127.0.0.1, until Ctrl-C or SIGTERM;
+    prints the page to open. ``ready(page_url)`` (tests) is called once both are up."""
+    out = out or sys.stdout
+    path = check_rrd(path)
+
+    def start(stack: contextlib.ExitStack):
+        files = FileServer(path, port)
+        stack.callback(files.close)
+        viewer = WebViewer(files.url, web_port)
+        stack.callback(viewer.stop)
+        page = urllib.parse.urlsplit(viewer.url)
+        files.origin = f"{page.scheme}://{page.netloc}"  # only the viewer's page may read the file
+        print(f"massviz view: {path}\n"
+              f"  open in a browser: {viewer.url}\n"
+              f"  from another machine: ssh -L {page.port}:127.0.0.1:{page.port} -L {files.port}:127.0.0.1:"
+              f"{files.port} THIS_HOST, then the same URL there\n"
+              "  Ctrl-C stops the viewer", file=out, flush=True)
+        if ready is not None:
+            ready(viewer.url)
+        return viewer
+
+    return _run_until_stopped("view", start)
+
+
+__all__ = ["Catalog", "open_catalog", "catalog", "WebViewer", "serve", "check_rrd", "FileServer", "view", "HOST"]

@@ -21,8 +21,10 @@ class LiveStream:
     librealsense's threads as it arrives (the sink must not block: it keeps the newest); ``frame(c, d, index)``
     turns a pair into a massviz ``Frame`` (align, copy, mm)."""
 
-    def __init__(self, reader: DeviceReader, description: str, on_stop=None, recording=None):
+    def __init__(self, reader: DeviceReader, description: str, on_stop=None, recording=None, option: str = ""):
         self.reader, self.description, self._on_stop = reader, description, on_stop
+        #: the command-line option that chose this source (e.g. ``--camera 123456789012``), named in its errors
+        self.option = option
         #: a file's ``RealSenseRecording`` (opened and checked once, before its real-time playback); None otherwise
         self.recording = recording
 

@@ -3,7 +3,6 @@ through a ``software_device`` and librealsense's ``recorder``."""
 from __future__ import annotations
 
 import contextlib
-import time
 from pathlib import Path
 
 import numpy as np
@@ -95,13 +94,15 @@ class SoftwareRig:
             sensor.on_video_frame(f)
 
 
-def write_realsense(recording: Recording, path: str | Path, *, pace: bool = False, depth_units: float = 0.001,
+def write_realsense(recording: Recording, path: str | Path, *, pace: bool = True, depth_units: float = 0.001,
                     progress: bool = False) -> Path:
     """Write ``recording`` as a RealSense ``.db3`` through librealsense's ``recorder`` (depth z16 with the
     ``depth_units`` option, colour rgb8, the recording's intrinsics on both stream profiles, frame numbers
-    0..n-1, timestamps index/fps ms). ``pace``: push frames at the recording's fps, so that real-time playback
-    takes the recording's duration (the file's clock is the wall clock of recording). Written to a temporary name
-    and renamed, so nothing is left half-written."""
+    0..n-1, timestamps index/fps ms). ``pace`` (default): the file plays back like a camera, at the recording's fps
+    (``pace_messages``: the recorder stamps each message with the wall clock of writing, so a file written as fast
+    as frames can be pushed would play back in a burst: ``massviz live --file`` would process a few frames and drop
+    the rest); ``pace=False`` keeps the recorder's stamps. Written to a temporary name and renamed, so nothing is
+    left half-written."""
     from massviz.io.atomic import atomic_path
 
     rs = import_rs()
@@ -116,10 +117,29 @@ def write_realsense(recording: Recording, path: str | Path, *, pace: bool = Fals
     with atomic_path(path) as tmp:
         rig = SoftwareRig(rs, recording.intrinsics, fps, depth_units)
         with rig.record(tmp):
-            t0 = time.perf_counter()
             for i, frame in enumerate(recording.frames()):
-                if pace:
-                    time.sleep(max(0.0, t0 + i / fps - time.perf_counter()))
                 rig.push(frame, i, i * 1000.0 / fps)
+        if pace:
+            pace_messages(tmp, fps)
     return path
 
+
+def pace_messages(path: str | Path, fps: float) -> None:
+    """Re-stamp the per-frame messages (``.../image/...`` topics) of a ``.db3`` so that frame k is stamped k / fps
+    seconds after frame 0 (the messages of one frame keep their order and spacing): librealsense's real-time
+    playback waits on these stamps, so the file then plays like a camera at ``fps``."""
+    import sqlite3
+
+    period_ns = 1e9 / fps
+    with contextlib.closing(sqlite3.connect(str(path))) as db:
+        topics = [t for (t,) in db.execute("SELECT id FROM topics WHERE name LIKE '%/image/%'")]
+        per_topic = [db.execute("SELECT id, timestamp FROM messages WHERE topic_id = ? ORDER BY timestamp, id",
+                                (t,)).fetchall() for t in topics]
+        n = min((len(m) for m in per_topic), default=0)
+        if n == 0:
+            return
+        start = [min(m[k][1] for m in per_topic) for k in range(n)]  # when the recorder got frame k's first message
+        db.executemany("UPDATE messages SET timestamp = ? WHERE id = ?",
+                       [(start[0] + round(k * period_ns) + ts - start[k], mid)
+                        for m in per_topic for k, (mid, ts) in enumerate(m[:n])])
+        db.commit()

@@ -233,10 +233,11 @@ def log_masks(rec: rr.RecordingStream, dets: Detections, idx: list[int], class_i
 
 
 # ------------------------------------------------------------------------------------------------------- patches
-def log_patch(rec: rr.RecordingStream, rank: int, dets: Detections, i: int, patch: np.ndarray, flag=None) -> None:
-    """``/patches/<rank>`` at its source frame: the model's input image and the numbers that went with it, and
-    ``/patches/<rank>/outline`` around it in the chosen colour, or the flagged colour with why (``flag``, a
-    ``massviz.core.flags.PatchFlag``)."""
+def log_patch(rec: rr.RecordingStream, rank: int, dets: Detections, i: int, patch: np.ndarray, flag=None,
+              static: bool = False) -> None:
+    """``/patches/<rank>`` at the stream's time (or ``static``): the model's input image and the numbers that went
+    with it, and ``/patches/<rank>/outline`` around it in the chosen colour, or the flagged colour with why (``flag``,
+    a ``massviz.core.flags.PatchFlag``)."""
     image = model_view(patch)
     flagged = flag is not None and flag.flagged
     rec.log(f"/patches/{rank}", rr.EncodedImage(contents=jpeg_bytes(image, PATCH_JPEG_QUALITY, f"patch {rank}"),
@@ -244,12 +245,13 @@ def log_patch(rec: rr.RecordingStream, rank: int, dets: Detections, i: int, patc
             rr.AnyValues(
         a=float(dets.a[i]), b=float(dets.b[i]), d_mm=float(dets.d[i]), frame=int(dets.frame[i]),
         class_name=class_name(dets.class_id[i]), score=float(dets.score[i]), pred_g=float(dets.pred[i]),
-        detection=int(i), track=int(dets.track[i]), flagged=bool(flagged), flag="" if not flagged else flag.reason))
+        detection=int(i), track=int(dets.track[i]), flagged=bool(flagged), flag="" if not flagged else flag.reason),
+            static=static)
     h, w = image.shape[:2]
     label = f"★{rank} ⚑ flagged: {short_reason(flag)}" if flagged else f"★{rank}"
     rec.log(f"/patches/{rank}/outline", rr.Boxes2D(
         array=[[0.5, 0.5, w - 0.5, h - 0.5]], array_format=rr.Box2DFormat.XYXY, labels=[label],
-        colors=[rgb255(FLAGGED_COLOUR if flagged else CHOSEN_COLOUR)], radii=[2.0 if flagged else 1.0]))
+        colors=[rgb255(FLAGGED_COLOUR if flagged else CHOSEN_COLOUR)], radii=[2.0 if flagged else 1.0]), static=static)
 
 
 class PatchTiles:

@@ -17,7 +17,8 @@ and on ``capture_time`` (seconds since the first frame, from the camera's timest
   massviz's own work beyond detect and predict);
 - ``/log``: skipped detections, changes of the K nearest, dropped frames.
 
-``close(trace, ...)`` logs what only the end knows: ``/predictions/patch_<rank>``, ``/predictions/estimate`` (as
+``close(trace, ...)`` logs what only the end knows: the flags (at the last processed frame, each flagged patch's tile
+again with its flag and the flag warnings in ``/log``), ``/predictions/patch_<rank>``, ``/predictions/estimate`` (as
 ``massviz log`` does), ``/summary`` and ``/timings``. This module reads results only; it runs no stage.
 """
 from __future__ import annotations
@@ -31,10 +32,10 @@ from massviz.core.trace import Trace, describe_detection
 from massviz.core.types import Intrinsics
 from massviz.errors import MassvizError
 from massviz.views.rerun.blueprint import default_blueprint
-from massviz.views.rerun.entities import (MAX_POINTS, POINT_STEP, RUNNING_COLOUR, detection_class_ids, frustum_depth,
-                                          jpeg_bytes, log_annotation_context, log_depth, log_detections, log_masks,
-                                          PatchTiles, log_pinhole, log_points, log_predictions, log_summary,
-                                          log_timings, summary_markdown, text_log)
+from massviz.views.rerun.entities import (MAX_POINTS, POINT_STEP, RUNNING_COLOUR, PatchTiles, detection_class_ids,
+                                          frustum_depth, jpeg_bytes, log_annotation_context, log_depth, log_detections,
+                                          log_flags, log_masks, log_patch, log_pinhole, log_points, log_predictions,
+                                          log_summary, log_timings, summary_markdown, text_log)
 from massviz.views.rerun.output import Output
 
 
@@ -54,8 +55,8 @@ class LiveLogger:
         self.rec = self.out.stream
         try:  # an error or a signal from here on: nothing is left at the .rrd path
             self.rec.send_recording_name(f"massviz live {name}")
-            size = None if intrinsics is None else (int(intrinsics.width), int(intrinsics.height))
-            self.rec.send_blueprint(default_blueprint(k, has_3d=intrinsics is not None, image_size=size),
+            self._size = None if intrinsics is None else (int(intrinsics.width), int(intrinsics.height))
+            self.rec.send_blueprint(default_blueprint(k, has_3d=intrinsics is not None, image_size=self._size),
                                     make_active=True, make_default=True)
             log_annotation_context(self.rec, k)
             self.rec.log("/predictions/running_estimate", rr.SeriesLines(
@@ -128,6 +129,7 @@ class LiveLogger:
         renamed into place only here, so an aborted session leaves no half-written file."""
         try:
             if trace is not None:
+                self._log_final_flags(trace)
                 self.rec.reset_time()
                 log_predictions(self.rec, trace)
                 if summary:
@@ -141,6 +143,28 @@ class LiveLogger:
             self._finish(err)
             raise
         self._finish(None if trace is not None else MassvizError("session aborted"))
+
+    def _log_final_flags(self, trace: Trace) -> None:
+        """The flags are known when the session ends (they need its last frames): at the last processed frame, each
+        tile of a flagged patch is logged again with its flag (outline and label in the flagged colour, ``flagged``
+        true) and ``/log`` gets the flag warnings, as ``massviz log`` shows them."""
+        if not trace.flags.flagged or not len(trace.frames):
+            return
+        self.rec.set_time("frame", sequence=int(trace.frames[-1]))
+        dets = trace.detections
+        for rank, i in enumerate(trace.selection):
+            flag = trace.flags.of(int(i))
+            if flag is None or not flag.flagged:
+                continue
+            held = self._held.get(int(i))
+            patch = dets.patches[int(i)] if dets.patches[int(i)] is not None else (held[2] if held else None)
+            if patch is not None and patch.size:
+                log_patch(self.rec, rank, dets, int(i), patch, flag)
+        log_flags(self.rec, trace)
+        # the layout's tile titles say it too ("★0 ⚑ flagged"), as in massviz log's layout
+        self.rec.send_blueprint(default_blueprint(self.k, has_3d=self.intrinsics is not None, image_size=self._size,
+                                                  flagged=[p.rank for p in trace.flags.flagged]),
+                                make_active=True, make_default=True)
 
     def abort(self, err: BaseException) -> None:
         """End without finishing: nothing is left at the .rrd path."""

@@ -81,7 +81,7 @@ class Output:
                 raise MassvizError(f"cannot write {what} ({err}; is the disk full?)", self.rrd) from None
             where = "the spawned Rerun viewer" if self.spawn else "Rerun"
             raise MassvizError(f"could not deliver {what} to {where} ({err}); without a display, log to a file "
-                               "(--rrd FILE.rrd) and open it elsewhere with 'rerun FILE.rrd'") from None
+                               "(--rrd FILE.rrd) and open it in a browser with 'massviz view FILE.rrd'") from None
 
     def close(self, err: BaseException | None = None) -> None:
         """Disconnect an own stream; with ``err`` None rename the .rrd into place (a ``MassvizError`` when Rerun wrote
