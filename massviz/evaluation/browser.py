@@ -68,16 +68,24 @@ def recording_properties(trace: Trace, *, source: str = "", view: int = 0, n_inp
              "weights_id": trace.weights_id or "", "view": int(view), "source": source or trace.recording.path,
              "frames": len(trace.frames), "detections": len(trace.detections), "best_frame": best_frame(trace),
              "estimated": est >= 0, "input_bytes": int(n_input_bytes), "kind": kind}
-    # rounded as shown (a table of 15-digit numbers is unreadable): grams to 0.01 g, ratios to 4 decimals
     if est >= 0:
-        props["estimate_g"] = round(est, 2)
+        props["estimate_g"] = est
     if true is not None and true > 0:
-        props["gt_mass_g"] = round(float(true), 2)
-        props["score"] = round(math.exp(-abs(est - true) / true), 4) if est >= 0 else 0.0
+        props["gt_mass_g"] = float(true)
+        props["score"] = math.exp(-abs(est - true) / true) if est >= 0 else 0.0
         if est >= 0:
-            props["rel_error"] = round(abs(est - true) / true, 4)
-    props["threshold"] = round(props["threshold"], 4)
+            props["rel_error"] = abs(est - true) / true
     return props
+
+
+def rounded_properties(props: dict) -> dict:
+    """``props`` rounded as a table shows them (15-digit numbers are unreadable): grams to 0.01 g, ratios and the
+    threshold to 4 decimals. For what is displayed (the catalog's properties); the tables keep full precision."""
+    out = dict(props)
+    for key, digits in (("estimate_g", 2), ("gt_mass_g", 2), ("score", 4), ("rel_error", 4), ("threshold", 4)):
+        if isinstance(out.get(key), float):
+            out[key] = round(out[key], digits)
+    return out
 
 
 def patch_rows(trace: Trace) -> list[dict]:
@@ -264,7 +272,7 @@ def tagged_rows(patches: pd.DataFrame, keys: Iterable[tuple[str, int]]) -> pd.Da
     return patches[[(str(r), int(k)) in keys for r, k in zip(patches["recording"], patches["rank"])]]
 
 
-__all__ = ["PATCH_COLUMNS", "SUMMARY_COLUMNS", "best_frame", "flag_cues", "recording_properties", "patch_rows",
+__all__ = ["PATCH_COLUMNS", "SUMMARY_COLUMNS", "best_frame", "flag_cues", "recording_properties", "rounded_properties", "patch_rows",
            "recordings_table", "tables_from_traces", "read_dataset", "ranked", "per_class", "filter_patches",
            "cues_of", "patch_exclusions", "pandas_summary", "catalog_summary", "flagged_from_catalog",
            "compare_summaries", "tagged_rows"]

@@ -36,7 +36,7 @@ import rerun.blueprint as rrb
 from massviz.core.patches import crop
 from massviz.core.trace import Trace
 from massviz.evaluation.browser import INDEX_NAME, PATCH_COLUMNS as _PATCH_COLUMNS, PATCHES_NAME, best_frame, \
-    patch_rows, recording_properties, recordings_table
+    patch_rows, recording_properties, recordings_table, rounded_properties
 from massviz.io.atomic import atomic_path
 from massviz.io.untrusted import safe_filename
 from massviz.views import rerun_log as rl
@@ -216,7 +216,7 @@ def write_recording(trace: Trace, recording, out_dir: str | Path, *, full: bool 
         stream.save(tmp)
         try:
             stream.send_recording_name(f"massviz {trace.recording.id}")
-            send_properties(stream, props)
+            send_properties(stream, rounded_properties(props))
             if full:
                 rl.log_trace(trace, recording, stream=stream, video=video)
                 log_thumbnail(stream, rgb_best)

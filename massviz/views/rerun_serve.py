@@ -300,7 +300,8 @@ class FileServer:
                 with f:
                     handler.send_response(200)
                     handler.send_header("Content-Type", "application/octet-stream")
-                    handler.send_header("Content-Length", str(os.fstat(f.fileno()).st_size))
+                    handler.send_header("Content-Length", str(f.seek(0, os.SEEK_END)))
+                    f.seek(0)
                     handler.send_header("Access-Control-Allow-Origin", self.origin)
                     handler.end_headers()
                     with contextlib.suppress(ConnectionError):
