@@ -268,7 +268,6 @@ def expected_views(rec, trace):
     """What the viewer shows at its start (the last processed frame): that frame's RGB, the chosen boxes' colours
     there, and every chosen patch as the model saw it (BGR)."""
     from massviz.core.patches import crop, model_view
-    from massviz.views import rerun_log
 
     last = int(trace.frames[-1])
     frame = rec.read_frame(last)
@@ -419,7 +418,7 @@ def test_live_tiles_show_the_flag_in_the_browser(browser, rs_module, tmp_path_fa
     from massviz.io.realsense import write_realsense
     from massviz.io.recording import open_recording
     from massviz.views.palette import CHOSEN_COLOUR, FLAGGED_COLOUR, rgb255
-    from massviz.views.rerun.rrd_reader import rrd_rows
+    from rrd_reader import rrd_rows
 
     sample = open_recording(ROOT / "data_samples" / "cup_handover")
     frames = list(sample.frames(indices=range(18, 30)))

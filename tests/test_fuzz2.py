@@ -917,7 +917,7 @@ def live_signal_case(sig: int, outputs: str, when: str) -> Callable[[Path, Base,
 
         def complete(case: Case, run: Run) -> None:
             from massviz.io.recording import open_recording
-            from massviz.views.rerun_log import rrd_entities
+            from rrd_reader import rrd_entities
 
             how = "" if sig == signal.SIGINT else f" ({name})"
             assert f"stopped: interrupted{how}\n" in run.stderr, f"{case.name}: not ended by the signal: {run.stderr}"

@@ -188,7 +188,7 @@ def summary_line(stderr: str, name: str) -> str:
 def test_live_file_in_real_time(rs, played_db3, played, depth_detector, tmp_path, capsys):
     from massviz.commands.live import run_session
     from massviz.io.realsense import open_file_stream
-    from massviz.views.rerun_log import rrd_entities
+    from rrd_reader import rrd_entities
 
     p = pipeline(depth_detector, tmp_path)
     args = session_args(file=str(played_db3), rrd=str(tmp_path / "live.rrd"), save=str(tmp_path / "rec"))
@@ -216,7 +216,7 @@ def test_live_file_in_real_time(rs, played_db3, played, depth_detector, tmp_path
 def test_live_software_camera_stand_in(rs, played, depth_detector, tmp_path, capsys):
     from massviz.commands.live import run_session
     from massviz.io.realsense import SoftwareCamera, open_device_stream
-    from massviz.views.rerun_log import rrd_entities
+    from rrd_reader import rrd_entities
 
     rec = open_recording(played)
     cam = SoftwareCamera(list(rec.frames()), rec.intrinsics, fps=10)
@@ -243,7 +243,7 @@ def test_slow_detector_drops_frames_counts_them_and_memory_stays_flat(rs, depth_
     and resident memory does not grow with the frames that arrived (a queue would hold ~1.5 MB per frame)."""
     from massviz.io.realsense import SoftwareCamera, open_device_stream
     from massviz.runners.live import run_live
-    from massviz.views.rerun_live import LiveLogger
+    from massviz.views.rerun.live import LiveLogger
 
     sample = open_recording(SAMPLE)
     i = sample.intrinsics
@@ -267,7 +267,7 @@ def test_slow_detector_drops_frames_counts_them_and_memory_stays_flat(rs, depth_
     growth = s.rss_mb[-1] - s.rss_mb[2]
     queued = (s.dropped * 640 * 480 * 5) / 2**20  # what holding the dropped frames would have cost
     assert growth < max(25.0, 0.1 * queued), (growth, queued, s.rss_mb)
-    from massviz.views.rerun_log import rrd_entities
+    from rrd_reader import rrd_entities
 
     assert "/log" in rrd_entities(tmp_path / "slow.rrd")
 
@@ -357,7 +357,7 @@ def test_ctrl_c_ends_the_session_cleanly(rs, played, depth_detector, tmp_path):
 
     from massviz.io.realsense import SoftwareCamera, open_device_stream
     from massviz.runners.live import run_live
-    from massviz.views.rerun_live import LiveLogger
+    from massviz.views.rerun.live import LiveLogger
 
     rec = open_recording(played)
     cam = SoftwareCamera(list(rec.frames()), rec.intrinsics, fps=15, loops=100)

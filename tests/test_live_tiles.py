@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from massviz.io.recording import open_recording
-from massviz.views.rerun.rrd_reader import rrd_rows
+from rrd_reader import rrd_rows
 from test_live import depth_detector, played, played_db3, rs, session_args  # noqa: F401 - fixtures
 from test_live import pipeline as live_pipeline
 

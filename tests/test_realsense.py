@@ -251,7 +251,7 @@ def test_estimate_on_db3_equals_the_sample_folder(weights, cup_db3, tmp_path):
     r = massviz("log", cup_db3, "--detector", "depth", "--weights", weights, "--quiet", "--stride", 3,
                 "--cache", tmp_path / "cache", "--rrd", rrd)
     assert r.returncode == 0, r.stderr
-    from massviz.views.rerun_log import rrd_entities
+    from rrd_reader import rrd_entities
 
     assert {"/camera/rgb", "/camera/depth", "/camera/detections", "/predictions/running_estimate",
             "/latency/detect"} <= rrd_entities(rrd)

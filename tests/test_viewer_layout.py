@@ -15,7 +15,7 @@ from massviz.core.pipeline import run
 from massviz.detect import make_detector
 from massviz.io.recording import open_recording
 from massviz.views.rerun import log_trace
-from massviz.views.rerun.rrd_reader import rrd_rows
+from rrd_reader import rrd_rows
 from test_selection import DistanceModel
 
 ROOT = Path(__file__).resolve().parents[1]
