@@ -68,7 +68,7 @@ class StandInModel:
 def session(frames, intr, *, seconds: float, points: bool, detector, model, out: Path) -> dict:
     from massviz.core.pipeline import FramePipeline
     from massviz.core.types import RecordingInfo
-    from massviz.io.realsense import SoftwareCamera, open_device_stream
+    from massviz.io.formats.realsense_live import SoftwareCamera, open_device_stream
     from massviz.runners.live import run_live
     from massviz.views.rerun.live import LiveLogger
 

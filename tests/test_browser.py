@@ -415,7 +415,7 @@ def test_live_tiles_show_the_flag_in_the_browser(browser, rs_module, tmp_path_fa
     from test_live_tiles import flagged_session
     from test_recording import write_recording
 
-    from massviz.io.realsense import write_realsense
+    from massviz.io.formats.realsense_write import write_realsense
     from massviz.io.recording import open_recording
     from massviz.views.palette import CHOSEN_COLOUR, FLAGGED_COLOUR, rgb255
     from rrd_reader import rrd_rows

@@ -869,7 +869,7 @@ def live_db3(tmp_path_factory) -> Path:
     need_realsense()
     from test_recording import write_recording
 
-    from massviz.io.realsense import write_realsense
+    from massviz.io.formats.realsense_write import write_realsense
     from massviz.io.recording import open_recording
 
     sample = open_recording(ROOT / "data_samples" / "cup_handover")

@@ -180,7 +180,7 @@ def test_live_summary_says_how_many_of_k(samples_dir, shared_dir, tmp_path):
     need_realsense()
     from test_recording import write_recording
 
-    from massviz.io.realsense import write_realsense
+    from massviz.io.formats.realsense_write import write_realsense
     from massviz.io.recording import open_recording
 
     sample = open_recording(samples_dir / "cup_handover")
