@@ -48,7 +48,7 @@ _API = {
     "show_in_notebook": "massviz.runners.replay",
     "default_blueprint": "massviz.views.rerun",
     "score": "massviz.evaluation.metrics",
-    "read_annotations": "massviz.evaluation.metrics",
+    "read_annotations": "massviz.io.ccm_annotations",
     "read_predictions": "massviz.evaluation.metrics",
     "sweep": "massviz.evaluation.sweep",
     "MassvizError": "massviz.errors",

@@ -368,6 +368,34 @@ def test_one_selection_one_score_formula_one_ground_truth_reader():
     assert files_with('get("container")') == ["core/types.py", "io/meta.py"]
 
 
+#: the CCM annotation CSV's columns: only its one reader (massviz/io/ccm_annotations.py) names them
+CCM_COLUMNS = {"id", "container id", "container mass", "width at the top", "width at the bottom", "height", "depth",
+               "container capacity"}
+
+
+def files_naming(strings, files) -> dict[str, list[str]]:
+    """{file: the ``strings`` it has as string constants (not counting docstrings)}, for the files that have some."""
+    out = {}
+    for p in files:
+        tree = ast.parse(p.read_text(), filename=str(p))
+        docs = {id(n.body[0].value) for n in ast.walk(tree) if isinstance(n, (ast.Module, ast.FunctionDef,
+                ast.ClassDef, ast.AsyncFunctionDef)) and n.body and isinstance(n.body[0], ast.Expr)}
+        found = sorted({n.value for n in ast.walk(tree) if isinstance(n, ast.Constant) and n.value in strings
+                        and id(n) not in docs})
+        if found:
+            out[str(p.relative_to(PKG)) if PKG in p.parents else p.name] = found
+    return out
+
+
+def test_one_ccm_annotation_reader(tmp_path):
+    # "height" and "id" are also other things' names: the columns that only an annotation file has are checked
+    only_ccm = CCM_COLUMNS - {"id", "height", "depth"}
+    assert files_naming(only_ccm, FILES) == {"io/ccm_annotations.py": sorted(only_ccm)}
+    bad = tmp_path / "bad.py"
+    bad.write_text('"""reads \'container mass\'"""\ndef f(row):\n    return row["container mass"], row["width at the top"]\n')
+    assert files_naming(only_ccm, [bad]) == {"bad.py": ["container mass", "width at the top"]}  # not the docstring
+
+
 def test_help_start_up_loads_no_heavy_library():
     # `massviz --help` (and `import massviz`) must not load torch, open3d, pandas or rerun: commands import them
     # when they run

@@ -1118,7 +1118,8 @@ def _library_calls(work: Path, b: Base):
     """(what, callable) on the same hostile fixtures through the API."""
     import massviz as mv
     from massviz.evaluation.failures import load_exclusions
-    from massviz.evaluation.metrics import parse_class_map, read_annotations, read_predictions
+    from massviz.evaluation.metrics import parse_class_map, read_predictions
+    from massviz.io.ccm_annotations import read_annotations
     from massviz.io.checkpoint import load_checkpoint
     from massviz.io.trace_file import load_trace
 

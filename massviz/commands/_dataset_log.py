@@ -56,7 +56,8 @@ def run_rrd_dir(args) -> int:
                                "is one segment, named by its id", rec.path)
     truths = {}
     if args.annotations:
-        from massviz.evaluation.metrics import default_class_of, read_annotations
+        from massviz.evaluation.metrics import default_class_of
+        from massviz.io.ccm_annotations import read_annotations
         from massviz.io.patch_set import annotation_for
 
         table = read_annotations(args.annotations)

@@ -75,7 +75,7 @@ def run(args) -> int:
     est = "not estimated" if trace.estimate < 0 else f"{trace.estimate:.1f} g"
     gt = ground_truth_size(rec.meta)
     if args.annotations:
-        from massviz.evaluation.metrics import read_annotations
+        from massviz.io.ccm_annotations import read_annotations
 
         gt = annotation_size(read_annotations(args.annotations), rec.config_id) or gt
     frames = [int(f) for f in trace.frames] if args.all_frames else None

@@ -38,6 +38,7 @@ in one line.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,6 +46,7 @@ from massviz._open3d import o3d
 
 from massviz.core.measurement import Measurement
 from massviz.core.types import Detections, Frame, GroundTruth, Intrinsics
+from massviz.io.ccm_annotations import annotation_of
 from massviz.measure.settings import BAND_M, DEPTH_TRUNC_M, require_intrinsics, skip_reason
 
 #: ``remove_statistical_outlier`` settings: neighbours, standard-deviation ratio.
@@ -240,14 +242,17 @@ def ground_truth_size(meta: dict | None) -> dict | None:
 
 
 def annotation_size(annotations, config_id) -> dict | None:
-    """A CCM annotation row (``massviz.evaluation.metrics.read_annotations`` frame) as ``ground_truth_size`` input."""
-    rows = annotations[annotations["id"].astype(str) == str(config_id)]
-    if rows.empty:
+    """The annotated size (``ground_truth_size``) of recording ``config_id`` in a CCM annotation table
+    (``massviz.io.ccm_annotations.read_annotations``), or None when it has no row (or no integer id)."""
+    try:
+        row = annotation_of(annotations, int(config_id))
+    except (TypeError, ValueError):
         return None
-    r = rows.iloc[0]
-    return ground_truth_size({"container": {"width_top_mm": r["width at the top"],
-                                            "width_bottom_mm": r["width at the bottom"], "height_mm": r["height"],
-                                            "depth_mm": r.get("depth", -1)}})
+    if row is None:
+        return None
+    return ground_truth_size({"container": {"width_top_mm": row.width_top_mm, "width_bottom_mm": row.width_bottom_mm,
+                                            "height_mm": row.height_mm,
+                                            "depth_mm": -1 if math.isnan(row.depth_mm) else row.depth_mm}})
 
 
 def compare(m: Measurement, gt: dict | None) -> dict:
