@@ -176,17 +176,8 @@ def import_circles(graph) -> list[list[str]]:
     return sorted(out)
 
 
-#: circles another branch of this wave removes (issue 19: one module per format, i19b); each entry must still exist
-#: (test_known_circles_still_exist), so it is deleted here when the circle goes.
-KNOWN_CIRCLES: list = []
-
-
 def test_no_import_circle():
-    assert [c for c in import_circles(GRAPH) if c not in KNOWN_CIRCLES] == []
-
-
-def test_known_circles_still_exist():
-    assert [c for c in KNOWN_CIRCLES if c not in import_circles(GRAPH)] == [], "delete it from KNOWN_CIRCLES"
+    assert import_circles(GRAPH) == []
 
 
 #: calls that read or write files: plain names, and attribute names on any object (``cv2.imread``, ``np.load``,

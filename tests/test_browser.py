@@ -316,7 +316,7 @@ def check_viewer(image: np.ndarray, frame: np.ndarray, colours, patches) -> dict
     # the 3D view is the right half of the row below the RGB view (default_blueprint)
     region = image[int(y2 + 0.2 * h):int(y2 + 0.7 * h), int(x1 + 0.55 * w):int(x2 - 0.05 * w)]
     out["3d_coloured"] = round(saturated_fraction(region), 3)
-    # a blank view has ~0 %; since the 3D view starts oblique and backed off (issue 22 item 7) the cloud covers less
+    # a blank view has ~0 %; the 3D view starts oblique and backed off, so the cloud covers a small part
     # of it (8 % in the notebook's 640-pixel-high inline viewer, where the region also takes in the time panel)
     if out["3d_coloured"] < 0.04:
         out["failures"].append(f"the 3D view is blank ({out['3d_coloured']:.0%} coloured pixels)")
@@ -385,7 +385,7 @@ def test_rerun_web_viewer_shows_the_demo_recording(browser, demo_rrd, cup, tmp_p
     assert not [p for p in tree if p.is_running() and p.status() != psutil.STATUS_ZOMBIE], tree
     print("rerun web viewer:", result)
     assert not result["failures"], f"{result} (see {ARTIFACTS / 'rerun_web_viewer.png'})"
-    # the 2D view fits the whole image (issue 20: its right edge was cropped): the frame's right-most tenth is found
+    # the 2D view fits the whole image (its right edge is not cropped): the frame's right-most tenth is found
     # at the right end of where the whole frame is found, at the same scale
     image = cv2.imread(str(ARTIFACTS / "rerun_web_viewer.png"))
     frame = expected[0]

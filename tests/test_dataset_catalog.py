@@ -250,8 +250,8 @@ def test_browser_tables_rank_and_filter_the_dataset(rrd_dir):
     recordings, patches = B.read_dataset(out)
     ranked = B.ranked(recordings)
     cups = ranked[ranked["container_class"] == "cup"]
-    # cup_handover's error 5.38 > 618's (2.1 with the depth detector since it no longer picks the border-cut table
-    # corner, issue 20; was 1.07 from that corner)
+    # cup_handover's error 5.38 > 618's (2.1 with the depth detector, which does not pick the border-cut table
+    # corner)
     assert list(cups["id"]) == ["cup_handover", "618"] and list(cups["rank"]) == [1, 2]
     assert len(B.filter_patches(patches, recordings, flagged=True)) == int(recordings["n_flagged"].sum())
     worst = B.filter_patches(patches, recordings, min_error=3.0)

@@ -1,4 +1,4 @@
-"""Hostile inputs, second round (issue 23): numbers the JSON parser refuses, checkpoints that compute inf/NaN,
+"""Hostile inputs beyond test_fuzz.py's: numbers the JSON parser refuses, checkpoints that compute inf/NaN,
 outputs that are not regular files, a full disk, signals, terminal escapes, compression bombs, scores and tables,
 trace files from elsewhere, arguments.
 
@@ -40,10 +40,10 @@ from forkserver import ForkServer
 from test_fuzz import ANN_HEADER, ANN_ROWS, PRED_HEADER, PRED_ROWS, Base, base, copy_sample, csv_text  # noqa: F401
 
 ROOT = Path(__file__).resolve().parents[1]
-#: peak resident memory a hostile case may reach (python + torch + the pipeline on 3 frames: ~0.5-0.7 GB; the
-#: bombs of issue 23 reached 1.9-2.5 GB).
+#: peak resident memory a hostile case may reach (python + torch + the pipeline on 3 frames: ~0.5-0.7 GB; an
+#: unbounded compression bomb reaches 1.9-2.5 GB).
 MEM_BOUND_MB = 1200
-#: wall time a case may take (a hang was killed after 120 s in issue 23; a case takes 5-25 s on 2 busy cores).
+#: wall time a case may take (a case takes 5-25 s on 2 busy cores; a hang is killed at this bound).
 TIME_BOUND_S = 150
 #: a non-finite number as text: what must never appear in an output or on the terminal.
 NON_FINITE = re.compile(r"(?<![A-Za-z_])(nan|NaN|NAN|-?inf|-?Inf|-?Infinity)(?![A-Za-z_])")

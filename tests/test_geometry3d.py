@@ -131,7 +131,7 @@ def test_measured_box_axes_follow_a_turned_cuboid():
 @pytest.mark.parametrize("name", ["box_handover", "cup_handover", "glass_handover"])
 def test_sample_container_size_from_gt_mask(samples_dir, name):
     """Height and width of the container from its ground-truth mask's cloud, within 10 % of the annotation on the six
-    nearest frames where it is unoccluded (issue 5).
+    nearest frames where it is unoccluded.
 
     The hand holds the container from behind, so in the hand-over phase (the container nearest) no pixel of it is
     hidden. The width is compared with ``ground_truth_size``'s ``width_mm``, the larger of the top and bottom widths:
@@ -287,7 +287,7 @@ def test_cloud_without_intrinsics_says_so(tmp_path, ccm_replay, capsys):
     (tmp_path / "d.json").write_text(json.dumps({"detections": [{"frame": 0, "box": [22, 14, 42, 34]}]}))
     args = pipeline_args(tmp_path / "d.json")
     args[0] = str(rec)
-    assert main(["cloud", *args, "--out", str(tmp_path / "c")]) == 2  # issue 22: an error, not exit 0
+    assert main(["cloud", *args, "--out", str(tmp_path / "c")]) == 2  # an error, not exit 0
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "no camera intrinsics" in err and "nothing written" in err
     assert not (tmp_path / "c").exists()

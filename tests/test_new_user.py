@@ -1,4 +1,4 @@
-"""What a new user hit (issue 22): the figures' colours and labels (item 5) and the command line's messages (item 9).
+"""What a new user meets first: the figures' colours and labels and the command line's messages.
 
 The command-line tests run ``python -m massviz`` as a user would and check the exit code, the one error line and that
 nothing was written.

@@ -1,4 +1,4 @@
-"""One pass (issue 19): an uncached ``massviz log`` reads each RGB and depth file of the recording exactly once. The
+"""One pass: an uncached ``massviz log`` reads each RGB and depth file of the recording exactly once. The
 frames are logged as the pipeline processes them (its ``on_frame`` observer), from the bytes the reader read; the
 trace-dependent overlays afterwards read no frame. Opens are counted with an audit hook (``open`` events) in a
 subprocess; frame files are never read with ``cv2.imread`` (which raises no audit event), checked in the source.

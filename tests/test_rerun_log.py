@@ -344,7 +344,7 @@ def test_3d_view_starts_oblique_looking_into_the_scene():
     views = [v for v in _walk(bp.root_container) if isinstance(v, rrb.Spatial3DView)]
     assert len(views) == 1
     eye = views[0].properties["EyeControls3D"]
-    # oblique like `massviz render` (issue 22 item 7): tests/test_viewer_layout.py checks the angles
+    # oblique like `massviz render`: tests/test_viewer_layout.py checks the angles
     assert eye.position.as_arrow_array().to_pylist()[0][2] < 0 < eye.position.as_arrow_array().to_pylist()[0][0]
     np.testing.assert_allclose(eye.look_target.as_arrow_array().to_pylist(), [[0, 0, 1.2]], rtol=1e-6)
     np.testing.assert_allclose(eye.eye_up.as_arrow_array().to_pylist(), [[0, -1, 0]])
