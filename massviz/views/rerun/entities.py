@@ -473,13 +473,6 @@ def log_cloud_overlays(stream, trace: Trace, paths: dict[int, str], *, timeline:
                 rank=m.rank, height_mm=m.height_mm, width_mm=m.width_mm, depth_mm=m.depth_mm, n_points=m.n_points))
 
 
-def frame_detections(trace: Trace, frame_index: int) -> tuple[Detections, list[int]]:
-    """The detections of one frame above the trace's threshold (what gets a cloud) and their indices in the trace."""
-    dets = trace.detections
-    ids = [int(i) for i in np.flatnonzero((dets.frame == frame_index) & trace.active())]
-    return dets[ids], ids
-
-
 def log_frame_clouds(trace, frame_index: int, clouds: dict, stream, *, root: str = "world/detections",
                      voxel_m: float = 0.004, timeline: str = "frame") -> list[str]:
     """``log_detection_clouds`` of one frame's ``clouds`` and their ``log_cloud_overlays``; the stream's time
