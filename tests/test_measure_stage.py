@@ -90,6 +90,24 @@ def test_measurements_survive_the_trace_file(traced, tmp_path):
     assert load_trace(tmp_path / "t.npz").measurements == traced.measurements
 
 
+@pytest.mark.parametrize("damage", [lambda m: m.pop("R"), lambda m: m.update(height_mm="tall"),
+                                    lambda m: m.update(center=[0.0, 1.0]), lambda m: m.update(R=[["a"] * 3] * 3)])
+def test_a_trace_file_with_damaged_measurements_is_one_error_line(traced, tmp_path, damage):
+    import json
+
+    from massviz.errors import MassvizError
+
+    save_trace(traced, tmp_path / "t.npz")
+    data = dict(np.load(tmp_path / "t.npz"))
+    header = json.loads(data["header"].tobytes())
+    damage(header["measurements"][0])
+    data["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
+    np.savez_compressed(tmp_path / "bad.npz", **data)
+    with pytest.raises(MassvizError, match="measurements") as err:
+        load_trace(tmp_path / "bad.npz")
+    assert "\n" not in str(err.value) and "bad.npz" in str(err.value)
+
+
 def test_no_measurement_without_intrinsics_or_without_the_stage(cup):
     off = run(cup, make_detector("depth"), DistanceModel(), k=2, stride=6)
     assert off.measurements == [] and "measure3d" not in off.timings
