@@ -1,4 +1,4 @@
-"""What a new user sees opening the notebooks the README's way (issue 22, items 3 and 4), in Debian's Chromium.
+"""What a new user sees opening the notebooks the README's way, in Debian's Chromium.
 
 1. JupyterLab started with the README's command (read from README's "Notebooks" section, plus a free port on
    127.0.0.1, a random token and ``--allow-root``) opens notebook 01 with no "Build Recommended" dialog (dash's

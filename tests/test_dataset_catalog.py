@@ -108,7 +108,7 @@ def test_log_rrd_dir_writes_one_recording_per_input_with_properties(rrd_dir, dat
     # light: the frames are referenced, not copied: far smaller than the input, one JPEG frame in /camera/rgb
     for rid, row in index.iterrows():
         assert row["rrd_bytes"] < 0.5 * row["input_bytes"], (rid, row["rrd_bytes"], row["input_bytes"])
-    from massviz.views.rerun_log import rrd_contents
+    from rrd_reader import rrd_contents
 
     contents = rrd_contents(out / "618.rrd")
     assert {"/camera/detections", "/patches/0", "/predictions/estimate", "/source", "/thumbnail"} <= set(contents)
@@ -124,7 +124,7 @@ def test_light_recordings_read_well_in_the_catalog(rrd_dir):
     of frames 31/35 were empty), and a predictions plot without the legend that covered it."""
     import rerun.blueprint as rrb
 
-    from massviz.views.rerun.rrd_reader import rrd_rows
+    from rrd_reader import rrd_rows
     from massviz.views.rerun_dataset import light_blueprint
 
     out, _ = rrd_dir
@@ -250,8 +250,8 @@ def test_browser_tables_rank_and_filter_the_dataset(rrd_dir):
     recordings, patches = B.read_dataset(out)
     ranked = B.ranked(recordings)
     cups = ranked[ranked["container_class"] == "cup"]
-    # cup_handover's error 5.38 > 618's (2.1 with the depth detector since it no longer picks the border-cut table
-    # corner, issue 20; was 1.07 from that corner)
+    # cup_handover's error 5.38 > 618's (2.1 with the depth detector, which does not pick the border-cut table
+    # corner)
     assert list(cups["id"]) == ["cup_handover", "618"] and list(cups["rank"]) == [1, 2]
     assert len(B.filter_patches(patches, recordings, flagged=True)) == int(recordings["n_flagged"].sum())
     worst = B.filter_patches(patches, recordings, min_error=3.0)
@@ -270,7 +270,7 @@ def test_log_rrd_dir_full_logs_every_frame(samples_dir, cache, env, tmp_path):
     run = massviz("log", samples_dir / "cup_handover", "--detector", "depth", "--rrd-dir", out, "--full",
                   "--cache", cache, "--quiet", env=env)
     assert "wrote 1 full recording(s)" in run.stderr
-    from massviz.views.rerun_log import rrd_contents
+    from rrd_reader import rrd_contents
 
     contents = rrd_contents(out / "cup_handover.rrd")
     assert {"/camera/depth", "/camera/masks", "/camera/rgb", "/thumbnail"} <= set(contents)

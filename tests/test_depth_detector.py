@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from massviz.detect.base import Detector
+from massviz.core.detector import Detector
 from massviz.detect.depth import DepthDetector
 from massviz.core.types import OBJECT_CLASS_ID, Frame
 

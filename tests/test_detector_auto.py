@@ -1,4 +1,4 @@
-"""``--detector auto`` decides from local files only (issue 20 / 24): Mask R-CNN weights given or cached, else the
+"""``--detector auto`` decides from local files only: Mask R-CNN weights given or cached, else the
 NanoDet model given or cached, else depth; no connection is ever attempted, it returns at once, and it always says
 which detector it chose and why, ``--quiet`` or not."""
 from __future__ import annotations

@@ -296,7 +296,7 @@ def test_log_and_estimate_print_the_warning_and_the_rrd_shows_the_flags(weights,
     assert any("3 of 5 chosen patches look like another object" in line for line in warn)
     # /camera/detections: the flagged class ids (FLAGGED_ID + rank), the flagged colour and label
     from massviz.views.palette import FLAGGED_COLOUR, rgb255
-    from massviz.views.rerun_log import FLAGGED_ID
+    from massviz.views.rerun import FLAGGED_ID
 
     packed = str(int.from_bytes(bytes([*rgb255(FLAGGED_COLOUR), 255]), "big"))
     boxes = [line for line in out.splitlines() if "track 1 ★" in line]

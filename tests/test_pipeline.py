@@ -225,8 +225,8 @@ def test_cache_reuses_detections(rec, fast, tmp_path):
 
 def test_an_empty_box_is_kept_skipped_saved_and_served_from_the_cache(rec, fast, tmp_path):
     """A box less than a pixel wide or high, cut to integers (random-weight Mask R-CNN makes them), has no pixel: the
-    trace keeps it, skipped for having no depth, and its file loads back, so the cache serves it (it used to be
-    refused on loading, dropped, and the recording detected again on every run)."""
+    trace keeps it, skipped for having no depth, and its file loads back, so the cache serves it (a trace file refused
+    on loading would be dropped and the recording detected again on every run)."""
     dets = {0: [((7, 12, 7, 30), 0.95, None), ((5, 10, 30, 40), 0.9, None)], 1: [((40, 5, 60, 5), 0.8, None)]}
     cache = TraceCache(tmp_path / "cache")
     det = ListDetector(dets, threshold=0.4)

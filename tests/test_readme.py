@@ -1,4 +1,4 @@
-"""Every code block of README.md runs (issue 22, item 8). The test reads whatever blocks README has:
+"""Every code block of README.md runs. The test reads whatever blocks README has:
 
 * ``python`` blocks are executed, each in a fresh interpreter in a temporary folder holding ``data_samples`` (a link to
   the bundled samples), with ``$MASSVIZ_WEIGHTS`` pointing at the reference weights and the session's trace cache;

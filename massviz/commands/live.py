@@ -115,7 +115,7 @@ def run(args) -> int:
 
     from massviz.commands._common import build
     from massviz.errors import MassvizError
-    from massviz.io import realsense
+    from massviz.io.formats import realsense_decode, realsense_live
 
     if args.stride != 1:
         raise MassvizError("--stride does not apply to live mode (it processes the newest frame each time)")
@@ -135,13 +135,13 @@ def run(args) -> int:
         host, port = host_port(args.connect, "--connect")
         reach_grpc("--connect", args.connect, host, port, hint="start a viewer first (`rerun` listens on "
                    "rerun+http://127.0.0.1:9876/proxy), or use --serve-web or --rrd")
-    realsense.import_rs()
+    realsense_decode.import_rs()
     if args.file:
-        stream = realsense.open_file_stream(args.file)
+        stream = realsense_live.open_file_stream(args.file)
         name = Path(args.file).stem
         stream.option = f"--file {args.file}"
     else:
-        stream = realsense.open_camera(args.camera or None, args.width, args.height, args.fps)
+        stream = realsense_live.open_camera(args.camera or None, args.width, args.height, args.fps)
         serial = stream.info.device.get('serial', 'realsense')
         name = f"camera-{serial}"
         stream.option = f"--camera {args.camera or serial}"
@@ -174,7 +174,7 @@ def run_session(args, pipeline, stream, name: str) -> int:
                 connect = connect or web.grpc
                 print(f"massviz live: web viewer at {web.url}", file=sys.stderr)
             if args.rrd or args.spawn or connect:
-                from massviz.views.rerun_live import LiveLogger
+                from massviz.views.rerun.live import LiveLogger
 
                 logger = LiveLogger(name=name, k=fp.selection.k, threshold=fp.selection.threshold,
                                     intrinsics=info.intrinsics, rrd=args.rrd, spawn=args.spawn, connect=connect)

@@ -57,7 +57,8 @@ def run(args) -> int:
     from massviz.commands._runner import open_dataset, run_tasks
     from massviz.commands._warm import build_remembering
     from massviz.errors import MassvizError
-    from massviz.evaluation.metrics import default_class_of, parse_class_map, read_annotations
+    from massviz.evaluation.metrics import default_class_of, parse_class_map
+    from massviz.io.ccm_annotations import read_annotations
     from massviz.evaluation.sweep import MAX_SWEEP_PAIRS, parse_range
 
     thresholds = parse_range(args.threshold, float, "--threshold")

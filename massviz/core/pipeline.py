@@ -41,7 +41,7 @@ from massviz.core.detector import Detector
 from massviz.core.prefetch import Prefetcher
 from massviz.core.selection import Selection, estimate_mass, select_k_nearest
 from massviz.core.stage import FramePatches, FrameStage, StagedFrame, predictable
-from massviz.core.trace import Event, Trace, describe_detection, describe_selection, ranked_measurements
+from massviz.core.trace import Event, Trace, describe_detection, describe_selection
 from massviz.core.tracks import Tracker
 from massviz.core.types import Detections, Frame, RecordingInfo
 
@@ -118,17 +118,13 @@ class FramePipeline:
     shorthand for ``Selection(k, stride=stride)``). A selection without a threshold selects at the detector's own
     score cut; one below it is refused (those detections were never kept).
 
-    ``measure`` (recordings with intrinsics; off by default here, where live sessions step, on in ``run``): the
-    measure stage. As a detection enters the running K nearest, the RGB, depth and mask inside its box are kept
-    (``massviz.core.geometry.Crop``; dropped when it leaves the K nearest, so at most K are held); ``finish`` measures
-    the ones chosen at the end (``measure_crop``), so the trace's ``measurements`` hold the measured size of every
-    chosen detection without reading a frame again, and a detection that was overtaken is never measured (stage time
-    ``measure3d``, charged once, in ``finish``).
+    Measured sizes (point clouds, Open3D) are not a step of this pipeline: the optional measure stage
+    (``massviz.measure.stage.MeasureStage``) observes the steps' results and fills ``Trace.measurements``.
     """
 
     def __init__(self, detector: Detector, model, *, selection: Selection | None = None, k: int | None = None,
                  stride: int | None = None, recording: RecordingInfo | None = None,
-                 keep_patches: int = KEEP_PATCHES, measure: bool = False, stage: FrameStage | None = None):
+                 keep_patches: int = KEEP_PATCHES, stage: FrameStage | None = None):
         selection = resolve_selection(selection, k, stride)
         self.detect_threshold = float(detector.threshold)  # the detector's own cut, recorded in the trace
         if selection.threshold is None:
@@ -157,15 +153,6 @@ class FramePipeline:
         self._sel_pred = np.zeros(0)
         self._start = time.perf_counter()
         self._tracker = Tracker(recording.fps if recording is not None else None)
-        self._intrinsics = recording.intrinsics if (measure and recording is not None) else None
-        if self._intrinsics is not None:
-            try:  # the measure stage needs Open3D; a machine without it (e.g. a CUDA image) estimates without sizes
-                import massviz.core.geometry  # noqa: F401
-            except ImportError as err:
-                self._intrinsics = None
-                self.events.append(Event(-1, f"3D measurement skipped: Open3D cannot be imported ({err})",
-                                         "warning", "warn"))
-        self._crops: dict = {}  # global detection index -> geometry.Crop of a detection in the running K nearest
 
     @property
     def frames_done(self) -> int:
@@ -199,8 +186,6 @@ class FramePipeline:
         timings = {"read": staged.timings.get("read", read_seconds), "detect": staged.timings.get("detect", 0.0),
                    "features": staged.timings.get("features", 0.0) + t_track,
                    "predict": staged.timings.get("predict", 0.0), "select": t5 - t4}
-        if self._intrinsics is not None:
-            self._keep_crops(frame, dets, offset, selection)
         for name, seconds in timings.items():
             self._frame_timings[name].append(seconds)
             if name != "select":  # the whole recording's selection is timed in finish()
@@ -208,29 +193,6 @@ class FramePipeline:
         self.events.extend(events)
         return FrameResult(frame=frame, detections=dets, patches=patches, offset=offset, selection=selection,
                            running_estimate=running, timings=timings, events=events)
-
-    def _keep_crops(self, frame: Frame, dets: Detections, offset: int, selection: np.ndarray) -> None:
-        """The measure stage's part in a step: keep the crops of this frame's detections that entered the running K
-        nearest, drop those of detections that left it."""
-        from massviz.core.geometry import Crop
-
-        chosen = {int(g) for g in selection}
-        for g in [g for g in self._crops if g not in chosen]:
-            del self._crops[g]
-        for g in selection[selection >= offset]:
-            self._crops[int(g)] = Crop.of_detection(frame, dets, int(g) - offset)
-
-    def _measure(self, selection: np.ndarray) -> list[dict]:
-        """The measure stage's end: the measured size of each chosen detection whose crop was kept."""
-        from massviz.core.geometry import measure_crop  # Open3D: imported on the first measurement
-
-        out = []
-        for g in selection:
-            crop = self._crops.get(int(g))
-            m = None if crop is None else measure_crop(crop, self._intrinsics, detection=int(g))
-            if m is not None:
-                out.append(m.to_dict())
-        return out
 
     def _update_selection(self, dets: Detections, offset: int) -> tuple[np.ndarray, float]:
         local = self._exclude[(self._exclude >= offset) & (self._exclude < offset + len(dets))] - offset
@@ -253,11 +215,6 @@ class FramePipeline:
         estimate = estimate_mass(detections.pred, selection)
         timings = dict(self.timings)
         timings["select"] = time.perf_counter() - t5
-        measurements = []
-        if self._intrinsics is not None:
-            t6 = time.perf_counter()
-            measurements = ranked_measurements(self._measure(selection), selection)
-            timings["measure3d"] = time.perf_counter() - t6
         timings["total"] = time.perf_counter() - self._start
         events = [*self.events, *describe_selection(detections, selection, estimate, self.k, self.events,
                                                     threshold=self.selection.threshold, detector=self.detector.name)]
@@ -268,12 +225,12 @@ class FramePipeline:
                      detections=detections, selection=selection, estimate=estimate, excluded=excluded,
                      weights_id=getattr(self.model, "weights_id", ""), timings=timings, events=events,
                      frame_timings={n: np.asarray(v) for n, v in self._frame_timings.items()},
-                     measurements=measurements, compute=self.stage.describe())
+                     compute=self.stage.describe())
 
 
 def run(recording, detector: Detector, model, *, selection: Selection | None = None, k: int | None = None,
         stride: int | None = None, keep_patches: int = KEEP_PATCHES, progress: bool = False, batch: int = 1,
-        prefetch: int = 2, on_frame=None, measure: bool = True, kernels: str = "auto",
+        prefetch: int = 2, on_frame=None, kernels: str = "auto",
         overlap: bool | None = None) -> Trace:
     """Run the pipeline over ``recording`` (a loop over ``FramePipeline.step``) and select as ``selection`` says
     (``k=``/``stride=``: shorthand, see ``FramePipeline``).
@@ -288,11 +245,11 @@ def run(recording, detector: Detector, model, *, selection: Selection | None = N
     ``on_frame(frame, result)``: a read-only observer called after each frame's step with the ``Frame`` (its arrays
     and, when the format has them, the bytes the reader read) and the ``FrameResult``, e.g. a sink logging each frame
     as it is processed so that no frame is read twice (``massviz log``). It must not change either; its time is not
-    charged to any stage. ``measure``: the measure stage (``FramePipeline``).
+    charged to any stage (the measure stage, ``massviz.measure.stage.MeasureStage``, is such an observer).
     """
     stage = FrameStage(detector, model, batch=batch, kernels=kernels, overlap=overlap)
     fp = FramePipeline(detector, model, selection=resolve_selection(selection, k, stride), recording=recording.info(),
-                       keep_patches=keep_patches, measure=measure, stage=stage)
+                       keep_patches=keep_patches, stage=stage)
     stride = fp.stride
     total = math.ceil(recording.num_frames / stride)
     bar = tqdm(total=total, desc=f"{recording.id}", unit="frame", file=sys.stderr, disable=not progress,

@@ -26,6 +26,7 @@ import numpy as np
 from massviz.errors import MassvizError
 from massviz.core.detector import describe_cut
 from massviz.core.flags import Flags, analyse
+from massviz.core.measurement import Measurement, ranked_measurements
 from massviz.core.selection import NearestOrder, Selection, estimate_mass, not_estimated_reason, select_k_nearest
 from massviz.core.tracks import assign_tracks
 from massviz.core.types import Detections, GroundTruth, RecordingInfo, class_name
@@ -75,10 +76,9 @@ class Trace:
     - ``estimate``: mean of the chosen predictions in grams; -1 when nothing was selected (not estimated).
     - ``excluded``: detection indices the user excluded (never selected).
     - ``timings``: wall time per stage in seconds; ``events``: typed ``Event`` decisions worth reading.
-    - ``measurements``: the measure stage's size of each chosen detection (``massviz.core.geometry.Measurement``
-      as dicts, read them with ``massviz.core.geometry.measurements_of``), measured by the pipeline as detections
-      enter the running K nearest (recordings with intrinsics); views only read them. ``reselect`` keeps those of
-      the detections still chosen, re-ranked.
+    - ``measurements``: the measured size of each chosen detection (``massviz.core.measurement.Measurement``),
+      filled by the measure stage (``massviz.measure``, recordings with intrinsics; empty when it did not run);
+      views only read them. ``reselect`` keeps those of the detections still chosen, re-ranked.
     - ``frame_timings``: seconds per stage for each processed frame (stage -> array aligned with ``frames``; empty
       for traces made before massviz recorded them).
     - ``flags``: ``massviz.core.flags.Flags`` of the selection (made when the trace is; see the module docstring).
@@ -103,7 +103,7 @@ class Trace:
     timings: dict = field(default_factory=dict)
     events: list = field(default_factory=list)
     excluded: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    measurements: list = field(default_factory=list)
+    measurements: list[Measurement] = field(default_factory=list)
     frame_timings: dict = field(default_factory=dict)
     flags: Flags | None = None
     ground_truth_source: str = ""
@@ -213,13 +213,6 @@ class Trace:
         return dataclasses.replace(self, k=k, threshold=threshold, selection=selection, estimate=estimate,
                                    excluded=excluded, events=events,
                                    measurements=ranked_measurements(self.measurements, selection))
-
-
-def ranked_measurements(measurements: list, selection) -> list[dict]:
-    """The measurements (``Measurement.to_dict()`` dicts) of the detections in ``selection``, in its order, with
-    ``rank`` their rank in it: what a re-selected trace keeps (a newly chosen detection has none until measured)."""
-    by_detection = {int(m["detection"]): m for m in measurements}
-    return [{**by_detection[int(i)], "rank": r} for r, i in enumerate(selection) if int(i) in by_detection]
 
 
 def describe_detection(dets: Detections, i: int) -> str:

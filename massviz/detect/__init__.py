@@ -15,7 +15,7 @@ import os
 import sys
 from pathlib import Path
 
-from massviz.detect.base import Detector
+from massviz.core.detector import Detector
 from massviz.errors import MassvizError
 
 DETECTORS = ("auto", "maskrcnn", "nanodet", "depth", "replay")

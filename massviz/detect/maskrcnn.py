@@ -53,15 +53,6 @@ MASK_THRESHOLD = 0.5
 _DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
 
 
-def torchvision_weights_cached() -> Path | None:
-    """Path of torchvision's cached COCO Mask R-CNN checkpoint, if it was downloaded before."""
-    from torchvision.models.detection import MaskRCNN_ResNet50_FPN_Weights
-
-    url = MaskRCNN_ResNet50_FPN_Weights.COCO_V1.url
-    path = Path(torch.hub.get_dir()) / "checkpoints" / Path(url).name
-    return path if path.is_file() else None
-
-
 def _construct(threshold: float, skip_init: bool) -> torch.nn.Module:
     """torchvision's Mask R-CNN ResNet50-FPN; ``skip_init``: without its random initialisation (0.35 s of 44 M
     random numbers), for a model whose every parameter and buffer a strict ``load_state_dict`` then overwrites.

@@ -94,11 +94,6 @@ def _load_json(path: Path) -> tuple[Detections, list[Path]]:
     return Detections(frame=frames, xyxy=boxes, score=scores, class_id=classes, masks=masks), files
 
 
-def load_detections(path: str | Path) -> Detections:
-    """All detections of a replay source (trace .npz or JSON). Full-box masks of a JSON source are None."""
-    return _load(Path(path))[0]
-
-
 def _load(path: Path) -> tuple[Detections, list[Path], float]:
     """The detections, the mask files they name and the default score cut: a trace's own selection cut (what the run
     it replays chose with), a JSON file's the paper's."""

@@ -8,6 +8,7 @@ them, are read by :func:`load_trace` (``massviz.io.ground_truth.with_ground_trut
 """
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 from pathlib import Path
@@ -16,6 +17,7 @@ import cv2
 import numpy as np
 
 from massviz.core.flags import Flags
+from massviz.core.measurement import Measurement
 from massviz.core.trace import Event, Trace
 from massviz.core.types import Detections, PackedMask, RecordingInfo
 from massviz.errors import MassvizError
@@ -37,7 +39,7 @@ def save_trace(trace: Trace, path: str | Path) -> Path:
         "detect_threshold": trace.detect_threshold, "threshold": trace.threshold, "k": trace.k,
         "stride": trace.stride, "estimate": trace.estimate, "weights_id": trace.weights_id,
         "timings": trace.timings, "events": [e.to_list() for e in trace.events],
-        "measurements": list(trace.measurements), "flags": trace.flags.to_dict(),
+        "measurements": [m.to_dict() for m in trace.measurements], "flags": trace.flags.to_dict(),
         "frame_timing_stages": list(trace.frame_timings),
         "ground_truth_source": trace.ground_truth_source, "compute": trace.compute,
     }
@@ -97,7 +99,7 @@ def _from_arrays(header: dict, data: dict) -> Trace:
                stride=header["stride"], frames=data["frames"], detections=dets, selection=data["selection"],
                estimate=header["estimate"], weights_id=header["weights_id"], timings=header["timings"],
                events=[Event(*e) for e in header["events"]], excluded=data["excluded"],
-               measurements=header.get("measurements", []),
+               measurements=[Measurement.from_dict(m) for m in header.get("measurements", [])],
                flags=Flags.from_dict(header["flags"]) if isinstance(header.get("flags"), dict) else None,
                frame_timings={name: data[f"frame_time_{i}"]
                               for i, name in enumerate(header.get("frame_timing_stages", []))},
@@ -259,8 +261,22 @@ def check_trace_header(header: dict, data: dict) -> None:
             num(intr[name], f"recording.intrinsics.{name}", lo=1, hi=MAX_INDEX, integral=True)
         num(intr["cx"], "recording.intrinsics.cx", lo=0, hi=intr["width"])
         num(intr["cy"], "recording.intrinsics.cy", lo=0, hi=intr["height"])
-    if not isinstance(header.get("measurements", []), list):
-        raise ValueError("header measurements must be a list")
+    measurements = header.get("measurements", [])
+    fields = [f.name for f in dataclasses.fields(Measurement)]
+    if not isinstance(measurements, list) or not all(isinstance(m, dict) and all(f in m for f in fields)
+                                                     for m in measurements):
+        raise ValueError(f"header measurements must be a list of objects with {', '.join(fields)}")
+    for m in measurements:
+        for name in ("rank", "detection", "frame", "n_points"):
+            num(m[name], f"measurements.{name}", lo=-1, hi=MAX_INDEX, integral=True)
+        for name in ("height_mm", "width_mm", "depth_mm"):
+            num(m[name], f"measurements.{name}")
+        try:
+            shapes = [np.asarray(m[k], dtype=np.float64).shape for k in ("center", "extent", "R")]
+        except (TypeError, ValueError):
+            shapes = []
+        if shapes != [(3,), (3,), (3, 3)]:
+            raise ValueError("header measurements: center and extent must hold 3 numbers, R 3×3")
     if "flags" in header and header["flags"] is not None and not isinstance(header["flags"], dict):
         raise ValueError("header flags must be an object")
     stages = header.get("frame_timing_stages", [])

@@ -221,7 +221,7 @@ class _StopFlag:
 
 def run_live(stream, frame_pipeline, *, logger=None, duration: float | None = None, save: str | Path | None = None,
              max_frames: int | None = None, progress: bool = False, name: str = "live", source: str = "") -> LiveResult:
-    """Run a live session (see the module docstring). ``stream``: a started-or-not ``massviz.io.realsense
+    """Run a live session (see the module docstring). ``stream``: a started-or-not ``massviz.io.formats.realsense_live
     .LiveStream``; ``frame_pipeline``: a fresh ``FramePipeline``; ``logger``: a ``LiveLogger`` or None;
     ``duration``: seconds (None: until Ctrl-C or the end of a file); ``max_frames``: stop after that many processed
     frames; ``save``: folder for the processed frames. The stream is stopped and the logger closed on return."""

@@ -19,13 +19,16 @@ import rerun as rr
 
 from massviz.errors import MassvizError
 from massviz.io.atomic import atomic_path
-from massviz.views.rerun_log import APPLICATION_ID, log_trace
+from massviz.views.rerun.output import APPLICATION_ID
+from massviz.views.rerun.replay import log_trace
 
 
 def log_two_traces(sides, rrd: str | Path, *, markdown: str | None = None, progress: bool = False,
-                   video: str = "auto") -> list[str]:
+                   video: str = "auto", replay=None) -> list[str]:
     """Write ``sides`` — ``[(name, trace, recording), (name, trace, recording)]`` — into one .rrd at ``rrd``, one
-    Rerun recording per side; returns their recording ids (in order)."""
+    Rerun recording per side; returns their recording ids (in order). ``replay(trace, recording)``: (the trace
+    measured, its frames with their clouds), ``massviz.measure.stage.measured_replay``; without it no cloud is
+    logged."""
     rrd = Path(rrd)
     ids = []
     with tempfile.TemporaryDirectory(prefix="massviz-compare-") as tmp, atomic_path(rrd) as out:
@@ -36,7 +39,10 @@ def log_two_traces(sides, rrd: str | Path, *, markdown: str | None = None, progr
             stream.save(os.fspath(part))
             try:
                 stream.send_recording_name(str(name))
-                log_trace(trace, recording, stream=stream, progress=progress, video=video)
+                frames = None
+                if replay is not None:
+                    trace, frames = replay(trace, recording)
+                log_trace(trace, recording, stream=stream, progress=progress, video=video, frames=frames)
                 if markdown is not None:
                     stream.log("/compare", rr.TextDocument(markdown, media_type=rr.MediaType.MARKDOWN), static=True)
                 stream.flush()

@@ -8,7 +8,7 @@ local or Ray) and ``write_index`` at the end. OUT then holds:
   (``/patches/<rank>``, static: shown whatever the time cursor), the predictions, decisions and summary, a JPEG of the best frame (the frame of the nearest
   chosen patch, at ``/camera/rgb``, and a small ``/thumbnail``) and ``/source`` (a ``TextDocument`` naming the source
   frames, which are *referenced*, not copied: the path is also the ``source`` property). ``full=True`` logs
-  everything ``massviz log`` logs (``massviz.views.rerun_log.log_trace``: every frame, depth, masks, 3D clouds).
+  everything ``massviz log`` logs (``massviz.views.rerun.log_trace``: every frame, depth, masks, 3D clouds).
 * ``index.csv`` — one row per recording: the properties, the .rrd file and its bytes, the input bytes.
 * ``patches.csv`` and ``patches/<id>_<rank>.jpg`` — one row and one thumbnail per chosen patch (rank, frame, track,
   class, d, prediction, flag, cues, box), what the failure browser (notebook 04) shows without opening a recording.
@@ -39,7 +39,9 @@ from massviz.evaluation.browser import INDEX_NAME, PATCH_COLUMNS as _PATCH_COLUM
     patch_rows, recording_properties, recordings_table, rounded_properties
 from massviz.io.atomic import atomic_path
 from massviz.io.untrusted import safe_filename
-from massviz.views import rerun_log as rl
+from massviz.views.rerun import entities as rl
+from massviz.views.rerun.output import APPLICATION_ID
+from massviz.views.rerun.replay import log_trace
 
 PROPERTY = "massviz"
 PATCHES_DIR = "patches"
@@ -201,9 +203,16 @@ def patch_table_rows(trace: Trace, patches: dict, out_dir: Path | None) -> list[
 
 
 def write_recording(trace: Trace, recording, out_dir: str | Path, *, full: bool = False, view: int | None = None,
-                    video: str = "auto") -> dict:
+                    video: str = "auto", replay=None) -> dict:
     """Write ``out_dir/<id>.rrd`` for ``trace`` (light, or ``full``) with its properties, and the patch thumbnails.
+    ``replay(trace, recording)``: (the trace measured, its frames with each detection's cloud), the measure stage's
+    ``massviz.measure.stage.measured_replay``; without it the trace is logged as it is, a full one without clouds.
     Returns what ``write_index`` needs: ``properties``, ``rrd`` (file name), ``rrd_bytes``, ``patches`` (rows)."""
+    frames = None
+    if replay is not None:
+        trace, frames = replay(trace, recording)
+        if not full:
+            frames = None
     out_dir = Path(out_dir)
     (out_dir / PATCHES_DIR).mkdir(parents=True, exist_ok=True)
     view = ccm_view(recording.path) if view is None else view
@@ -211,14 +220,14 @@ def write_recording(trace: Trace, recording, out_dir: str | Path, *, full: bool 
                                  kind="full" if full else "light")
     patches, rgb_best = _patch_images(trace, recording)
     name = rrd_name(trace.recording.id)
-    stream = rr.RecordingStream(rl.APPLICATION_ID, recording_id=trace.recording.id)
+    stream = rr.RecordingStream(APPLICATION_ID, recording_id=trace.recording.id)
     with atomic_path(out_dir / name) as tmp:
         stream.save(tmp)
         try:
             stream.send_recording_name(f"massviz {trace.recording.id}")
             send_properties(stream, rounded_properties(props))
             if full:
-                rl.log_trace(trace, recording, stream=stream, video=video)
+                log_trace(trace, recording, stream=stream, video=video, frames=frames)
                 log_thumbnail(stream, rgb_best)
             else:
                 stream.send_blueprint(light_blueprint(len(trace.selection), [p.rank for p in trace.flags.flagged]),
@@ -245,12 +254,15 @@ def write_index(out_dir: str | Path, results: list[dict]) -> tuple[pd.DataFrame,
     return index, patches
 
 
-def write_dataset(traces, recordings, out_dir: str | Path, *, full: bool = False) -> tuple[pd.DataFrame, pd.DataFrame]:
+def write_dataset(traces, recordings, out_dir: str | Path, *, full: bool = False,
+                  replay=None) -> tuple[pd.DataFrame, pd.DataFrame]:
     """A dataset folder from traces made in this process (notebooks; ``massviz log --rrd-dir`` runs
-    ``write_recording`` on the dataset runner's workers instead): one .rrd per trace, then ``write_index``."""
+    ``write_recording`` on the dataset runner's workers instead): one .rrd per trace, then ``write_index``
+    (``replay``: see ``write_recording``)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    return write_index(out_dir, [write_recording(t, r, out_dir, full=full) for t, r in zip(traces, recordings)])
+    return write_index(out_dir, [write_recording(t, r, out_dir, full=full, replay=replay)
+                                     for t, r in zip(traces, recordings)])
 
 
 # ----------------------------------------------------------------------------------------------- catalog layout

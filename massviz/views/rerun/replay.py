@@ -16,11 +16,11 @@ from massviz.core.patches import crop
 from massviz.core.trace import Trace
 from massviz.views.rerun.blueprint import blueprint_for, default_blueprint
 from massviz.views.rerun.entities import (CLOUD_VOXEL_M, MAX_POINTS, POINT_STEP, PatchTiles, RgbLogger,
-                                          detection_class_ids, frame_detections, frustum_depth, log_annotation_context,
+                                          detection_class_ids, frustum_depth, log_annotation_context,
                                           log_cloud_overlays, log_depth, log_detection_clouds, log_detections,
                                           log_events, log_flags, log_masks, log_pinhole, log_points,
                                           log_predictions, log_running, log_summary, log_timings, text_log)
-from massviz.views.rerun.output import Output, notebook_stream
+from massviz.views.rerun.output import Output
 
 def _check_match(trace: Trace, recording) -> None:
     w, h = trace.recording.width, trace.recording.height
@@ -33,19 +33,19 @@ def _check_match(trace: Trace, recording) -> None:
 
 
 class TraceLogger:
-    """Logs one run of the pipeline to ``stream`` in one pass over the frames: ``on_frame(frame, result)`` logs what
-    needs the frame (its RGB and depth as the reader read them, the camera, the detections' clouds) as the pipeline
-    processes it (``massviz.core.pipeline.run``'s read-only observer, so no frame is read twice), ``replay(trace)``
-    does the same pass over a finished trace's frames (a trace from the cache), and ``finish(trace)`` logs what needs
-    the whole trace (ranks, chosen patches, predictions, flags, decisions, summary, the layout), reading no frame.
+    """Logs one run of the pipeline to ``stream`` in one pass over the frames: ``on_frame(frame, result, clouds)``
+    logs what needs the frame (its RGB and depth as the reader read them, the camera, the detections' clouds as the
+    measure stage made them) as the pipeline processes it (``massviz.core.pipeline.run``'s read-only observer, so no
+    frame is read twice), ``replay(trace)`` does the same pass over a finished trace's frames (a trace from the
+    cache), and ``finish(trace)`` logs what needs the whole trace (ranks, chosen patches, predictions, flags,
+    decisions, summary, the layout), reading no frame.
 
-    ``threshold``: the selection's score threshold (detections above it get a cloud; default: every detection).
     ``video``, ``points``, ``step``, ``max_points``, ``clouds``: see ``log_trace``.
     """
 
     def __init__(self, recording, stream: rr.RecordingStream, *, video: str = "auto", points: bool = False,
                  step: int = POINT_STEP, max_points: int = MAX_POINTS, clouds: bool = True,
-                 threshold: float | None = None, blueprint=None):
+                 blueprint=None):
         self.recording, self.rec = recording, stream
         if blueprint is not None:  # a layout first, as a viewer expects it (``finish`` sends the trace's own)
             stream.send_blueprint(blueprint, make_active=True, make_default=True)
@@ -53,7 +53,6 @@ class TraceLogger:
         self.rgb = RgbLogger(recording, video)
         self.points, self.step, self.max_points = points and self.intr is not None, step, max_points
         self.clouds = clouds and self.intr is not None
-        self.threshold = threshold
         self.frames: list[int] = []
         self.cloud_paths: dict[int, str] = {}
         self.patches: dict[int, np.ndarray] = {}  # RGB patches of the running K nearest's entrants
@@ -66,9 +65,11 @@ class TraceLogger:
         self.rgb.log_static(self.rec)
 
     # ------------------------------------------------------------------------------------------------ per frame
-    def on_frame(self, frame, result=None) -> None:
+    def on_frame(self, frame, result=None, clouds: dict | None = None) -> None:
         """Log one processed frame. ``result``: its ``FrameResult`` (during the pipeline's run); None during
-        ``replay`` (the detections come from the trace)."""
+        ``replay`` (the detections come from the trace). ``clouds``: {detection index: cleaned cloud} of the frame's
+        detections above the selection's threshold (``massviz.measure.stage.MeasureStage``), logged with
+        ``clouds=True``."""
         t0 = time.perf_counter()
         rec = self.rec
         rec.set_time("frame", sequence=frame.index)
@@ -83,16 +84,11 @@ class TraceLogger:
         if self.points:
             self.n_points += log_points(rec, frame.depth, frame.rgb, self.intr, self.step, self.max_points)
         if result is not None:
-            dets, ids = result.detections, [result.offset + i for i in range(len(result.detections))]
             for g in result.selection[result.selection >= result.offset]:  # entered the running K nearest
                 patch = result.patches[int(g) - result.offset]
                 if patch is not None and patch.size:
                     self.patches[int(g)] = patch
-            if self.threshold is not None:
-                keep = [j for j in range(len(dets)) if dets.score[j] > self.threshold]
-                dets, ids = dets[keep], [ids[j] for j in keep]
         else:
-            dets, ids = frame_detections(self._trace, frame.index)
             trace_dets = self._trace.detections
             for i in self._tile_detections.get(frame.index, ()):  # the trace keeps the nearest patches; crop others
                 if trace_dets.patches[i] is None:
@@ -100,27 +96,28 @@ class TraceLogger:
         if self.clouds:
             for path in self._shown:
                 rec.log(path, rr.Clear(recursive=True))
-            paths = log_detection_clouds(rec, frame, dets, ids, self.intr, voxel_m=CLOUD_VOXEL_M)
+            paths = log_detection_clouds(rec, clouds or {}, voxel_m=CLOUD_VOXEL_M)
             self.cloud_paths.update(paths)
             self._shown = list(paths.values())
         self.seconds += time.perf_counter() - t0
 
-    def replay(self, trace: Trace, *, progress: bool = False) -> None:
-        """The per-frame pass over ``trace``'s processed frames, read from the recording once (a trace that did not
-        come from a run observed by ``on_frame``)."""
+    def replay(self, trace: Trace, *, progress: bool = False, frames=None) -> None:
+        """The per-frame pass over ``trace``'s processed frames (a trace that did not come from a run observed by
+        ``on_frame``): ``frames``, (frame, its clouds) pairs (``MeasureStage.replay_frames``), else the frames read
+        from the recording once, without clouds."""
         _check_match(trace, self.recording)
         self._trace = trace
         self._tile_detections = defaultdict(set)  # frame -> detections that hold a tile at some frame
         for i in {int(i) for sel in trace.running_selections() for i in sel}:
             self._tile_detections[int(trace.detections.frame[i])].add(i)
-        if self.threshold is None:
-            self.threshold = trace.threshold
-        frames = [int(f) for f in trace.frames]
-        bar = tqdm(self.recording.frames(indices=frames), total=len(frames), desc=f"{self.recording.id} → rerun",
-                   unit="frame", file=sys.stderr, disable=not progress, leave=False)
+        indices = [int(f) for f in trace.frames]
+        if frames is None:
+            frames = ((frame, None) for frame in self.recording.frames(indices=indices))
+        bar = tqdm(frames, total=len(indices), desc=f"{self.recording.id} → rerun", unit="frame", file=sys.stderr,
+                   disable=not progress, leave=False)
         try:
-            for frame in bar:
-                self.on_frame(frame)
+            for frame, clouds in bar:
+                self.on_frame(frame, clouds=clouds)
         finally:
             bar.close()
 
@@ -181,7 +178,8 @@ class TraceLogger:
 
 def log_trace(trace: Trace, recording, *, rrd: str | Path | None = None, spawn: bool = False,
               stream: rr.RecordingStream | None = None, progress: bool = False, max_points: int = MAX_POINTS,
-              step: int = POINT_STEP, video: str = "auto", clouds: bool = True, points: bool = False) -> dict:
+              step: int = POINT_STEP, video: str = "auto", clouds: bool = True, points: bool = False,
+              frames=None) -> dict:
     """Log ``trace`` (made on ``recording``) to Rerun; the entity tree is in ``massviz.views.rerun``'s docstring.
 
     Outputs: ``rrd`` (a file, written atomically: nothing is left at ``rrd`` if logging fails), ``spawn`` (spawn
@@ -192,7 +190,10 @@ def log_trace(trace: Trace, recording, *, rrd: str | Path | None = None, spawn: 
     ``video``: how an mp4 is logged (see ``RgbLogger``). ``points``: also log ``/world/points`` (RGB-coloured
     points; by default Rerun back-projects ``/camera/depth`` itself, which keeps the recording small);
     ``step``/``max_points``: their subsampling.
-    ``clouds``: also log each detection's Open3D cloud under ``/world/detections`` (``massviz.core.geometry``).
+    ``clouds``: also log each detection's Open3D cloud under ``/world/detections``; ``frames``: the processed frames
+    with those clouds, (frame, {detection: cloud}) pairs as the measure stage replays them
+    (``massviz.measure.stage.MeasureStage(recording, clouds="active").replay_frames(trace)``; without them, no cloud
+    is logged: a view makes none). ``massviz.log_trace`` passes them.
 
     Returns stats: ``recording_id``, ``frames``, ``detections``, ``chosen``, ``points``, ``rgb`` ("asset",
     "images" or "files"), ``notes`` (warnings also in /log), ``log_seconds`` (wall time of logging, flushing
@@ -204,7 +205,7 @@ def log_trace(trace: Trace, recording, *, rrd: str | Path | None = None, spawn: 
     try:
         logger = TraceLogger(recording, out.stream, video=video, points=points, step=step, max_points=max_points,
                              clouds=clouds, blueprint=blueprint_for(trace, recording, points=points))
-        logger.replay(trace, progress=progress)
+        logger.replay(trace, progress=progress, frames=frames)
         stats = logger.finish(trace, layout=False)
         log_timings(out.stream, {**trace.timings, "log": time.perf_counter() - t0}, stats["frames"])
         out.flush()
@@ -218,14 +219,17 @@ def log_trace(trace: Trace, recording, *, rrd: str | Path | None = None, spawn: 
 
 
 def log_run(recording, process, *, rrd: str | Path | None = None, spawn: bool = False, progress: bool = False,
-            video: str = "auto", points: bool = False, clouds: bool = True, threshold: float | None = None,
-            k: int = 5, before_close=None) -> tuple[Trace, dict]:
+            video: str = "auto", points: bool = False, clouds: bool = True, k: int = 5, replay_frames=None,
+            measured=None, before_close=None) -> tuple[Trace, dict]:
     """Run the pipeline and log it in one pass (``massviz log``): ``process(on_frame)`` runs the pipeline on
     ``recording`` with ``on_frame`` as its per-frame observer and returns the trace (e.g.
-    ``lambda on_frame: pipeline.process(recording, on_frame=on_frame)``). Each frame is logged as it is processed, so
-    no frame is read twice; a trace that comes from the cache (``on_frame`` never called) is replayed from the
-    recording once. Outputs and options as ``log_trace`` (``threshold``: the selection's score threshold, ``k`` its
-    K: a first layout is sent before the frames, the final one at the end). ``before_close(trace)``: more output
+    ``lambda on_frame: pipeline.process(recording, on_frame=on_frame)``; ``on_frame(frame, result, clouds)`` takes
+    the measure stage's clouds of the frame, see ``TraceLogger``). Each frame is logged as it is processed, so no frame
+    is read twice; a trace that comes from the cache (``on_frame`` never called) is replayed once, its frames and
+    clouds from ``replay_frames(trace)`` (``MeasureStage.replay_frames``; default: the recording's frames, no
+    clouds). ``measured(trace)``: the trace with the measure stage's measurements (``MeasureStage.finish``), taken
+    before what needs the whole trace is logged. Outputs and options as ``log_trace`` (``k``: the selection's K: a
+    first layout is sent before the frames, the final one at the end). ``before_close(trace)``: more output
     made from the trace (``log --ply``), run before the .rrd is renamed into place, so that when it fails no .rrd
     is left either. Returns (trace, stats)."""
     t0 = time.perf_counter()
@@ -233,11 +237,12 @@ def log_run(recording, process, *, rrd: str | Path | None = None, spawn: bool = 
     try:
         layout = default_blueprint(k, has_3d=recording.intrinsics is not None, image_size=(recording.width,
                                                                                              recording.height))
-        logger = TraceLogger(recording, out.stream, video=video, points=points, clouds=clouds, threshold=threshold,
-                             blueprint=layout)
+        logger = TraceLogger(recording, out.stream, video=video, points=points, clouds=clouds, blueprint=layout)
         trace = process(logger.on_frame)
         if not logger.frames:
-            logger.replay(trace, progress=progress)
+            logger.replay(trace, progress=progress, frames=None if replay_frames is None else replay_frames(trace))
+        if measured is not None:
+            trace = measured(trace)
         stats = logger.finish(trace, points=points)
         log_timings(out.stream, {**trace.timings, "log": logger.seconds}, stats["frames"])
         out.flush()
@@ -252,13 +257,4 @@ def log_run(recording, process, *, rrd: str | Path | None = None, spawn: bool = 
     return trace, stats
 
 
-def show_in_notebook(trace: Trace, recording, *, width: int = 1000, height: int = 640, **options) -> dict:
-    """Show ``trace`` in an inline Rerun viewer (``output.notebook_stream``) in the current notebook cell, with
-    massviz's default layout, and log it there (``log_trace(..., stream=...)``; ``options`` go to it). Returns
-    ``log_trace``'s stats."""
-    stream = notebook_stream(recording.id, blueprint_for(trace, recording, points=bool(options.get("points"))),
-                             width=width, height=height)
-    return log_trace(trace, recording, stream=stream, **options)
-
-
-__all__ = ["TraceLogger", "log_trace", "log_run", "show_in_notebook"]
+__all__ = ["TraceLogger", "log_trace", "log_run"]
