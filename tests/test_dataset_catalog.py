@@ -176,8 +176,14 @@ def test_serve_answers_a_segment_table_query_and_leaves_nothing_running(rrd_dir)
             assert f"property:massviz:{p}" in table.columns, p
         index = pd.read_csv(out / "index.csv", dtype={"id": str}).set_index("id")
         err = table["property:massviz:rel_error"].map(lambda v: v[0])
-        assert (err - index["rel_error"].loc[err.index]).abs().max() < 1e-9
+        assert (err - index["rel_error"].loc[err.index].round(4)).abs().max() < 1e-9  # shown to 4 decimals
         assert ds.default_blueprint() is not None and ds.default_segment_table_blueprint() is not None
+        # each recording's "open" property (the table's first column): its URL at its best frame, a Url component
+        opens = table["property:massviz:open"].map(lambda v: v[0])
+        for rec, link in opens.items():
+            assert link == f"{url}/dataset/{ds.id}?segment_id={rec}#when=frame@{index.loc[rec, 'best_frame']}", link
+        schema = ds.segment_table().schema()
+        assert schema.field("property:massviz:open").metadata[b"rerun:component_type"] == b"rerun.components.Url"
         # a DataFusion query: the recordings with flagged chosen patches
         from datafusion import col, functions as f
 

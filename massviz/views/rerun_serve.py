@@ -116,6 +116,7 @@ def open_catalog(folder: str | Path, *, name: str | None = None, port: int = 0, 
             dataset = client.get_dataset(name)
             dataset.register_blueprint(rec_bp.as_uri())
             dataset.register_blueprint(table_bp.as_uri(), segment_table=True)
+            register_links(dataset, Path(tmp.name))
         except BaseException:
             with contextlib.suppress(Exception):
                 server.shutdown()
@@ -124,6 +125,27 @@ def open_catalog(folder: str | Path, *, name: str | None = None, port: int = 0, 
         tmp.cleanup()
         raise
     return Catalog(server, name, dataset, client, tmp)
+
+
+def register_links(dataset, folder: Path) -> list[str]:
+    """Give every segment of ``dataset`` its ``open`` property (the segment table's first column, a button): the
+    segment's URL at its best frame (``best_frame`` property; ``#when=frame@N``), registered as layer ``link``
+    from one small .rrd per segment written into ``folder``. Returns the URLs."""
+    from massviz.views.rerun_dataset import LINK_LAYER, property_column, write_link
+
+    table = dataset.segment_table().to_pandas()
+    best = property_column("best_frame")
+    uris, urls = [], []
+    for i, row in table.iterrows():
+        segment = str(row["rerun_segment_id"])
+        frame = row[best] if best in table.columns else None
+        frame = int(frame[0]) if frame is not None and len(frame) else None
+        urls.append(dataset.segment_url(segment, "frame", frame) if frame is not None else
+                    dataset.segment_url(segment))
+        uris.append(write_link(folder / f"link_{i}.rrd", segment, urls[-1]).as_uri())
+    if uris:
+        dataset.register(uris, layer_name=LINK_LAYER).wait()
+    return urls
 
 
 @contextlib.contextmanager
@@ -353,4 +375,4 @@ def view(path: str | Path, *, port: int = 0, web_port: int = 0, out=None, ready=
     return _run_until_stopped("view", start)
 
 
-__all__ = ["Catalog", "open_catalog", "catalog", "WebViewer", "serve", "check_rrd", "FileServer", "view", "HOST"]
+__all__ = ["Catalog", "open_catalog", "catalog", "register_links", "WebViewer", "serve", "check_rrd", "FileServer", "view", "HOST"]
