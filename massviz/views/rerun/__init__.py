@@ -7,7 +7,7 @@ stream: ``log_trace``), ``live`` (``LiveLogger``: a live session frame by frame)
 support: reading an .rrd back). Sinks only read: they log results (traces, frames, step results) and never run a
 stage or measure.
 
-Entity tree (a public contract; the README copies it). Everything temporal is on the ``frame`` timeline (sequence =
+Entity tree (a public contract; docs/entity-tree.md copies it). Everything temporal is on the ``frame`` timeline (sequence =
 frame index in the recording); a video asset's frames are also on ``video_time``.
 
 =============================  ========================================================================================
