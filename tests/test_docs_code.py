@@ -212,3 +212,33 @@ def test_python_block_runs(workdir, b):
     run = subprocess.run([sys.executable, str(script)], cwd=root, env=env, capture_output=True, text=True,
                          timeout=120)
     assert run.returncode == 0, f"{where(b)}: the python block failed:\n{run.stderr[-3000:]}"
+
+
+def slug(heading: str) -> str:
+    """GitHub's anchor of a heading: lower case, punctuation dropped, spaces as hyphens."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+
+
+def anchors(path: Path) -> set[str]:
+    text = re.sub(r"^```.*?^```", "", path.read_text(), flags=re.S | re.M)
+    return {slug(m.group(1)) for m in re.finditer(r"^#+ (.*)$", text, re.M)}
+
+
+def test_links_between_the_pages_resolve():
+    """Every ``](#anchor)`` names a heading of its page, every ``](page.md#anchor)`` one of that page, and every
+    picture a file: the sections moved between README and docs/ keep their links."""
+    bad = []
+    for path in pages():
+        for m in re.finditer(r"\]\(([^)\s]+)\)", path.read_text()):
+            target = m.group(1)
+            if re.match(r"[a-z+]+:", target):
+                continue  # a web address
+            file, _, anchor = target.partition("#")
+            dest = (path.parent / file).resolve() if file else path
+            if file and not file.endswith(".md") and not dest.is_file():
+                bad.append(f"{path.name}: {target}: no such file")
+            elif anchor and dest.is_file() and anchor not in anchors(dest):
+                bad.append(f"{path.name}: {target}: no such heading")
+    assert not bad, "\n".join(bad)
+    assert slug("Live: RealSense cameras and recordings") == "live-realsense-cameras-and-recordings"
+    assert slug("Training: extract → train → estimate") == "training-extract--train--estimate"
