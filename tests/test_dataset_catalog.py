@@ -183,6 +183,13 @@ def test_serve_answers_a_segment_table_query_and_leaves_nothing_running(rrd_dir)
         for rec, link in opens.items():
             assert link == f"{url}/dataset/{ds.id}?segment_id={rec}#when=frame@{index.loc[rec, 'best_frame']}", link
         schema = ds.segment_table().schema()
+        # the catalog's figures (rounded as shown) agree with pandas over the full-precision tables
+        from massviz.evaluation import browser as B
+        from massviz.views.rerun_serve import Catalog
+
+        both = B.compare_summaries(B.pandas_summary(index.reset_index(), pd.read_csv(out / "patches.csv")),
+                                   B.catalog_summary(Catalog(None, "out", ds, client)))
+        assert both["same"].all(), both
         assert schema.field("property:massviz:open").metadata[b"rerun:component_type"] == b"rerun.components.Url"
         # a DataFusion query: the recordings with flagged chosen patches
         from datafusion import col, functions as f
