@@ -206,6 +206,25 @@ def test_serve_answers_a_segment_table_query_and_leaves_nothing_running(rrd_dir)
     assert not alive, f"left running: {alive}"
 
 
+@pytest.mark.parametrize("index", [None, "id,best_frame\ncup_handover,not a frame\n", "\x00\x01garbage"])
+def test_the_open_links_take_the_best_frame_from_the_recordings_without_a_usable_index(rrd_dir, tmp_path, index):
+    """A folder of .rrd files without massviz's index.csv, or with a damaged one: every segment's ``open`` URL still
+    opens it at its best frame (the recordings' own property)."""
+    from massviz.views.rerun_serve import catalog
+
+    out, _ = rrd_dir
+    for name in ("cup_handover.rrd", "box_handover.rrd"):
+        shutil.copy(out / name, tmp_path / name)
+    if index is not None:
+        (tmp_path / "index.csv").write_text(index)
+    expected = pd.read_csv(out / "index.csv", dtype={"id": str}).set_index("id")["best_frame"]
+    with catalog(tmp_path) as cat:
+        links = cat.sql('SELECT rerun_segment_id AS id, "property:massviz:open"[1] AS open FROM segments')
+    assert len(links) == 2
+    for rec, link in zip(links["id"], links["open"]):
+        assert link.endswith(f"?segment_id={rec}#when=frame@{expected[rec]}"), link
+
+
 def test_serve_refuses_a_folder_without_recordings(tmp_path):
     run = massviz("serve", tmp_path, check=False, timeout=120)
     assert run.returncode == 2 and run.stderr.count("\n") == 1 and "holds no .rrd file" in run.stderr, run.stderr
