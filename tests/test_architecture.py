@@ -1,4 +1,4 @@
-"""The package layout is the architecture (README, "Architecture"): these tests read every module's imports (also the
+"""The package layout is the architecture (docs/architecture.md): these tests read every module's imports (also the
 ones inside functions) and fail on an arrow that breaks it.
 
 * ``massviz.core`` is the ground floor: it imports nothing of massviz but ``core`` and ``errors`` (no io, detect,

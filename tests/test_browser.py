@@ -166,14 +166,17 @@ def record_timing(key: str, value) -> None:
     path.write_text(json.dumps(data, indent=1) + "\n")
 
 
-def picture_difference(a: np.ndarray, b: np.ndarray, px: int = 40, panel: float = 0.766) -> float:
+def picture_difference(a: np.ndarray, b: np.ndarray, px: int = 40, panel: float = 0.766, ignore=()) -> float:
     """How much two screenshots of the viewer differ where it matters: the largest mean absolute difference (0-255) of
     any ``px``-pixel block, left of Rerun's selection panel (the right ``1 - panel`` of the page, which shows each
-    run's recording id, times and URL). A plot left empty, an empty table, another title or tile colour: tens."""
+    run's recording id, times and URL) and outside the ``ignore`` boxes (x1, y1, x2, y2: e.g. a server's port). A
+    plot left empty, an empty table, another title or tile colour: tens."""
     if a is None or a.shape != b.shape:
         return 255.0
     w = int(a.shape[1] * panel)
     d = np.abs(a[:, :w].astype(np.int16) - b[:, :w].astype(np.int16)).mean(axis=2)
+    for x1, y1, x2, y2 in ignore:
+        d[y1:y2, x1:x2] = 0
     return float(max(d[y:y + px, x:x + px].mean() for y in range(0, d.shape[0], px) for x in range(0, w, px)))
 
 

@@ -287,7 +287,8 @@ def test_no_example_chains_a_command_after_one_that_runs_until_stopped():
     Ctrl-C. No --help text nor the README chains anything after such a command (or after a live session with no end:
     no --duration, no --file)."""
     texts = {**{f"massviz {n} --help": t for n, t in _help_texts().items()},
-             "README.md": (ROOT / "README.md").read_text()}
+             **{p.relative_to(ROOT).as_posix(): p.read_text() for p in [ROOT / "README.md",
+                                                                          *(ROOT / "docs").glob("*.md")]}}
     bad = []
     for where, text in texts.items():
         for line in text.splitlines():

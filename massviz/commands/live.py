@@ -14,7 +14,7 @@ EPILOG = """examples:
   massviz log rec/ --rrd replay.rrd                              replay a saved session (same trace, from cache)
 
 Per processed frame: detect, features, predict, update the K nearest so far, and log the frame's stages at once
-(/camera/*, /patches/<rank>, /predictions/running_estimate, /latency/<stage> in ms; entity tree in the README).
+(/camera/*, /patches/<rank>, /predictions/running_estimate, /latency/<stage> in ms; entity tree in docs/entity-tree.md).
 When the detector is slower than the camera, massviz takes the newest frame and drops the others: the drops are
 counted in /log and in the summary; nothing queues. Ctrl-C (or SIGTERM/SIGHUP), --duration or the end of a --file
 ends the session: the trace goes to the trace cache, --save writes the processed frames as a massviz recording

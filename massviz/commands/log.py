@@ -15,7 +15,7 @@ def register(sub) -> None:
         description="Run the pipeline on one recording (a massviz folder, a CCM .mp4 or a RealSense .db3/.bag) and "
         "log the trace to "
         "Rerun: frames, depth, detections, masks, point cloud, the chosen patches as the model saw them, "
-        "per-patch predictions, the estimate, the decisions and the stage timings (entity tree in the README). "
+        "per-patch predictions, the estimate, the decisions and the stage timings (entity tree in docs/entity-tree.md). "
         "A recording without depth (no depth/ folder) is logged RGB only: what the detector finds and its tracks, "
         "no mass (give --detector nanodet or maskrcnn; the depth detector needs depth).",
         epilog="examples:\n  massviz log data_samples/cup_handover --rrd cup.rrd && massviz view cup.rrd\n"

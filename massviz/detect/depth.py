@@ -40,7 +40,7 @@ The blobs themselves do not depend on the threshold, which only filters them.
 An object held in the air scores about 1; one standing on a table, a little less (its base touches the table); a
 patch of a larger surface or something partly hidden by a nearer object scores low. The default threshold 0.4 keeps
 blobs that are free along at least 40 % of their outline (measured: every cut from 0.2 to 0.5 chooses the same
-patches on CCM 618, view1 and the samples; README, "Default score cuts").
+patches on CCM 618, view1 and the samples; docs/detectors.md, "Default score cuts").
 """
 from __future__ import annotations
 

@@ -31,7 +31,7 @@ Reduced precision (``precision="bf16"`` on CPUs with bf16 support or CUDA, ``"fp
 and MLP stages (backbone + FPN, RPN head, box head, mask head and predictor) run under ``torch.autocast`` and hand
 float32 on; box regression, box decoding, NMS, RoIAlign and mask pasting stay float32 (under a whole-model autocast
 the proposals are decoded in bf16, whose 8-bit mantissa puts a 1000-pixel coordinate on a 4–8 pixel grid). Results
-*differ*: measure how much on your data with ``massviz compare`` (README, "Speed").
+*differ*: measure how much on your data with ``massviz compare`` (docs/speed.md).
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Reading untrusted data files: every dataset may come from someone else.
 
-One place for the checks every reader makes on what it reads from a file (see README, "Untrusted data"):
+One place for the checks every reader makes on what it reads from a file (see docs/untrusted.md):
 
 * :func:`load_calibration_pickle` — CCM calibration pickles through a restricted unpickler that admits only what
   CCM's files hold (numpy arrays, dicts, lists, numbers, strings); anything else is refused before it runs.

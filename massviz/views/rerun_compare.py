@@ -1,6 +1,6 @@
 """Two traces in one Rerun file, as two recordings of application ``massviz`` (``massviz compare --rrd``).
 
-Each trace is logged exactly as ``massviz log`` logs it (``log_trace``: the entity tree in the README), on its own
+Each trace is logged exactly as ``massviz log`` logs it (``log_trace``: the entity tree in docs/entity-tree.md), on its own
 recording named after its side ("A: ...", "B: ..."), plus ``/compare`` (static ``TextDocument``, markdown): the
 comparison report. The viewer lists both recordings; switch between them in its recording panel, the layout (the
 default blueprint) is the same for both. The two recordings are written to temporary files and merged into one

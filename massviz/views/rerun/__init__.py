@@ -7,7 +7,7 @@ stream: ``log_trace``), ``live`` (``LiveLogger``: a live session frame by frame)
 results (traces, frames, step results, the measure stage's clouds) and never run a stage or measure
 (``massviz.runners.replay.log_trace`` gives ``log_trace`` the measure stage's clouds).
 
-Entity tree (a public contract; the README copies it). Everything temporal is on the ``frame`` timeline (sequence =
+Entity tree (a public contract; docs/entity-tree.md copies it). Everything temporal is on the ``frame`` timeline (sequence =
 frame index in the recording); a video asset's frames are also on ``video_time``.
 
 =============================  ========================================================================================
