@@ -1,6 +1,6 @@
 """Every fenced code block of README.md and docs/*.md runs, or says right above it why it cannot run here.
 
-* A block preceded by ``<!-- not run: REASON -->`` (the line right above its fence) is not run; REASON must be one of
+* A ```text block is a diagram and holds no command. A block preceded by ``<!-- not run: REASON -->`` (the line right above its fence) is not run; REASON must be one of
   ``REASONS`` and the block must show it (``REASONS`` maps each reason to what the block then contains: a CCM path, a
   camera, a command that runs until stopped...).
 * ``json`` blocks must parse.
@@ -137,6 +137,9 @@ def test_the_pages_have_blocks_and_every_block_is_run_or_says_why_not():
         elif b["lang"] in SHELL:
             bad += [f"{where(b)}: `{c}` is not a massviz command: run it or say why not"
                     for c in shell_lines(b["code"]) if not c.startswith("massviz ")]
+        elif b["lang"] == "text":  # a diagram: it must hold no command a reader would copy
+            if re.search(r"^\s*(\$ |massviz |python|import |from \w+ import)", b["code"], re.M):
+                bad.append(f"{where(b)}: a ```text block holds a command: make it a shell or python block")
         elif b["lang"] not in ("python", "json"):
             bad.append(f"{where(b)}: a ```{b['lang']} block is neither run nor said why not")
     assert not bad, "\n".join(bad)
