@@ -19,7 +19,7 @@ from pathlib import Path
 
 from massviz.core.pipeline import FramePipeline, repredict, resolve_selection, run
 from massviz.core.selection import Selection
-from massviz.core.trace import Event
+from massviz.core.trace import Event, analyse_trace
 from massviz.core.types import PRECISIONS
 from massviz.errors import MassvizError
 
@@ -153,8 +153,8 @@ def process(recording, detector, model, *, selection: Selection | None = None, k
         events.extend(e for e in trace.events if e.is_selection)
         timings = {"cache": time.perf_counter() - t0}
         # the key is the frames' content: the recording's path, meta and intrinsics are today's, not the cached run's
-        return annotate(dataclasses.replace(trace, recording=recording.info(), events=events,
-                                            timings={**trace.timings, **timings}))
+        return analyse_trace(annotate(dataclasses.replace(trace, recording=recording.info(), events=events,
+                                                          timings={**trace.timings, **timings})))
     if not hasattr(recording, "frames"):  # recognised from its files (massviz.io.identity): only the cache serves it
         raise MassvizError("its cached trace was found when this run started but could not be read now (removed, or "
                            "damaged and dropped); run the command again to compute it", recording.path)
@@ -162,8 +162,8 @@ def process(recording, detector, model, *, selection: Selection | None = None, k
     with cache.watch(recording) if cache is not None else contextlib.nullcontext() as read:
         # the cached trace holds every detection (no exclusions): they are applied to the trace returned
         trace = run(recording, detector, model, selection=selection.replace(exclude=()), progress=progress,
-                    batch=batch, prefetch=prefetch, on_frame=on_frame)
-    trace = annotate(trace)
+                    batch=batch, prefetch=prefetch, on_frame=on_frame, analyse=False)
+    trace = analyse_trace(annotate(trace))  # the flags, once, with the ground truth's overlaps
     if cache is not None:
         cache.save(trace, recording, info, known=read)
     if exclude is not None:

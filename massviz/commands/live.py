@@ -228,7 +228,9 @@ def _cache(pipeline, trace, result, args, stream):
         rec = stream.recording if stream.recording is not None else open_recording(args.file)
         numbers = rec.meta.get("realsense", {}).get("frame_numbers")
         if result.stats.dropped == 0 and numbers == result.stats.frame_numbers:
-            return pipeline.cache.save(dataclasses.replace(trace, recording=rec.info()), rec, info)
+            from massviz.core.trace import analyse_trace
+
+            return pipeline.cache.save(analyse_trace(dataclasses.replace(trace, recording=rec.info())), rec, info)
     from massviz.io.trace_file import save_trace
 
     safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", trace.recording.id)

@@ -39,11 +39,11 @@ from tqdm.auto import tqdm
 
 from massviz.core.detector import Detector
 from massviz.core.prefetch import Prefetcher
-from massviz.core.selection import Selection, estimate_mass, select_k_nearest
+from massviz.core.selection import REJECTED_PREFIX, Selection, estimate_mass, select_k_nearest
 from massviz.core.stage import FramePatches, FrameStage, StagedFrame, predictable
-from massviz.core.trace import Event, Trace, describe_detection, describe_selection, ranked_measurements
+from massviz.core.trace import Event, Trace, analyse_trace, describe_detection, describe_selection, ranked_measurements
 from massviz.core.tracks import Tracker
-from massviz.core.types import Detections, Frame, RecordingInfo
+from massviz.core.types import Detections, Frame, RecordingInfo, Rejection
 
 #: how many of the nearest detections keep their RGB patch in the trace (>= any K you will reselect with).
 KEEP_PATCHES = 32
@@ -182,7 +182,8 @@ class FramePipeline:
         dets.track = self._tracker.update(frame.index, dets)
         t_track = time.perf_counter() - t3
         patches = staged.patches
-        events = [Event(frame.index, f"not a container candidate: {note}", "skipped", "info")
+        events = [Event(frame.index, f"{REJECTED_PREFIX}{note}", "skipped", "info",
+                        reason=note.reason if isinstance(note, Rejection) else str(note))
                   for note in staged.notes]
         offset = self._offset
         for i in np.flatnonzero(~np.isfinite(dets.d)):
@@ -242,8 +243,11 @@ class FramePipeline:
         self._sel, self._sel_d, self._sel_pred = idx[keep], d[keep], pred[keep]
         return self._sel.copy(), estimate_mass(self._sel_pred, np.arange(len(keep)))
 
-    def finish(self) -> Trace:
-        """The recording's ``Trace``: every detection, the K nearest, the estimate, the decisions and stage times."""
+    def finish(self, analyse: bool = True) -> Trace:
+        """The recording's ``Trace``: every detection (tracked as the frames were processed), the K nearest, the
+        estimate, the decisions, stage times and, with ``analyse``, the flags of the selection
+        (``massviz.core.trace.analyse_trace``; off for a caller that adds the ground truth's overlaps first and then
+        analyses once)."""
         detections = Detections.concat(self._parts)
         for i, patch in self._nearest.patches.items():
             detections.patches[i] = patch
@@ -262,19 +266,20 @@ class FramePipeline:
         events = [*self.events, *describe_selection(detections, selection, estimate, self.k, self.events,
                                                     threshold=self.selection.threshold, detector=self.detector.name)]
         info = self.recording if self.recording is not None else RecordingInfo(id="live")
-        return Trace(recording=info, detector={"name": self.detector.name, **self.detector.settings()},
+        trace = Trace(recording=info, detector={"name": self.detector.name, **self.detector.settings()},
                      detect_threshold=self.detect_threshold, threshold=self.selection.threshold,
                      k=self.k, stride=self.stride, frames=np.asarray(self._frames, dtype=np.int32),
                      detections=detections, selection=selection, estimate=estimate, excluded=excluded,
                      weights_id=getattr(self.model, "weights_id", ""), timings=timings, events=events,
                      frame_timings={n: np.asarray(v) for n, v in self._frame_timings.items()},
                      measurements=measurements, compute=self.stage.describe())
+        return analyse_trace(trace) if analyse else trace
 
 
 def run(recording, detector: Detector, model, *, selection: Selection | None = None, k: int | None = None,
         stride: int | None = None, keep_patches: int = KEEP_PATCHES, progress: bool = False, batch: int = 1,
         prefetch: int = 2, on_frame=None, measure: bool = True, kernels: str = "auto",
-        overlap: bool | None = None) -> Trace:
+        overlap: bool | None = None, analyse: bool = True) -> Trace:
     """Run the pipeline over ``recording`` (a loop over ``FramePipeline.step``) and select as ``selection`` says
     (``k=``/``stride=``: shorthand, see ``FramePipeline``).
 
@@ -288,7 +293,7 @@ def run(recording, detector: Detector, model, *, selection: Selection | None = N
     ``on_frame(frame, result)``: a read-only observer called after each frame's step with the ``Frame`` (its arrays
     and, when the format has them, the bytes the reader read) and the ``FrameResult``, e.g. a sink logging each frame
     as it is processed so that no frame is read twice (``massviz log``). It must not change either; its time is not
-    charged to any stage. ``measure``: the measure stage (``FramePipeline``).
+    charged to any stage. ``measure``: the measure stage; ``analyse``: the flags (``FramePipeline.finish``).
     """
     stage = FrameStage(detector, model, batch=batch, kernels=kernels, overlap=overlap)
     fp = FramePipeline(detector, model, selection=resolve_selection(selection, k, stride), recording=recording.info(),
@@ -316,7 +321,7 @@ def run(recording, detector: Detector, model, *, selection: Selection | None = N
             if isinstance(it, Prefetcher):
                 it.close()
     fp.events.extend(Event(-1, note, "warning", "warn") for note in getattr(recording, "notes", ()))
-    return fp.finish()
+    return fp.finish(analyse=analyse)
 
 
 def repredict(trace: Trace, recording, model, progress: bool = False) -> Trace:

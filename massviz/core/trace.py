@@ -7,13 +7,15 @@ without running the detector or the model again (every detection already carries
 A trace saves to a single ``.npz`` (no pickle; ``massviz.io.trace_file.save_trace`` / ``load_trace``): JSON header +
 parallel arrays + packed masks + PNG-encoded patches. This module reads and writes no file.
 
-Every trace carries its **tracks** (``detections.track``, ``massviz.core.tracks``) and the **flags** of its selection
-(``flags``, ``massviz.core.flags.analyse``: which chosen patches are probably not the container, and the estimate
-without them). Both are made when a trace is made (untracked detections are tracked, flags of another selection are
-recomputed: ``reselect`` and ``dataclasses.replace`` get fresh flags), saved with it (array ``det_track``, header
-``flags``) and, when a file of format 2 written before them lacks them, computed on load. Making them is pure
-computation: constructing, replacing or re-selecting a trace opens no file (the ground truth's masks are read by io,
-``massviz.io.ground_truth.with_ground_truth``, into per-detection overlaps the flags read).
+A ``Trace`` is plain data: constructing it or ``dataclasses.replace`` computes nothing. Its **tracks**
+(``detections.track``, ``massviz.core.tracks``) and the **flags** of its selection (``flags``,
+``massviz.core.flags.analyse``: which chosen patches are probably not the container, and the estimate without them) are
+computed by explicit stages: the pipeline's ``FramePipeline.finish`` (tracks as frames are processed, flags once at the
+end), ``Trace.reselect`` (flags of the new selection) and ``analyse_trace`` (for a trace whose recording, detections or
+ground-truth overlaps were replaced, or a file written before tracks and flags were saved: what is missing or no longer
+describes the trace). They are saved with the trace (array ``det_track``, header ``flags``). Computing them opens no
+file (the ground truth's masks are read by io, ``massviz.io.ground_truth.with_ground_truth``, into per-detection
+overlaps the flags read).
 """
 from __future__ import annotations
 
@@ -38,7 +40,9 @@ class Event(NamedTuple):
     ``not_estimated``, ``skipped`` (a detection that cannot be used, e.g. its mask has no depth), ``cache`` (detections
     reused from the trace cache), ``measured`` (the 3D stage's size of a chosen patch), ``warning`` and ``info``.
     ``level`` is ``debug``, ``info`` or ``warn`` (the Rerun ``/log`` level). ``detection`` is the index into the
-    trace's detections the event is about (-1: none).
+    trace's detections the event is about (-1: none). ``reason``: what a ``skipped`` event of an object the detector
+    did not take as a container rejected it for (``massviz.core.types.Rejection.reason``, e.g. ``border-cut object``;
+    "" for every other event): what ``massviz.core.selection.why_not_estimated`` counts, never the message.
     """
 
     frame: int
@@ -46,6 +50,7 @@ class Event(NamedTuple):
     kind: str = "info"
     level: str = "info"
     detection: int = -1
+    reason: str = ""
 
     @property
     def is_selection(self) -> bool:
@@ -53,7 +58,8 @@ class Event(NamedTuple):
         return self.kind in SELECTION_KINDS
 
     def to_list(self) -> list:
-        return [int(self.frame), str(self.message), self.kind, self.level, int(self.detection)]
+        out = [int(self.frame), str(self.message), self.kind, self.level, int(self.detection)]
+        return [*out, str(self.reason)] if self.reason else out
 
 
 EVENT_KINDS = ("chosen", "estimate", "not_estimated", "skipped", "cache", "measured", "warning", "info")
@@ -81,7 +87,8 @@ class Trace:
       the detections still chosen, re-ranked.
     - ``frame_timings``: seconds per stage for each processed frame (stage -> array aligned with ``frames``; empty
       for traces made before massviz recorded them).
-    - ``flags``: ``massviz.core.flags.Flags`` of the selection (made when the trace is; see the module docstring).
+    - ``flags``: ``massviz.core.flags.Flags`` of the selection, made by the stages that make or change the selection
+      (module docstring); None on a trace no stage has analysed yet (``analyse_trace``).
     - ``compute``: where and how the detections and predictions were computed (``FrameStage.describe``: device,
       kernels, precision, batch, mode ``faithful``/``fast``); empty for traces made before massviz recorded it.
     - ``ground_truth_source``: what the detections' ground-truth overlaps (``Detections.gt_iou`` ...) were computed
@@ -110,16 +117,13 @@ class Trace:
     compute: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        # only the plain forms of the typed fields are converted (a dict, a list); nothing is computed
         if isinstance(self.recording, dict):
             self.recording = RecordingInfo.from_dict(self.recording)
         self.events = [e if isinstance(e, Event) else Event(*e) for e in self.events]
-        dets = self.detections
-        if len(dets) and (dets.track <= 0).any():
-            dets.track = assign_tracks(dets, self.recording.fps)
         if isinstance(self.flags, dict):
             self.flags = Flags.from_dict(self.flags)
-        if self.flags is None or not self.flags.describes(self):
-            self.flags = analyse(self)
+
 
     # -- views -----------------------------------------------------------------------------------------------------
     @property
@@ -210,9 +214,24 @@ class Trace:
         events = [e for e in self.events if not e.is_selection]
         events.extend(describe_selection(self.detections, selection, estimate, k, events, threshold=threshold,
                                          detector=str(self.detector.get("name", ""))))
-        return dataclasses.replace(self, k=k, threshold=threshold, selection=selection, estimate=estimate,
-                                   excluded=excluded, events=events,
-                                   measurements=ranked_measurements(self.measurements, selection))
+        out = dataclasses.replace(self, k=k, threshold=threshold, selection=selection, estimate=estimate,
+                                  excluded=excluded, events=events,
+                                  measurements=ranked_measurements(self.measurements, selection), flags=None)
+        return analyse_trace(out)
+
+
+def analyse_trace(trace: Trace) -> Trace:
+    """The analysis stages of ``trace``: track ids for detections that have none (``massviz.core.tracks``), then the
+    flags of its selection (``massviz.core.flags.analyse``) unless its ``flags`` already describe it
+    (``Flags.describes``: the same selection, detections, tracks, threshold, estimate and ground truth). ``trace``
+    itself when nothing is missing; else a new trace (``trace`` is not changed)."""
+    dets = trace.detections
+    if len(dets) and (dets.track <= 0).any():
+        dets = dataclasses.replace(dets, track=assign_tracks(dets, trace.recording.fps))
+        trace = dataclasses.replace(trace, detections=dets, flags=None)
+    if trace.flags is not None and trace.flags.describes(trace):
+        return trace
+    return dataclasses.replace(trace, flags=analyse(trace))
 
 
 def ranked_measurements(measurements: list, selection) -> list[dict]:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, fields
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import numpy as np
 
@@ -97,6 +97,18 @@ class PackedMask:
 
     def sum(self) -> int:
         return int(np.unpackbits(self.bits, count=int(np.prod(self.shape))).sum())
+
+
+class Rejection(NamedTuple):
+    """An object a detector saw and did not take as a container candidate: ``reason`` names the kind of object
+    (``border-cut object``, ``part of a border-cut object``, ``implausibly sized object``), ``text`` says it in full
+    (e.g. "border-cut object (box [0, 10, 80, 200] at 612 mm)")."""
+
+    reason: str
+    text: str
+
+    def __str__(self) -> str:
+        return self.text
 
 
 def _empty(dtype, shape=(0,)):
@@ -310,4 +322,5 @@ class RecordingInfo:
 
 
 __all__ = [
-    "COCO_KEEP", "OBJECT_CLASS_ID", "class_name", "Intrinsics", "Frame", "Detections", "PackedMask", "GroundTruth", "RecordingInfo"]
+    "COCO_KEEP", "OBJECT_CLASS_ID", "class_name", "Intrinsics", "Frame", "Detections", "PackedMask", "GroundTruth", "RecordingInfo",
+    "Rejection"]

@@ -210,7 +210,10 @@ class TraceIndex:
 
         from massviz.io.ground_truth import with_ground_truth
 
-        return with_ground_truth(dataclasses.replace(load_trace(self.trace_path), recording=self.recording))
+        from massviz.core.trace import analyse_trace
+
+        return analyse_trace(with_ground_truth(dataclasses.replace(load_trace(self.trace_path),
+                                                                   recording=self.recording)))
 
 
 def index_path(trace_path: Path) -> Path:

@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 from massviz.core.flags import ground_truth_source, mask_overlap
+from massviz.core.trace import analyse_trace
 from massviz.core.types import Detections
 from massviz.errors import DataError, MassvizError
 from massviz.io.untrusted import check_image_size, frame_path
@@ -72,7 +73,7 @@ def with_ground_truth(trace):
             iou[i], instance[i], fraction[i] = mask_overlap(dets.full_mask(int(i), *img.shape[:2]), img, names)
     new = Detections(**{n: getattr(dets, n) for n in Detections._ARRAYS if not n.startswith("gt_")}, gt_iou=iou,
                      gt_instance=instance, gt_fraction=fraction, masks=dets.masks, patches=dets.patches)
-    return dataclasses.replace(trace, detections=new, ground_truth_source=source)
+    return analyse_trace(dataclasses.replace(trace, detections=new, ground_truth_source=source))
 
 
 __all__ = ["read_instance_image", "ground_truth_masks", "with_ground_truth"]
