@@ -99,14 +99,20 @@ class Pipeline:
         the options' ``selection``) plus the exclusions ``exclude``; ``on_frame``: the per-frame observer of
         ``massviz.core.pipeline.run`` (not called when the trace comes from the cache)."""
         progress = not self.options.quiet if progress is None else progress
-        selection = self.options.selection if selection is None else selection
+        selection = self.selection if selection is None else selection
         return process(recording, self.detector, self.model, selection=selection, cache=self.cache,
                        progress=progress, exclude=exclude, batch=self.batch, on_frame=on_frame)
 
     @property
+    def selection(self) -> Selection:
+        """The selection this pipeline selects with, resolved once here (the edge): the options' K, stride and
+        threshold, the detector's own score cut when the options name none (``Selection.at_cut``)."""
+        return self.options.selection.at_cut(self.detector.threshold)
+
+    @property
     def threshold(self) -> float:
-        """The score cut this pipeline selects with: ``options.threshold``, else the detector's default."""
-        return float(self.detector.threshold if self.options.threshold is None else self.options.threshold)
+        """The score cut this pipeline selects with (``selection.threshold``)."""
+        return float(self.selection.threshold)
 
     @property
     def batch(self) -> int:
@@ -115,7 +121,7 @@ class Pipeline:
 
     def frame_pipeline(self, recording_info=None) -> FramePipeline:
         """A fresh per-frame step for one recording (live camera, dataset workers, batched runners)."""
-        return FramePipeline(self.detector, self.model, selection=self.options.selection, recording=recording_info)
+        return FramePipeline(self.detector, self.model, selection=self.selection, recording=recording_info)
 
 
 def process(recording, detector, model, *, selection: Selection | None = None, k: int | None = None,
@@ -131,9 +137,7 @@ def process(recording, detector, model, *, selection: Selection | None = None, k
     from massviz.io.ground_truth import with_ground_truth
 
     annotate = annotate or with_ground_truth
-    selection = resolve_selection(selection, k, stride)
-    if selection.threshold is None:
-        selection = selection.replace(threshold=float(detector.threshold))
+    selection = resolve_selection(selection, k, stride).at_cut(detector.threshold)
     if exclude is not None:
         selection = selection.replace(exclude=tuple(selection.exclude) + tuple(Selection(exclude=exclude).exclude))
     k, stride, threshold = selection.k, selection.stride, selection.threshold

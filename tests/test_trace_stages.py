@@ -12,8 +12,8 @@ import massviz.core.trace as trace_module
 from massviz.app import process
 from massviz.commands._common import flag_warning
 from massviz.core.pipeline import run
-from massviz.core.selection import NotEstimated, REJECTED_PREFIX, why_not_estimated
-from massviz.core.trace import Event, Trace, analyse_trace
+from massviz.core.selection import NotEstimated, REJECTED_PREFIX, Selection, why_not_estimated
+from massviz.core.trace import Event, Trace, analyse_trace, frame_results
 from massviz.core.types import Detections, Rejection
 from massviz.io.recording import open_recording
 from massviz.io.trace_file import load_trace, save_trace
@@ -161,3 +161,41 @@ def test_the_depth_detector_rejections_reach_the_events_with_their_reason(tmp_pa
     assert trace.estimate == -1
     assert flag_warning("estimate", trace).endswith("not estimated: only border-cut / implausibly sized objects: "
                                                     "1 × border-cut object (frame 0)")
+
+
+# ------------------------------------------------------------------------------------------ one selection, sinks
+def test_a_finished_trace_gives_a_sink_the_results_the_run_gave(rec):
+    # what a sink is given for a trace from the cache (frame_results) is what it was given during the run
+    seen = []
+    trace = run(rec, ListDetector(DETECTIONS), DistanceModel(), selection=Selection(k=2, threshold=0.6), prefetch=0,
+                on_frame=lambda frame, result: seen.append(result))
+    replayed = [r for _, r in frame_results(trace, rec.frames(indices=[int(f) for f in trace.frames]))]
+    assert len(replayed) == len(seen) == len(trace.frames)
+    for a, b in zip(seen, replayed):
+        assert a.offset == b.offset and a.frame.index == b.frame.index
+        assert a.selection.tolist() == b.selection.tolist() and a.running_estimate == b.running_estimate
+        assert a.active.tolist() == b.active.tolist() == np.flatnonzero(a.detections.score > 0.6).tolist()
+        assert a.detections.xyxy.tolist() == b.detections.xyxy.tolist()
+        assert all(np.array_equal(p, q) for p, q in zip(a.patches, b.patches))
+    assert any(len(r.active) < len(r.detections) for r in seen)  # the threshold removed some: the check can fail
+
+
+def test_the_selection_is_resolved_once_from_the_options_and_the_detector():
+    from massviz.app import Pipeline, PipelineOptions
+
+    det = ListDetector(DETECTIONS, threshold=0.45)
+    pipeline = Pipeline(PipelineOptions(k=3, stride=2), det, DistanceModel(), None)
+    assert pipeline.selection == Selection(k=3, threshold=0.45, stride=2) and pipeline.threshold == 0.45
+    named = Pipeline(PipelineOptions(k=3, threshold=0.7), det, DistanceModel(), None)
+    assert named.selection.threshold == 0.7
+    with pytest.raises(ValueError, match="below the detector's score cut"):
+        Selection(threshold=0.3).at_cut(0.45)
+
+
+def test_detections_grouped_by_frame():
+    dets = Detections(frame=[3, 1, 3, 1, 7], xyxy=np.tile([0, 0, 2, 2], (5, 1)), score=[0.5] * 5,
+                      class_id=[47] * 5)
+    groups = dets.indices_by_frame()
+    assert list(groups) == [1, 3, 7]
+    assert {f: g.tolist() for f, g in groups.items()} == {1: [1, 3], 3: [0, 2], 7: [4]}
+    assert Detections().indices_by_frame() == {}

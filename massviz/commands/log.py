@@ -63,7 +63,7 @@ def run(args) -> int:
     from massviz.commands._common import build, flag_warning
     from massviz.errors import MassvizError
     from massviz.io.recording import open_recording
-    from massviz.views.rerun.replay import log_run
+    from massviz.runners.logged import log_run
 
     if args.rrd_dir:
         from massviz.commands._dataset_log import run_rrd_dir
@@ -95,10 +95,8 @@ def run(args) -> int:
     # into place: a failure in either leaves neither (and no --ply folder this run created)
     with staged_files(args.ply) if args.ply else contextlib.nullcontext() as stage:
         # one pass: each frame is logged as the pipeline processes it (a trace from the cache is replayed once)
-        trace, stats = log_run(rec, lambda on_frame: pipeline.process(rec, on_frame=on_frame),
-                               rrd=Path(args.rrd) if args.rrd else None, spawn=args.spawn, progress=not args.quiet,
-                               video=args.video, points=args.points, threshold=pipeline.threshold,
-                               k=pipeline.options.selection.k,
+        trace, stats = log_run(pipeline, rec, rrd=Path(args.rrd) if args.rrd else None, spawn=args.spawn,
+                               progress=not args.quiet, video=args.video, points=args.points,
                                before_close=(lambda trace: write_clouds(trace, stage)) if args.ply else None)
     if ply_line:
         print(ply_line[0], file=sys.stderr)

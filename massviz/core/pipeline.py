@@ -41,7 +41,7 @@ from massviz.core.detector import Detector
 from massviz.core.prefetch import Prefetcher
 from massviz.core.selection import REJECTED_PREFIX, Selection, estimate_mass, select_k_nearest
 from massviz.core.stage import FramePatches, FrameStage, StagedFrame, predictable
-from massviz.core.trace import Event, Trace, analyse_trace, describe_detection, describe_selection, ranked_measurements
+from massviz.core.trace import Event, FrameResult, Trace, analyse_trace, describe_detection, describe_selection, ranked_measurements
 from massviz.core.tracks import Tracker
 from massviz.core.types import Detections, Frame, RecordingInfo, Rejection
 
@@ -81,27 +81,6 @@ class _NearestPatches:
             self.patches.pop(-neg, None)
 
 
-@dataclass
-class FrameResult:
-    """What one ``FramePipeline.step`` computed.
-
-    - ``frame``: the frame; ``detections``: its detections with d, a, b and ``pred`` (their indices in the trace are
-      ``offset + i``); ``patches``: their RGB crops (``FramePatches``, cut when read).
-    - ``selection``: the K nearest detections *so far* (indices into the trace's detections, nearest first) and
-      ``running_estimate`` the mean of their predictions (-1 while nothing is selected).
-    - ``timings``: this frame's seconds per stage (read, detect, features, predict, select); ``events`` its decisions.
-    """
-
-    frame: Frame
-    detections: Detections
-    patches: list
-    offset: int
-    selection: np.ndarray
-    running_estimate: float
-    timings: dict = field(default_factory=dict)
-    events: list = field(default_factory=list)
-
-
 def resolve_selection(selection: Selection | None, k: int | None, stride: int | None) -> Selection:
     """``selection``, or one made of the shorthand ``k``/``stride`` (not both)."""
     if selection is None:
@@ -129,14 +108,8 @@ class FramePipeline:
     def __init__(self, detector: Detector, model, *, selection: Selection | None = None, k: int | None = None,
                  stride: int | None = None, recording: RecordingInfo | None = None,
                  keep_patches: int = KEEP_PATCHES, measure: bool = False, stage: FrameStage | None = None):
-        selection = resolve_selection(selection, k, stride)
         self.detect_threshold = float(detector.threshold)  # the detector's own cut, recorded in the trace
-        if selection.threshold is None:
-            selection = selection.replace(threshold=self.detect_threshold)
-        elif selection.threshold < self.detect_threshold - 1e-9:
-            raise ValueError(f"selection threshold {selection.threshold} is below the detector's score cut "
-                             f"{self.detect_threshold} (lower-scored detections are never kept)")
-        self.selection = selection
+        self.selection = selection = resolve_selection(selection, k, stride).at_cut(self.detect_threshold)
         self.detector, self.model = detector, model
         self.stage = stage if stage is not None else FrameStage(detector, model)
         self.k, self.stride = selection.k, selection.stride
@@ -208,7 +181,8 @@ class FramePipeline:
                 self.timings[name] += seconds
         self.events.extend(events)
         return FrameResult(frame=frame, detections=dets, patches=patches, offset=offset, selection=selection,
-                           running_estimate=running, timings=timings, events=events)
+                           running_estimate=running, timings=timings, events=events,
+                           active=np.flatnonzero(dets.score > self.selection.threshold))
 
     def _keep_crops(self, frame: Frame, dets: Detections, offset: int, selection: np.ndarray) -> None:
         """The measure stage's part in a step: keep the crops of this frame's detections that entered the running K

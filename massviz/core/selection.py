@@ -57,6 +57,18 @@ class Selection:
     def replace(self, **changes) -> "Selection":
         return dataclasses.replace(self, **changes)
 
+    def at_cut(self, detect_threshold: float) -> "Selection":
+        """This selection with its threshold resolved for a detector whose score cut is ``detect_threshold``: the
+        cut itself when it names none; ``ValueError`` when it names one below the cut (those detections were never
+        kept). What the edge (``massviz.app.Pipeline``, ``massviz.app.process``, ``FramePipeline``'s shorthand)
+        resolves once; every stage and sink after it reads the trace's (or the ``FrameResult``'s) values."""
+        if self.threshold is None:
+            return self.replace(threshold=float(detect_threshold))
+        if self.threshold < float(detect_threshold) - 1e-9:
+            raise ValueError(f"selection threshold {self.threshold} is below the detector's score cut "
+                             f"{float(detect_threshold)} (lower-scored detections are never kept)")
+        return self
+
 
 def box_ratios(xyxy: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     """a = box width / image width, b = box height / image height, each rounded to 2 decimals."""

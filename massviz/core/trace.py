@@ -30,7 +30,33 @@ from massviz.core.detector import describe_cut
 from massviz.core.flags import Flags, analyse
 from massviz.core.selection import NearestOrder, Selection, estimate_mass, not_estimated_reason, select_k_nearest
 from massviz.core.tracks import assign_tracks
-from massviz.core.types import Detections, GroundTruth, RecordingInfo, class_name
+from massviz.core.stage import FramePatches
+from massviz.core.types import Detections, Frame, GroundTruth, RecordingInfo, class_name
+
+
+@dataclass
+class FrameResult:
+    """What the pipeline computed for one frame (``massviz.core.pipeline.FramePipeline.step``), or what a finished
+    trace holds of it (``frame_results``): what a sink is given for each frame.
+
+    - ``frame``: the frame; ``detections``: its detections with d, a, b and ``pred`` (their indices in the trace are
+      ``offset + i``); ``patches``: their RGB crops (``massviz.core.stage.FramePatches``, cut when read).
+    - ``selection``: the K nearest detections *so far* (indices into the trace's detections, nearest first) and
+      ``running_estimate`` the mean of their predictions (-1 while nothing is selected).
+    - ``active``: indices into ``detections`` of those above the selection's score threshold.
+    - ``timings``: this frame's seconds per stage (read, detect, features, predict, select); ``events`` its decisions
+      (both empty for a frame of a finished trace).
+    """
+
+    frame: Frame
+    detections: Detections
+    patches: list
+    offset: int
+    selection: np.ndarray
+    running_estimate: float
+    timings: dict = field(default_factory=dict)
+    events: list = field(default_factory=list)
+    active: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
 
 class Event(NamedTuple):
@@ -232,6 +258,30 @@ def analyse_trace(trace: Trace) -> Trace:
     if trace.flags is not None and trace.flags.describes(trace):
         return trace
     return dataclasses.replace(trace, flags=analyse(trace))
+
+
+def frame_results(trace: Trace, frames):
+    """The ``FrameResult`` of each of ``frames`` (the trace's processed frames, in order, as a reader yields them),
+    made from what ``trace`` holds: its detections of the frame, their patches cut from the frame, the running
+    selection and estimate after it and the detections above its threshold. Yields (frame, result): what a sink
+    is given for a trace that did not come from a run it observed (a trace from the cache)."""
+    dets = trace.detections
+    groups = dets.indices_by_frame()
+    selections = trace.running_selections()
+    estimates = trace.running_estimate()
+    position = {int(f): j for j, f in enumerate(trace.frames)}
+    active = trace.active()
+    for frame in frames:
+        j = position[int(frame.index)]
+        idx = groups.get(int(frame.index), np.zeros(0, dtype=np.int64))
+        offset = int(idx[0]) if len(idx) else int(np.searchsorted(dets.frame, frame.index))
+        if len(idx) and not np.array_equal(idx, np.arange(offset, offset + len(idx))):
+            raise ValueError("frame_results needs a trace whose detections are in frame order (as the pipeline "
+                             "makes them)")
+        local = dets[idx]
+        yield frame, FrameResult(frame=frame, detections=local, patches=FramePatches(frame.rgb, local.xyxy),
+                                 offset=offset, selection=selections[j], running_estimate=float(estimates[j]),
+                                 active=np.flatnonzero(active[idx]))
 
 
 def ranked_measurements(measurements: list, selection) -> list[dict]:

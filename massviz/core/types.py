@@ -199,6 +199,12 @@ class Detections:
         kw.update({name: [x for p in parts for x in getattr(p, name)] for name in cls._LISTS})
         return cls(**kw)
 
+    def indices_by_frame(self) -> dict[int, np.ndarray]:
+        """Frame index -> the indices of its detections (ascending), for the frames that have any, in frame order."""
+        order = np.lexsort((np.arange(len(self)), self.frame))  # by frame, then index
+        frames, starts = np.unique(self.frame[order], return_index=True)
+        return {int(f): order[s:e] for f, s, e in zip(frames, starts, [*starts[1:], len(order)])}
+
     def class_names(self) -> list[str]:
         return [class_name(c) for c in self.class_id]
 
