@@ -8,6 +8,8 @@ ones inside functions) and fail on an arrow that breaks it.
 * no two modules import each other, directly or round a longer circle (imports inside functions count);
 * no stage (``core``, ``detect``, ``io``) imports a sink (``views``);
 * no view imports a stage module for its logic (the pipeline, the builder, a detector) or a runner or command;
+* no view imports a function that computes: the pipeline and its stage, the mass CNN, a detector, a measurement
+  (a sink is given each frame's result and the trace; it draws them);
 * no command imports another command (only the private helpers ``commands/_*.py``);
 * library code names no repository-relative path and never switches matplotlib's backend.
 
@@ -126,17 +128,8 @@ def import_circles(graph) -> list[list[str]]:
     return sorted(out)
 
 
-#: circles another branch of this wave removes (issue 19: one module per format, i19b); each entry must still exist
-#: (test_known_circles_still_exist), so it is deleted here when the circle goes.
-KNOWN_CIRCLES: list = []
-
-
 def test_no_import_circle():
-    assert [c for c in import_circles(GRAPH) if c not in KNOWN_CIRCLES] == []
-
-
-def test_known_circles_still_exist():
-    assert [c for c in KNOWN_CIRCLES if c not in import_circles(GRAPH)] == [], "delete it from KNOWN_CIRCLES"
+    assert import_circles(GRAPH) == []
 
 
 #: calls that read or write files: plain names, and attribute names on any object (``cv2.imread``, ``np.load``,
@@ -190,6 +183,50 @@ def view_arrows(graph) -> list:
 
 def test_views_import_no_stage_module_for_logic():
     assert view_arrows(GRAPH) == []
+
+
+#: what computes and so is no view's to call: the per-frame step and its stage (``core.pipeline``, ``core.stage``),
+#: the mass CNN's predictions (``core.model``), the detectors (``detect``) and the measure stage (``core.geometry``'s
+#: measuring functions). A sink is given results and traces; it draws them.
+COMPUTE_FOR_VIEWS = {"massviz.core.pipeline": None, "massviz.core.stage": None, "massviz.core.model": None,
+                     "massviz.detect": None,
+                     "massviz.core.geometry": {"measure", "measure_crop", "measure_detection", "measure_cloud",
+                                               "with_measurements"}}
+
+
+def view_calls(sources: dict[str, str]) -> list[tuple[str, str]]:
+    """(view module, ``module.name``) for every name a view imports from a module that computes
+    (:data:`COMPUTE_FOR_VIEWS`; None: every name of it), at any depth of the file; ``sources``: module -> text."""
+    out = []
+    for module, text in sources.items():
+        if not under(module, "views"):
+            continue
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.ImportFrom) and node.module and not node.level:
+                for target, names in COMPUTE_FOR_VIEWS.items():
+                    if node.module == target or node.module.startswith(target + "."):
+                        out += [(module, f"{node.module}.{a.name}") for a in node.names
+                                if names is None or a.name in names]
+            elif isinstance(node, ast.Import):
+                out += [(module, a.name) for a in node.names for target, names in COMPUTE_FOR_VIEWS.items()
+                        if names is None and (a.name == target or a.name.startswith(target + "."))]
+    return sorted(out)
+
+
+def test_views_call_no_pipeline_detector_or_measure_function():
+    assert view_calls({module_name(p): p.read_text() for p in FILES}) == []
+
+
+def test_the_checks_catch_a_view_calling_the_pipeline_a_detector_or_a_measurement():
+    bad = {"massviz.views.rerun.bad": "def f(trace):\n    from massviz.core.geometry import measure_crop, measurements_of\n"
+                                      "    from massviz.core.pipeline import run\n    import massviz.detect.depth\n"
+                                      "    from massviz.detect.depth import DepthDetector\n",
+           "massviz.views.fine": "from massviz.core.geometry import measurements_of\nfrom massviz.core.trace import Trace\n",
+           "massviz.runners.logged": "from massviz.core.pipeline import run\n"}
+    assert view_calls(bad) == [("massviz.views.rerun.bad", "massviz.core.geometry.measure_crop"),
+                               ("massviz.views.rerun.bad", "massviz.core.pipeline.run"),
+                               ("massviz.views.rerun.bad", "massviz.detect.depth"),
+                               ("massviz.views.rerun.bad", "massviz.detect.depth.DepthDetector")]
 
 
 def test_no_command_imports_another_command():
