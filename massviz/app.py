@@ -159,7 +159,9 @@ def process(recording, detector, model, *, selection: Selection | None = None, k
         # the key is the frames' content: the recording's path, meta and intrinsics are today's, not the cached run's
         return analyse_trace(annotate(dataclasses.replace(trace, recording=recording.info(), events=events,
                                                           timings={**trace.timings, **timings})))
-    if not hasattr(recording, "frames"):  # recognised from its files (massviz.io.identity): only the cache serves it
+    from massviz.io.identity import LocatedRecording
+
+    if isinstance(recording, LocatedRecording):  # recognised from its files, not opened: only the cache serves it
         raise MassvizError("its cached trace was found when this run started but could not be read now (removed, or "
                            "damaged and dropped); run the command again to compute it", recording.path)
     # the content key of the bytes the run reads (each frame file read once), not of a second read

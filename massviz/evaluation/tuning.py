@@ -128,7 +128,7 @@ def index_recordings(recordings, options=None, *, progress: bool = False, **kwar
     import dataclasses
 
     from massviz.app import build_pipeline
-    from massviz.io.identity import open_remembered
+    from massviz.io.identity import LocatedRecording, open_remembered
 
     pipeline = build_pipeline(options, **kwargs)
     if pipeline.cache is None:
@@ -141,7 +141,7 @@ def index_recordings(recordings, options=None, *, progress: bool = False, **kwar
                                                                        allow_partial=o.allow_partial)
         index = pipeline.cache.load_index(rec, info, o.stride, pipeline.threshold)
         if index is None or index.weights_id != getattr(pipeline.model, "weights_id", ""):
-            if not hasattr(rec, "frames"):  # recognised, not opened: open it to process it
+            if isinstance(rec, LocatedRecording):  # recognised, not opened: open it to process it
                 from massviz.io.recording import open_recording
 
                 rec = open_recording(r, allow_partial=o.allow_partial)
