@@ -15,6 +15,7 @@ from massviz.core.pipeline import run
 from massviz.core.selection import NotEstimated, REJECTED_PREFIX, Selection, why_not_estimated
 from massviz.core.trace import Event, Trace, analyse_trace, frame_results
 from massviz.core.types import Detections, Rejection
+from massviz.errors import MassvizError
 from massviz.io.recording import open_recording
 from massviz.io.trace_file import load_trace, save_trace
 from test_pipeline import DETECTIONS, scene
@@ -199,3 +200,44 @@ def test_detections_grouped_by_frame():
     assert list(groups) == [1, 3, 7]
     assert {f: g.tolist() for f, g in groups.items()} == {1: [1, 3], 3: [0, 2], 7: [4]}
     assert Detections().indices_by_frame() == {}
+
+
+def test_retune_is_one_reselect_with_the_result_of_the_step_by_step_chain(rec, analyses):
+    from massviz.evaluation.tuning import original_selection, retune, retuned_estimate, retuned_selection, subsample
+
+    trace = made(rec)
+    exclude = [int(trace.selection[0])]
+    for stride, k in ((1, 2), (2, 2), (3, 1)):
+        analyses.clear()
+        one = retune(trace, k=k, stride=stride, exclude=exclude)
+        assert len(analyses) == 1
+        chain = subsample(trace.reselect(exclude=exclude), stride).reselect(k=k)
+        assert len(analyses) == 1 + (2 if stride == 1 else 3)  # the chain analyses every intermediate trace
+        assert one.selection.tolist() == chain.selection.tolist() and one.estimate == chain.estimate
+        assert one.excluded.tolist() == chain.excluded.tolist() and one.events == chain.events
+        assert one.flags == chain.flags and one.stride == chain.stride
+        # the selection stage alone selects the same, of the trace or of its columns only (a selection index)
+        sel = retuned_selection(trace, k=k, threshold=trace.threshold, stride=stride, exclude=exclude)
+        assert sel.tolist() == original_selection(trace, one, stride).tolist()
+        columns = dataclasses.replace(trace.detections, masks=[None] * len(trace.detections),
+                                      patches=[None] * len(trace.detections))
+        index = type("Index", (), {"detections": columns, "detect_threshold": trace.detect_threshold})()
+        assert retuned_estimate(index, k=k, threshold=trace.threshold, stride=stride,
+                                exclude=exclude) == one.estimate
+    with pytest.raises(MassvizError, match="below the detection threshold"):
+        retuned_selection(trace, k=2, threshold=trace.detect_threshold - 0.1)
+
+
+def test_a_subsampled_trace_keeps_the_measurements_of_its_detections_renumbered(rec):
+    from massviz.evaluation.tuning import kept_indices, retune
+
+    trace = made(rec)
+    fake = [{"detection": int(i), "rank": r, "width_mm": 10.0 + i} for r, i in enumerate(trace.selection)]
+    measured = dataclasses.replace(trace, measurements=fake)
+    sub = retune(measured, stride=2)
+    keep = kept_indices(trace, 2)
+    for m in sub.measurements:
+        original = int(keep[m["detection"]])
+        assert m["width_mm"] == 10.0 + original and m["detection"] in sub.selection.tolist()
+    assert len(sub.measurements) == len(set(sub.selection.tolist()) & {int(np.flatnonzero(keep == i)[0])
+                                                                      for i in trace.selection if i in keep})

@@ -226,10 +226,7 @@ class Trace:
         """
         k = self.k if k is None else int(k)
         threshold = self.threshold if threshold is None else float(threshold)
-        if threshold < self.detect_threshold - 1e-9:
-            raise MassvizError(f"threshold {threshold} is below the detection threshold {self.detect_threshold} "
-                               "this trace was made with; run the detector again with --threshold "
-                               f"{threshold} (detections at threshold t serve any threshold >= t)")
+        check_reselectable(threshold, self.detect_threshold)
         if exclude is None:
             excluded = self.excluded
         else:
@@ -244,6 +241,15 @@ class Trace:
                                   excluded=excluded, events=events,
                                   measurements=ranked_measurements(self.measurements, selection), flags=None)
         return analyse_trace(out)
+
+
+def check_reselectable(threshold: float, detect_threshold: float) -> None:
+    """``MassvizError`` when a selection at ``threshold`` is asked of detections kept above ``detect_threshold``
+    (lower-scored boxes were never kept)."""
+    if threshold < detect_threshold - 1e-9:
+        raise MassvizError(f"threshold {threshold} is below the detection threshold {detect_threshold} "
+                           "this trace was made with; run the detector again with --threshold "
+                           f"{threshold} (detections at threshold t serve any threshold >= t)")
 
 
 def analyse_trace(trace: Trace) -> Trace:
