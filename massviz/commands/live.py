@@ -176,7 +176,7 @@ def run_session(args, pipeline, stream, name: str) -> int:
             if args.rrd or args.spawn or connect:
                 from massviz.views.rerun_live import LiveLogger
 
-                logger = LiveLogger(name=name, k=fp.selection.k, threshold=fp.selection.threshold,
+                logger = LiveLogger(name=name, k=fp.selection.k,
                                     intrinsics=info.intrinsics, rrd=args.rrd, spawn=args.spawn, connect=connect)
             print(f"massviz live: {stream.description}; Ctrl-C ends the session", file=sys.stderr)
             result = run_live(stream, fp, logger=logger, duration=args.duration, save=args.save,

@@ -302,9 +302,7 @@ def repredict(trace: Trace, recording, model, progress: bool = False) -> Trace:
     """Recompute every detection's prediction with another model (re-reads the frames that have detections)."""
     dets = trace.detections
     pred = np.full(len(dets), np.nan, dtype=np.float32)
-    by_frame = defaultdict(list)
-    for i, f in enumerate(dets.frame):
-        by_frame[int(f)].append(i)
+    by_frame = dets.indices_by_frame()
     for frame in tqdm(recording.frames(indices=list(by_frame)), total=len(by_frame), disable=not progress,
                       file=sys.stderr, desc=f"{recording.id} re-predict", leave=False):
         idx = by_frame[frame.index]

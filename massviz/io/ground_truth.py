@@ -64,12 +64,12 @@ def with_ground_truth(trace):
     iou = np.full(len(dets), np.nan)
     instance = np.full(len(dets), -1, np.int32)
     fraction = np.full(len(dets), np.nan)
-    for frame in np.unique(dets.frame):
-        gt = ground_truth_masks(trace, int(frame))
+    for frame, idx in dets.indices_by_frame().items():
+        gt = ground_truth_masks(trace, frame)
         if gt is None:
             continue
         img, names = gt
-        for i in np.flatnonzero(dets.frame == frame):
+        for i in idx:
             iou[i], instance[i], fraction[i] = mask_overlap(dets.full_mask(int(i), *img.shape[:2]), img, names)
     new = Detections(**{n: getattr(dets, n) for n in Detections._ARRAYS if not n.startswith("gt_")}, gt_iou=iou,
                      gt_instance=instance, gt_fraction=fraction, masks=dets.masks, patches=dets.patches)

@@ -120,9 +120,8 @@ def log_light(stream: rr.RecordingStream, trace: Trace, recording, patches: dict
     rl.log_annotation_context(stream, trace.k)
     rl.log_summary(stream, trace)
     stream.log("/source", rr.TextDocument(source_text, media_type=rr.MediaType.MARKDOWN), static=True)
-    by_frame: dict[int, list[int]] = {}
-    for i, f in enumerate(dets.frame):
-        by_frame.setdefault(int(f), []).append(i)
+    by_frame = {f: idx.tolist() for f, idx in dets.indices_by_frame().items()}
+    active = trace.active()
     best = best_frame(trace)
     log_thumbnail(stream, rgb_best)
     for f in frames:
@@ -132,7 +131,7 @@ def log_light(stream: rr.RecordingStream, trace: Trace, recording, patches: dict
         if f == best and rgb_best is not None:
             stream.log("/camera/rgb", rr.EncodedImage(contents=rl.jpeg_bytes(rgb_best, 85), media_type="image/jpeg"))
         idx = by_frame.get(f, [])
-        class_ids = rl.detection_class_ids(dets, idx, rank_of, trace.threshold, flagged)
+        class_ids = rl.detection_class_ids(dets, idx, rank_of, active, flagged)
         rl.log_detections(stream, dets, idx, class_ids, rank_of)
     # the chosen patches are static: every tile shows its patch whatever the time cursor (a recording opens at its
     # best frame, before the frames some patches come from); each says its frame (``frame`` in its values)

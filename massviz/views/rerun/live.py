@@ -26,6 +26,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+import numpy as np
 import rerun as rr
 
 from massviz.core.trace import Trace, describe_detection
@@ -41,14 +42,16 @@ from massviz.views.rerun.output import Output
 
 class LiveLogger:
     """Rerun output of a live session: ``rrd`` (file, written atomically at ``close``), ``spawn`` (a native
-    viewer), ``connect`` (a running viewer or server's gRPC URL) — any combination — or ``stream`` (a caller's)."""
+    viewer), ``connect`` (a running viewer or server's gRPC URL) — any combination — or ``stream`` (a caller's).
+    ``k``: the selection's K (the layout's tiles, before the first frame); everything else comes with each frame's
+    ``FrameResult`` and the final trace."""
 
-    def __init__(self, *, name: str, k: int, threshold: float, intrinsics: Intrinsics | None,
+    def __init__(self, *, name: str, k: int, intrinsics: Intrinsics | None,
                  rrd: str | Path | None = None, spawn: bool = False, connect: str | None = None,
                  stream: rr.RecordingStream | None = None, jpeg_quality: int = 85, points: bool = False):
         if stream is None and rrd is None and not spawn and not connect:
             raise ValueError("nothing to log to: give rrd, spawn, connect or stream")
-        self.k, self.threshold, self.intrinsics, self.quality = k, threshold, intrinsics, int(jpeg_quality)
+        self.k, self.intrinsics, self.quality = k, intrinsics, int(jpeg_quality)
         self.points = points and intrinsics is not None  # /world/points as massviz log does (costly; off by default)
         self.out = Output(rrd=rrd, spawn=spawn, connect=connect, stream=stream)
         self.rrd = self.out.rrd
@@ -91,7 +94,9 @@ class LiveLogger:
         rank_global = {int(g): r for r, g in enumerate(res.selection)}
         rank_of = {i: rank_global[res.offset + i] for i in range(n) if res.offset + i in rank_global}
         idx = list(range(n))
-        class_ids = detection_class_ids(dets, idx, rank_of, self.threshold)
+        active = np.zeros(n, dtype=bool)
+        active[np.asarray(res.active, dtype=np.int64)] = True  # above the selection's threshold (the step's)
+        class_ids = detection_class_ids(dets, idx, rank_of, active)
         log_detections(rec, dets, idx, class_ids, rank_of)
         log_masks(rec, dets, idx, class_ids, frame.depth.shape[:2])
         for i in rank_of:  # a detection of this frame entered the K nearest: keep what its tile shows

@@ -103,6 +103,7 @@ class TraceLogger:
         flag_of = {p.detection: p for p in trace.flags.patches}
         flagged = frozenset(p.detection for p in trace.flags.flagged)
         by_frame = {f: idx.tolist() for f, idx in dets.indices_by_frame().items()}
+        active = trace.active()
         if layout:
             rec.send_blueprint(blueprint_for(trace, self.recording, points=points), make_active=True,
                                make_default=True)
@@ -122,7 +123,7 @@ class TraceLogger:
         for f in frames:
             rec.set_time("frame", sequence=f)
             idx = by_frame.get(f, [])
-            class_ids = detection_class_ids(dets, idx, rank_of, trace.threshold, flagged)
+            class_ids = detection_class_ids(dets, idx, rank_of, active, flagged)
             log_detections(rec, dets, idx, class_ids, rank_of)
             log_masks(rec, dets, idx, class_ids, shape)
         # each tile shows the patch holding its rank at every frame: logged where the running selection changes
