@@ -32,7 +32,6 @@ import math
 import sys
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field
 
 import numpy as np
 from tqdm.auto import tqdm

@@ -40,6 +40,7 @@ from massviz.evaluation.browser import INDEX_NAME, PATCH_COLUMNS as _PATCH_COLUM
 from massviz.io.atomic import atomic_path
 from massviz.io.untrusted import safe_filename
 from massviz.views import rerun_log as rl
+from massviz.views.rerun.replay import log_conclusion, log_opening, log_overlays
 
 PROPERTY = "massviz"
 PATCHES_DIR = "patches"
@@ -113,38 +114,27 @@ def log_light(stream: rr.RecordingStream, trace: Trace, recording, patches: dict
               source_text: str) -> None:
     """The light recording (module docstring) into ``stream``."""
     dets, frames = trace.detections, [int(f) for f in trace.frames]
-    first = frames[0] if frames else 0
     rank_of = {int(i): r for r, i in enumerate(trace.selection)}
     flag_of = {p.detection: p for p in trace.flags.patches}
-    flagged = frozenset(p.detection for p in trace.flags.flagged)
-    rl.log_annotation_context(stream, trace.k)
-    rl.log_summary(stream, trace)
+    log_opening(stream, trace)
     stream.log("/source", rr.TextDocument(source_text, media_type=rr.MediaType.MARKDOWN), static=True)
-    by_frame = {f: idx.tolist() for f, idx in dets.indices_by_frame().items()}
-    active = trace.active()
     best = best_frame(trace)
     log_thumbnail(stream, rgb_best)
-    for f in frames:
-        stream.set_time("frame", sequence=f)
-        if f == first and recording.intrinsics is not None:
-            rl.log_pinhole(stream, recording.intrinsics, 0.3)
-        if f == best and rgb_best is not None:
-            stream.log("/camera/rgb", rr.EncodedImage(contents=rl.jpeg_bytes(rgb_best, 85), media_type="image/jpeg"))
-        idx = by_frame.get(f, [])
-        class_ids = rl.detection_class_ids(dets, idx, rank_of, active, flagged)
-        rl.log_detections(stream, dets, idx, class_ids, rank_of)
+    if frames and recording.intrinsics is not None:
+        stream.set_time("frame", sequence=frames[0])
+        rl.log_pinhole(stream, recording.intrinsics, 0.3)
+    if best in frames and rgb_best is not None:
+        stream.set_time("frame", sequence=best)
+        stream.log("/camera/rgb", rr.EncodedImage(contents=rl.jpeg_bytes(rgb_best, 85), media_type="image/jpeg"))
+    log_overlays(stream, trace)  # detections only: a light recording has no masks
     # the chosen patches are static: every tile shows its patch whatever the time cursor (a recording opens at its
     # best frame, before the frames some patches come from); each says its frame (``frame`` in its values)
     stream.reset_time()
     for i, rank in rank_of.items():
         if i in patches:
             rl.log_patch(stream, rank, dets, i, patches[i], flag_of.get(i), static=True)
-    rl.log_predictions(stream, trace)
-    rl.log_running(stream, trace)
-    rl.log_events(stream, trace.events, first)
-    rl.log_flags(stream, trace)
+    log_conclusion(stream, trace)
     rl.log_timings(stream, trace.timings, len(frames))
-    stream.reset_time()
 
 
 def light_blueprint(n_patches: int, flagged=()) -> rrb.Blueprint:

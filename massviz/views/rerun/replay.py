@@ -13,7 +13,7 @@ from tqdm.auto import tqdm
 
 from massviz.errors import MassvizError
 from massviz.core.trace import FrameResult, Trace, frame_results
-from massviz.views.rerun.blueprint import blueprint_for, default_blueprint
+from massviz.views.rerun.blueprint import blueprint_for
 from massviz.views.rerun.entities import (CLOUD_VOXEL_M, MAX_POINTS, POINT_STEP, PatchTiles, RgbLogger,
                                           detection_class_ids, frustum_depth, log_annotation_context,
                                           log_cloud_overlays, log_depth, log_detection_clouds, log_detections,
@@ -101,14 +101,10 @@ class TraceLogger:
         first = frames[0] if frames else 0
         rank_of = {int(i): r for r, i in enumerate(trace.selection)}
         flag_of = {p.detection: p for p in trace.flags.patches}
-        flagged = frozenset(p.detection for p in trace.flags.flagged)
-        by_frame = {f: idx.tolist() for f, idx in dets.indices_by_frame().items()}
-        active = trace.active()
         if layout:
             rec.send_blueprint(blueprint_for(trace, self.recording, points=points), make_active=True,
                                make_default=True)
-        log_annotation_context(rec, trace.k)
-        log_summary(rec, trace)
+        log_opening(rec, trace)
         notes = []
         if self.intr is None:
             notes.append("no camera intrinsics for this recording: no /camera Pinhole, no 3D view")
@@ -119,13 +115,8 @@ class TraceLogger:
         rec.set_time("frame", sequence=first)
         for note in notes:
             rec.log("/log", text_log(note, "warn"))
-        shape = (trace.recording.height or self.recording.height, trace.recording.width or self.recording.width)
-        for f in frames:
-            rec.set_time("frame", sequence=f)
-            idx = by_frame.get(f, [])
-            class_ids = detection_class_ids(dets, idx, rank_of, active, flagged)
-            log_detections(rec, dets, idx, class_ids, rank_of)
-            log_masks(rec, dets, idx, class_ids, shape)
+        log_overlays(rec, trace, masks_shape=(trace.recording.height or self.recording.height,
+                                              trace.recording.width or self.recording.width))
         # each tile shows the patch holding its rank at every frame: logged where the running selection changes
         tiles = PatchTiles(lambda i: (dets, i, dets.patches[i] if dets.patches[i] is not None else self.patches.get(i),
                                       flag_of.get(i)))
@@ -134,15 +125,50 @@ class TraceLogger:
             tiles.update(rec, selection)
         if self.cloud_paths:
             log_cloud_overlays(rec, trace, self.cloud_paths)
-        rec.reset_time()
-        log_predictions(rec, trace)
-        log_running(rec, trace)
-        log_events(rec, trace.events, first)
-        log_flags(rec, trace)
-        rec.reset_time()
+        log_conclusion(rec, trace)
         self.seconds += time.perf_counter() - t0
         return {"frames": len(frames), "detections": len(dets), "chosen": len(rank_of), "points": self.n_points,
                 "clouds": len(self.cloud_paths), "rgb": self.rgb.mode, "notes": notes}
+
+
+# ------------------------------------------------------------------------------------- what every trace path logs
+# The one way a finished trace reaches Rerun, shared by ``massviz log`` (``TraceLogger.finish``), the dataset's light
+# recordings (``massviz.views.rerun_dataset.log_light``) and ``massviz live`` (``massviz.views.rerun.live``).
+def log_opening(stream: rr.RecordingStream, trace: Trace) -> None:
+    """The annotation classes for the trace's K and ``/summary``."""
+    log_annotation_context(stream, trace.k)
+    log_summary(stream, trace)
+
+
+def log_overlays(stream: rr.RecordingStream, trace: Trace, *, masks_shape: tuple[int, int] | None = None) -> None:
+    """``/camera/detections`` of every processed frame at its frame (chosen ranks, flagged, below the threshold:
+    ``Trace.active``) and, with ``masks_shape`` (height, width), ``/camera/masks``."""
+    dets = trace.detections
+    rank_of = {int(i): r for r, i in enumerate(trace.selection)}
+    flagged = frozenset(p.detection for p in trace.flags.flagged)
+    by_frame = {f: idx.tolist() for f, idx in dets.indices_by_frame().items()}
+    active = trace.active()
+    for f in (int(f) for f in trace.frames):
+        stream.set_time("frame", sequence=f)
+        idx = by_frame.get(f, [])
+        class_ids = detection_class_ids(dets, idx, rank_of, active, flagged)
+        log_detections(stream, dets, idx, class_ids, rank_of)
+        if masks_shape is not None:
+            log_masks(stream, dets, idx, class_ids, masks_shape)
+
+
+def log_conclusion(stream: rr.RecordingStream, trace: Trace, *, running: bool = True, events: bool = True) -> None:
+    """``/predictions`` (chosen predictions, estimate, without the flagged), with ``running`` the running estimate,
+    with ``events`` the trace's decisions in ``/log``, then the flags' ``/log`` entries; the stream's time reset
+    before and after. ``massviz live`` has logged the running estimate and the decisions as they came."""
+    stream.reset_time()
+    log_predictions(stream, trace)
+    if running:
+        log_running(stream, trace)
+    if events:
+        log_events(stream, trace.events, int(trace.frames[0]) if len(trace.frames) else 0)
+    log_flags(stream, trace)
+    stream.reset_time()
 
 
 def trace_frames(trace: Trace, recording, *, progress: bool = False):
@@ -207,4 +233,5 @@ def show_in_notebook(trace: Trace, recording, *, width: int = 1000, height: int 
     return log_trace(trace, recording, stream=stream, **options)
 
 
-__all__ = ["TraceLogger", "log_trace", "trace_frames", "show_in_notebook"]
+__all__ = ["TraceLogger", "log_trace", "trace_frames", "show_in_notebook", "log_opening", "log_overlays",
+           "log_conclusion"]
