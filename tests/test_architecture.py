@@ -313,3 +313,31 @@ def test_baseline_help_range_is_the_baselines_range():
     from massviz.evaluation import baselines
 
     assert command.RANDOM_RANGE_G == baselines.RANDOM_RANGE_G
+
+
+def calls_of(text: str, names) -> set[str]:
+    """The functions of ``names`` that ``text`` calls (plain or attribute calls), at any depth."""
+    out = set()
+    for node in ast.walk(ast.parse(text)):
+        if isinstance(node, ast.Call):
+            f = node.func
+            name = f.id if isinstance(f, ast.Name) else f.attr if isinstance(f, ast.Attribute) else None
+            if name in names:
+                out.add(name)
+    return out
+
+
+#: what a finished trace's conclusion and overlays are logged with: called in one place, the one trace-to-Rerun path
+ONE_PATH = {"log_predictions", "log_running", "log_events", "log_flags", "log_detections", "detection_class_ids"}
+
+
+def test_one_path_from_a_finished_trace_to_rerun():
+    # massviz log, the dataset's light recordings and massviz live log a finished trace's overlays, predictions,
+    # decisions and flags through views/rerun/replay.py (log_overlays, log_conclusion); the live sink's per-frame
+    # overlays of a FrameResult are its own
+    callers = {str(p.relative_to(PKG)): sorted(calls_of(p.read_text(), ONE_PATH)) for p in FILES}
+    assert {f: c for f, c in callers.items() if c} == {
+        "views/rerun/replay.py": sorted(ONE_PATH),
+        "views/rerun/live.py": ["detection_class_ids", "log_detections"]}
+    assert calls_of("def f(s, t):\n    rl.log_flags(s, t)\n    log_predictions(s, t)\n", ONE_PATH) == {
+        "log_flags", "log_predictions"}

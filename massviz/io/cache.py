@@ -187,9 +187,10 @@ class TraceIndex:
     """What re-selection, sweeps, scores and the flags need of a cached trace, without its masks and patches: the
     recording's info, the detector's threshold, the stride, the model's id, the processed frames and every detection's
     columns (``Detections`` with ``masks``/``patches`` None: frame, class, score, box, d, a, b, prediction, track and
-    the ground-truth overlaps). A few kilobytes per recording. Reads like a ``Trace`` where a sweep reads one
-    (``recording``, ``detections``, ``excluded``, ``detect_threshold``, ``ground_truth``); ``trace_path`` is the full
-    trace, for the view that needs patches or masks (``load_trace``)."""
+    the ground-truth overlaps). A few kilobytes per recording. What the selection stage alone reads
+    (``massviz.evaluation.tuning.SelectionSource``: ``detections``, ``detect_threshold``) and a sweep's scores read
+    (``recording``, ``excluded``, ``ground_truth``); it is no ``Trace``: ``full_trace`` reads the full trace (patches,
+    masks, flags) for the view that needs it."""
 
     recording: RecordingInfo
     detector: dict

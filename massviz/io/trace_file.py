@@ -1,9 +1,11 @@
 """Trace files: a ``massviz.core.trace.Trace`` saved to a single ``.npz`` (no pickle) and read back, checked.
 
 The file holds a JSON header + parallel arrays + packed masks + PNG-encoded patches. Traces carry their tracks (array
-``det_track``) and flags (header ``flags``); a file of format 2 written before them lacks them and they are made when
-the trace is (``Trace.__post_init__``, pure computation); the detections' ground-truth overlaps, when the file lacks
-them, are read by :func:`load_trace` (``massviz.io.ground_truth.with_ground_truth``). A trace file is untrusted (a replay source, a cache entry):
+``det_track``) and flags (header ``flags``); a file of format 2 written before them lacks them and :func:`load_trace`
+computes them (``massviz.core.trace.analyse_trace``, pure computation, only what is missing or stale); the
+detections' ground-truth overlaps, when the file lacks them, are read by :func:`load_trace`
+(``massviz.io.ground_truth.with_ground_truth``). Events carry their ``reason`` (a sixth element, when there is one);
+the rejected objects' events of a file written before reasons get theirs from their message on load. A trace file is untrusted (a replay source, a cache entry):
 :func:`load_trace` bounds array sizes before they are allocated and checks every field (:func:`check_trace_arrays`).
 """
 from __future__ import annotations
