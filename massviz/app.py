@@ -151,14 +151,15 @@ def process(recording, detector, model, *, selection: Selection | None = None, k
             trace = repredict(trace, recording, model, progress=progress)
             cache.save(trace, recording, info)
             note += "; predictions recomputed for this model"
+        # the key is the frames' content: the recording's path, meta and intrinsics are today's, not the cached run's;
+        # annotated with them, then selected and analysed once
+        trace = annotate(dataclasses.replace(trace, recording=recording.info()))
         trace = trace.reselect(k=k, threshold=threshold, exclude=exclude)
         events = [e for e in trace.events if not e.is_selection]
         events.append(Event(-1, note, "cache", "debug"))
         events.extend(e for e in trace.events if e.is_selection)
         timings = {"cache": time.perf_counter() - t0}
-        # the key is the frames' content: the recording's path, meta and intrinsics are today's, not the cached run's
-        return analyse_trace(annotate(dataclasses.replace(trace, recording=recording.info(), events=events,
-                                                          timings={**trace.timings, **timings})))
+        return analyse_trace(dataclasses.replace(trace, events=events, timings={**trace.timings, **timings}))
     from massviz.io.identity import LocatedRecording
 
     if isinstance(recording, LocatedRecording):  # recognised from its files, not opened: only the cache serves it

@@ -57,9 +57,22 @@ def test_building_a_trace_analyses_it_once(rec, analyses):
     assert analyse_trace(bare).flags == trace.flags and len(analyses) == 2
 
 
-def test_process_with_the_ground_truth_step_analyses_once(rec, analyses):
+def test_process_with_the_ground_truth_step_analyses_once(rec, analyses, tmp_path):
+    from massviz.io.cache import TraceCache
+
     trace = process(rec, ListDetector(DETECTIONS), DistanceModel(), k=3, prefetch=0)
     assert len(analyses) == 1 and trace.flags.describes(trace)
+    # with the cache: the run analyses once; a trace served from it is re-selected and analysed once
+    cache = TraceCache(tmp_path / "cache")
+    analyses.clear()
+    first = process(rec, ListDetector(DETECTIONS), DistanceModel(), k=3, prefetch=0, cache=cache)
+    assert len(analyses) == 1
+    analyses.clear()
+    detector = ListDetector(DETECTIONS)
+    again = process(rec, detector, DistanceModel(), k=2, prefetch=0, cache=cache)
+    assert detector.calls == 0 and any(e.kind == "cache" for e in again.events)
+    assert len(analyses) == 1 and again.flags.describes(again)
+    assert again.selection.tolist() == first.reselect(k=2).selection.tolist()
 
 
 def test_construction_and_replace_compute_nothing(rec, analyses):

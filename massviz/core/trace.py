@@ -150,7 +150,6 @@ class Trace:
         if isinstance(self.flags, dict):
             self.flags = Flags.from_dict(self.flags)
 
-
     # -- views -----------------------------------------------------------------------------------------------------
     @property
     def selection_params(self) -> Selection:

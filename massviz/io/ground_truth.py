@@ -14,7 +14,6 @@ import cv2
 import numpy as np
 
 from massviz.core.flags import ground_truth_source, mask_overlap
-from massviz.core.trace import analyse_trace
 from massviz.core.types import Detections
 from massviz.errors import DataError, MassvizError
 from massviz.io.untrusted import check_image_size, frame_path
@@ -55,8 +54,9 @@ def ground_truth_masks(trace, frame: int) -> tuple[np.ndarray, dict[int, str]] |
 
 def with_ground_truth(trace):
     """``trace`` with every detection's ground-truth overlap (``Detections.gt_iou``, ``gt_instance``,
-    ``gt_fraction``: ``massviz.core.flags.mask_overlap``) read from its recording's instance masks, and flags made
-    with them; ``trace`` itself when it has no ground truth or already carries these overlaps."""
+    ``gt_fraction``: ``massviz.core.flags.mask_overlap``) read from its recording's instance masks, its flags cleared
+    (the caller's analysis stage makes them with the overlaps: ``massviz.core.trace.analyse_trace`` or
+    ``Trace.reselect``); ``trace`` itself when it has no ground truth or already carries these overlaps."""
     source = ground_truth_source(trace.recording)
     if not source or trace.ground_truth_source == source:
         return trace
@@ -73,7 +73,7 @@ def with_ground_truth(trace):
             iou[i], instance[i], fraction[i] = mask_overlap(dets.full_mask(int(i), *img.shape[:2]), img, names)
     new = Detections(**{n: getattr(dets, n) for n in Detections._ARRAYS if not n.startswith("gt_")}, gt_iou=iou,
                      gt_instance=instance, gt_fraction=fraction, masks=dets.masks, patches=dets.patches)
-    return analyse_trace(dataclasses.replace(trace, detections=new, ground_truth_source=source))
+    return dataclasses.replace(trace, detections=new, ground_truth_source=source, flags=None)
 
 
 __all__ = ["read_instance_image", "ground_truth_masks", "with_ground_truth"]
