@@ -254,3 +254,16 @@ def test_a_subsampled_trace_keeps_the_measurements_of_its_detections_renumbered(
         assert m["width_mm"] == 10.0 + original and m["detection"] in sub.selection.tolist()
     assert len(sub.measurements) == len(set(sub.selection.tolist()) & {int(np.flatnonzero(keep == i)[0])
                                                                       for i in trace.selection if i in keep})
+
+
+def test_a_light_recording_takes_the_patches_the_trace_dropped_from_the_frames_results(rec):
+    from massviz.views.rerun_dataset import _patch_images
+
+    trace = made(rec)
+    dets = trace.detections
+    kept, best = _patch_images(trace, rec)
+    assert set(kept) == {int(i) for i in trace.selection} and best is not None
+    dropped = dataclasses.replace(trace, detections=dataclasses.replace(dets, patches=[None] * len(dets)))
+    again, best_again = _patch_images(dropped, rec)
+    assert set(again) == set(kept) and np.array_equal(best, best_again)
+    assert all(np.array_equal(again[i], kept[i]) for i in kept)  # as the pipeline cut them

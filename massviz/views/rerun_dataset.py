@@ -33,8 +33,7 @@ import pandas as pd
 import rerun as rr
 import rerun.blueprint as rrb
 
-from massviz.core.patches import crop
-from massviz.core.trace import Trace
+from massviz.core.trace import Trace, frame_results
 from massviz.evaluation.browser import INDEX_NAME, PATCH_COLUMNS as _PATCH_COLUMNS, PATCHES_NAME, best_frame, \
     patch_rows, recording_properties, recordings_table, rounded_properties
 from massviz.io.atomic import atomic_path
@@ -94,17 +93,18 @@ def thumbnail(rgb: np.ndarray, px: int = THUMB_PX) -> np.ndarray:
 
 def _patch_images(trace: Trace, recording) -> tuple[dict[int, np.ndarray], np.ndarray | None]:
     """(chosen detection → its RGB patch, the best frame's RGB); frames are read only where the trace kept no
-    patch, and for the best frame."""
+    patch, and for the best frame; a patch the trace did not keep is its frame's result's
+    (``massviz.core.trace.frame_results``: the patches as the pipeline cut them)."""
     dets = trace.detections
     patches = {int(i): dets.patches[int(i)] for i in trace.selection if dets.patches[int(i)] is not None}
     need = {int(dets.frame[int(i)]) for i in trace.selection if int(i) not in patches}
     best = best_frame(trace)
     rgb_best = None
     if len(trace.frames) or need:
-        for frame in recording.frames(indices=sorted(need | {best})):
+        for frame, result in frame_results(trace, recording.frames(indices=sorted(need | {best}))):
             for i in trace.selection:
                 if int(i) not in patches and int(dets.frame[int(i)]) == frame.index:
-                    patches[int(i)] = crop(frame.rgb, dets.xyxy[int(i)])
+                    patches[int(i)] = result.patches[int(i) - result.offset]
             if frame.index == best:
                 rgb_best = frame.rgb
     return patches, rgb_best
