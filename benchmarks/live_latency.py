@@ -78,7 +78,7 @@ def session(frames, intr, *, seconds: float, points: bool, detector, model, out:
     stream.start = lambda sink: (start(sink), cam.start())[0]
     info = RecordingInfo(id="bench", kind="live", width=intr.width, height=intr.height, fps=30, intrinsics=intr)
     fp = FramePipeline(detector, model, k=5, recording=info)
-    logger = LiveLogger(name="bench", k=5, threshold=0.4, intrinsics=intr, rrd=out, points=points)
+    logger = LiveLogger(name="bench", k=5, intrinsics=intr, rrd=out, points=points)
     result = run_live(stream, fp, logger=logger, duration=seconds)
     s = result.stats
     return {"stats": s, "aligned": not stream.info.registered, "rrd_mb": out.stat().st_size / 2**20}

@@ -26,6 +26,7 @@ import time
 
 from massviz import __version__
 from massviz.errors import MassvizError
+from massviz.logs import to_stderr
 
 # Order in ``massviz --help``; modules not listed here are appended alphabetically.
 _ORDER = ["log", "view", "estimate", "score", "sweep", "baseline", "samples", "cloud", "render", "view3d", "extract", "train"]
@@ -207,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         _quiet_native_logs()
         sys.stderr = EscapingStream(real_stderr)
-        with _signals_end_like_ctrl_c():
+        with to_stderr(), _signals_end_like_ctrl_c():  # the library's log records: one line each on stderr
             return _run(build_parser(), argv)
     except KeyboardInterrupt as err:  # before the command started (its parser built, the handlers going in) or
         return _interrupted(_command_word(argv), err)  # after it ended (the handlers coming out): nothing to undo

@@ -12,6 +12,8 @@ ones inside functions) and fail on an arrow that breaks it.
 * no view imports a stage module for its logic (the pipeline, the builder, a detector) or a runner or command;
 * no view calls the measure stage (``massviz.measure.stage``, or the geometry's cloud making and measuring): views
   draw the clouds and measurements they are given;
+* no view imports a function that computes: the pipeline and its stage, the mass CNN, a detector, a measurement
+  (a sink is given each frame's result and the trace; it draws them);
 * no command imports another command (only the private helpers ``commands/_*.py``);
 * library code names no repository-relative path and never switches matplotlib's backend.
 
@@ -263,6 +265,49 @@ def test_views_call_no_measure_stage():
     bad = {str(p.relative_to(PKG)): view_measure_calls(p) for p in FILES if under(module_name(p), "views")}
     assert {f: calls for f, calls in bad.items() if calls} == {}
     assert arrows(["views"], ["measure.stage"]) == []
+#: what computes and so is no view's to call: the per-frame step and its stage (``core.pipeline``, ``core.stage``),
+#: the mass CNN's predictions (``core.model``), the detectors (``detect``) and the measure stage (``measure.stage``
+#: and the geometry's cloud making and measuring). A sink is given results and traces; it draws them.
+COMPUTE_FOR_VIEWS = {"massviz.core.pipeline": None, "massviz.core.stage": None, "massviz.core.model": None,
+                     "massviz.detect": None,
+                     "massviz.measure.stage": None,
+                     "massviz.measure.geometry": {"measure_cloud", "measure_cloud_as", "measure_crop",
+                                                  "measure_detection", "detection_cloud", "masked_cloud"}}
+
+
+def view_calls(sources: dict[str, str]) -> list[tuple[str, str]]:
+    """(view module, ``module.name``) for every name a view imports from a module that computes
+    (:data:`COMPUTE_FOR_VIEWS`; None: every name of it), at any depth of the file; ``sources``: module -> text."""
+    out = []
+    for module, text in sources.items():
+        if not under(module, "views"):
+            continue
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.ImportFrom) and node.module and not node.level:
+                for target, names in COMPUTE_FOR_VIEWS.items():
+                    if node.module == target or node.module.startswith(target + "."):
+                        out += [(module, f"{node.module}.{a.name}") for a in node.names
+                                if names is None or a.name in names]
+            elif isinstance(node, ast.Import):
+                out += [(module, a.name) for a in node.names for target, names in COMPUTE_FOR_VIEWS.items()
+                        if names is None and (a.name == target or a.name.startswith(target + "."))]
+    return sorted(out)
+
+
+def test_views_call_no_pipeline_detector_or_measure_function():
+    assert view_calls({module_name(p): p.read_text() for p in FILES}) == []
+
+
+def test_the_checks_catch_a_view_calling_the_pipeline_a_detector_or_a_measurement():
+    bad = {"massviz.views.rerun.bad": "def f(trace):\n    from massviz.measure.geometry import measure_crop, measured_box\n"
+                                      "    from massviz.core.pipeline import run\n    import massviz.detect.depth\n"
+                                      "    from massviz.detect.depth import DepthDetector\n",
+           "massviz.views.fine": "from massviz.measure.geometry import measured_box\nfrom massviz.core.trace import Trace\n",
+           "massviz.runners.logged": "from massviz.core.pipeline import run\n"}
+    assert view_calls(bad) == [("massviz.views.rerun.bad", "massviz.core.pipeline.run"),
+                               ("massviz.views.rerun.bad", "massviz.detect.depth"),
+                               ("massviz.views.rerun.bad", "massviz.detect.depth.DepthDetector"),
+                               ("massviz.views.rerun.bad", "massviz.measure.geometry.measure_crop")]
 
 
 def test_no_command_imports_another_command():
@@ -405,3 +450,31 @@ def test_baseline_help_range_is_the_baselines_range():
     from massviz.evaluation import baselines
 
     assert command.RANDOM_RANGE_G == baselines.RANDOM_RANGE_G
+
+
+def calls_of(text: str, names) -> set[str]:
+    """The functions of ``names`` that ``text`` calls (plain or attribute calls), at any depth."""
+    out = set()
+    for node in ast.walk(ast.parse(text)):
+        if isinstance(node, ast.Call):
+            f = node.func
+            name = f.id if isinstance(f, ast.Name) else f.attr if isinstance(f, ast.Attribute) else None
+            if name in names:
+                out.add(name)
+    return out
+
+
+#: what a finished trace's conclusion and overlays are logged with: called in one place, the one trace-to-Rerun path
+ONE_PATH = {"log_predictions", "log_running", "log_events", "log_flags", "log_detections", "detection_class_ids"}
+
+
+def test_one_path_from_a_finished_trace_to_rerun():
+    # massviz log, the dataset's light recordings and massviz live log a finished trace's overlays, predictions,
+    # decisions and flags through views/rerun/replay.py (log_overlays, log_conclusion); the live sink's per-frame
+    # overlays of a FrameResult are its own
+    callers = {str(p.relative_to(PKG)): sorted(calls_of(p.read_text(), ONE_PATH)) for p in FILES}
+    assert {f: c for f, c in callers.items() if c} == {
+        "views/rerun/replay.py": sorted(ONE_PATH),
+        "views/rerun/live.py": ["detection_class_ids", "log_detections"]}
+    assert calls_of("def f(s, t):\n    rl.log_flags(s, t)\n    log_predictions(s, t)\n", ONE_PATH) == {
+        "log_flags", "log_predictions"}

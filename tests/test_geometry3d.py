@@ -18,7 +18,7 @@ from rrd_reader import rrd_contents
 from massviz.cli import main
 from massviz.errors import MassvizError
 from massviz.io.recording import open_recording
-from massviz.core.trace import Trace
+from massviz.core.trace import Trace, analyse_trace
 from massviz.io.trace_file import load_trace, save_trace
 from massviz.core.types import Detections
 
@@ -52,11 +52,12 @@ def gt_detections(rec_dir, frames) -> Detections:
 
 
 def make_trace(rec, dets: Detections, k: int) -> Trace:
-    """A trace over ``dets`` choosing the last ``k`` (their d makes the last ones the nearest)."""
+    """A trace over ``dets`` choosing the last ``k`` (their d makes the last ones the nearest), analysed (tracks,
+    flags)."""
     n = len(dets)
-    return Trace(recording=rec.info(), detector={"name": "test"}, detect_threshold=0.4, threshold=0.4, k=k,
-                 stride=1, frames=np.unique(dets.frame), detections=dets, selection=np.arange(n)[::-1][:k],
-                 estimate=10.0)
+    return analyse_trace(Trace(recording=rec.info(), detector={"name": "test"}, detect_threshold=0.4, threshold=0.4,
+                               k=k, stride=1, frames=np.unique(dets.frame), detections=dets,
+                               selection=np.arange(n)[::-1][:k], estimate=10.0))
 
 
 def sample(samples_dir, name):

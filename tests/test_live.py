@@ -258,7 +258,7 @@ def test_slow_detector_drops_frames_counts_them_and_memory_stays_flat(rs, depth_
     stream.start = lambda sink: (started(sink), cam.start())[0]
     info = RecordingInfo(id="slow", kind="live", width=640, height=480, fps=60, intrinsics=big)
     fp = FramePipeline(SlowDetector(depth_detector, 0.15), FastModel(), k=5, recording=info)
-    logger = LiveLogger(name="slow", k=5, threshold=0.4, intrinsics=big, rrd=tmp_path / "slow.rrd")
+    logger = LiveLogger(name="slow", k=5, intrinsics=big, rrd=tmp_path / "slow.rrd")
     result = run_live(stream, fp, logger=logger, duration=4.0)
     s = result.stats
     assert s.dropped > 5 * s.processed > 0, s.summary()
@@ -367,7 +367,7 @@ def test_ctrl_c_ends_the_session_cleanly(rs, played, depth_detector, tmp_path):
     info = RecordingInfo(id="ctrl-c", kind="live", width=rec.width, height=rec.height, fps=15,
                          intrinsics=rec.intrinsics)
     fp = FramePipeline(depth_detector, FastModel(), k=5, recording=info)
-    logger = LiveLogger(name="ctrl-c", k=5, threshold=0.4, intrinsics=rec.intrinsics, rrd=tmp_path / "c.rrd")
+    logger = LiveLogger(name="ctrl-c", k=5, intrinsics=rec.intrinsics, rrd=tmp_path / "c.rrd")
     timer = threading.Timer(2.0, os.kill, (os.getpid(), signal.SIGINT))
     timer.start()
     try:

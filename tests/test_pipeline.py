@@ -400,3 +400,18 @@ def test_builder_makes_the_pipeline_the_cli_uses(weights, tmp_path):
                               replay=None, cache=None, no_cache=True, quiet=True, view=3)
     opts = mv.PipelineOptions.from_args(args)
     assert (opts.threshold, opts.k, opts.stride, opts.weights, opts.no_cache) == (0.6, 2, 3, str(weights), True)
+
+
+def test_a_recording_recognised_but_not_opened_is_served_only_by_the_cache(rec, fast):
+    # the warm path's LocatedRecording (file identities, no frames) is told apart by its type
+    from pathlib import Path
+
+    from massviz.io.identity import LocatedRecording
+
+    located = LocatedRecording(path=Path(rec.path), id=rec.id, kind="folder", config_id=rec.id,
+                               num_frames=rec.num_frames, recording_info=rec.info(), _fingerprint="x")
+    det = ListDetector(DETECTIONS)
+    with pytest.raises(MassvizError, match="could not be read now"):
+        process(located, det, fast, k=3)
+    assert det.calls == 0
+    assert process(rec, det, fast, k=3, prefetch=0).estimate > 0 and det.calls == N

@@ -91,9 +91,9 @@ def flag_warning(command: str, trace) -> str | None:
     border-cut / implausibly sized objects: ..."); None when nothing is flagged and it was estimated."""
     line = trace.flags.warning()
     if line is None and trace.estimate < 0:  # not estimated: say why (e.g. only border-cut objects were seen)
-        line = next((e.message for e in trace.events if e.kind == "not_estimated"), None)
-        line = (f"not estimated: {line.replace(': mass not estimated (-1)', '')}"
-                if line is not None and line.startswith("only border-cut") else None)
+        from massviz.core.selection import why_not_estimated
+
+        line = why_not_estimated(trace.detections, trace.events).warning()
     return None if line is None else f"massviz {command}: warning: {trace.recording.id}: {line}"
 
 

@@ -176,7 +176,7 @@ def run_session(args, pipeline, stream, name: str) -> int:
             if args.rrd or args.spawn or connect:
                 from massviz.views.rerun.live import LiveLogger
 
-                logger = LiveLogger(name=name, k=fp.selection.k, threshold=fp.selection.threshold,
+                logger = LiveLogger(name=name, k=fp.selection.k,
                                     intrinsics=info.intrinsics, rrd=args.rrd, spawn=args.spawn, connect=connect)
             print(f"massviz live: {stream.description}; Ctrl-C ends the session", file=sys.stderr)
             result = run_live(stream, fp, logger=logger, duration=args.duration, save=args.save,
@@ -228,7 +228,9 @@ def _cache(pipeline, trace, result, args, stream):
         rec = stream.recording if stream.recording is not None else open_recording(args.file)
         numbers = rec.meta.get("realsense", {}).get("frame_numbers")
         if result.stats.dropped == 0 and numbers == result.stats.frame_numbers:
-            return pipeline.cache.save(dataclasses.replace(trace, recording=rec.info()), rec, info)
+            from massviz.core.trace import analyse_trace
+
+            return pipeline.cache.save(analyse_trace(dataclasses.replace(trace, recording=rec.info())), rec, info)
     from massviz.io.trace_file import save_trace
 
     safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", trace.recording.id)

@@ -64,7 +64,7 @@ def run(args) -> int:
     from massviz.errors import MassvizError
     from massviz.io.recording import open_recording
     from massviz.measure.stage import MeasureStage
-    from massviz.views.rerun.replay import log_run
+    from massviz.runners.logged import log_run
 
     if args.rrd_dir:
         from massviz.commands._dataset_log import run_rrd_dir
@@ -88,11 +88,7 @@ def run(args) -> int:
     ply_line = []
     # the measure stage makes every cloud once: those the Rerun recording shows (each detection above the threshold,
     # as its frame is processed), the measured sizes and the --ply files are the same clouds
-    measure = MeasureStage(rec, clouds="active", threshold=pipeline.threshold)
-
-    def process(on_frame):
-        return pipeline.process(rec, on_frame=lambda frame, result: on_frame(frame, result,
-                                                                             measure.on_frame(frame, result)))
+    measure = MeasureStage(rec, clouds="active", threshold=pipeline.selection.threshold)
 
     def write_clouds(trace, stage):
         from massviz.views.open3d_view import write_ply_or_skip
@@ -104,10 +100,8 @@ def run(args) -> int:
     # into place: a failure in either leaves neither (and no --ply folder this run created)
     with staged_files(args.ply) if args.ply else contextlib.nullcontext() as stage:
         # one pass: each frame is logged as the pipeline processes it (a trace from the cache is replayed once)
-        trace, stats = log_run(rec, process, rrd=Path(args.rrd) if args.rrd else None, spawn=args.spawn,
-                               progress=not args.quiet, video=args.video, points=args.points,
-                               k=pipeline.options.selection.k, replay_frames=measure.replay_frames,
-                               measured=measure.finish,
+        trace, stats = log_run(pipeline, rec, rrd=Path(args.rrd) if args.rrd else None, spawn=args.spawn,
+                               progress=not args.quiet, video=args.video, points=args.points, measure=measure,
                                before_close=(lambda trace: write_clouds(trace, stage)) if args.ply else None)
     if ply_line:
         print(ply_line[0], file=sys.stderr)

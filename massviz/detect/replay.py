@@ -22,7 +22,6 @@ is allocated. Anything else is one ``DataError`` naming the file and the detecti
 """
 from __future__ import annotations
 
-from collections import defaultdict
 from pathlib import Path
 
 import cv2
@@ -115,9 +114,7 @@ class ReplayDetector:
         self.source = Path(source)
         dets, self._files, self.default_threshold = _load(self.source)
         self.threshold = self.default_threshold if threshold is None else float(threshold)
-        self._by_frame = defaultdict(list)
-        for i, f in enumerate(dets.frame):
-            self._by_frame[int(f)].append(i)
+        self._by_frame = dets.indices_by_frame()
         self._dets = dets
 
     def settings(self) -> dict:
@@ -128,7 +125,7 @@ class ReplayDetector:
                 "masks": [file_digest(p) for p in self._files]}
 
     def detect(self, frame: Frame) -> Detections:
-        idx = self._by_frame.get(frame.index, [])
+        idx = self._by_frame.get(frame.index, np.zeros(0, dtype=np.int64))
         dets = self._dets[idx]
         dets = dets[dets.score > self.threshold]
         x1, y1, x2, y2 = dets.xyxy.T

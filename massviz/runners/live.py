@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 from tqdm.auto import tqdm
 
+from massviz.core.trace import analyse_trace
 from massviz.errors import MassvizError
 from massviz.io.formats.folder import FolderFrameWriter
 
@@ -313,7 +314,7 @@ def run_live(stream, frame_pipeline, *, logger=None, duration: float | None = No
             raise MassvizError(f"{stream.description}: no frame was processed ({stats.stopped or 'stopped'})")
         fp.recording.num_frames = stats.processed
         fp.recording.meta.setdefault("live", {}).update(live_meta(stats, source or stream.description))
-        trace = fp.finish()
+        trace = fp.finish(analyse=False)  # analysed once, with the saved recording's info when there is one
         saved = saved_recording = None
         if writer is not None:
             meta = dict(fp.recording.meta, id=name, fps=info.fps)
@@ -323,6 +324,7 @@ def run_live(stream, frame_pipeline, *, logger=None, duration: float | None = No
             saved_recording = writer.recording()
             trace = dataclasses.replace(trace, recording=saved_recording.info())
             writer = None
+        trace = analyse_trace(trace)
         if logger is not None:
             logger.close(trace, timings={"live_seconds": stats.seconds}, summary=stats.summary())
             logger = None

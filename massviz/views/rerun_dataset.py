@@ -38,15 +38,14 @@ import pandas as pd
 import rerun as rr
 import rerun.blueprint as rrb
 
-from massviz.core.patches import crop
-from massviz.core.trace import Trace
+from massviz.core.trace import Trace, frame_results
 from massviz.evaluation.browser import INDEX_NAME, PATCH_COLUMNS as _PATCH_COLUMNS, PATCHES_NAME, best_frame, \
     patch_rows, recording_properties, recordings_table, rounded_properties
 from massviz.io.atomic import atomic_path
 from massviz.io.untrusted import safe_filename
 from massviz.views.rerun import entities as rl
 from massviz.views.rerun.output import APPLICATION_ID
-from massviz.views.rerun.replay import log_trace
+from massviz.views.rerun.replay import log_conclusion, log_opening, log_overlays, log_trace
 
 PROPERTY = "massviz"
 PATCHES_DIR = "patches"
@@ -106,17 +105,18 @@ def thumbnail(rgb: np.ndarray, px: int = THUMB_PX) -> np.ndarray:
 
 def _patch_images(trace: Trace, recording) -> tuple[dict[int, np.ndarray], np.ndarray | None]:
     """(chosen detection → its RGB patch, the best frame's RGB); frames are read only where the trace kept no
-    patch, and for the best frame."""
+    patch, and for the best frame; a patch the trace did not keep is its frame's result's
+    (``massviz.core.trace.frame_results``: the patches as the pipeline cut them)."""
     dets = trace.detections
     patches = {int(i): dets.patches[int(i)] for i in trace.selection if dets.patches[int(i)] is not None}
     need = {int(dets.frame[int(i)]) for i in trace.selection if int(i) not in patches}
     best = best_frame(trace)
     rgb_best = None
     if len(trace.frames) or need:
-        for frame in recording.frames(indices=sorted(need | {best})):
+        for frame, result in frame_results(trace, recording.frames(indices=sorted(need | {best}))):
             for i in trace.selection:
                 if int(i) not in patches and int(dets.frame[int(i)]) == frame.index:
-                    patches[int(i)] = crop(frame.rgb, dets.xyxy[int(i)])
+                    patches[int(i)] = result.patches[int(i) - result.offset]
             if frame.index == best:
                 rgb_best = frame.rgb
     return patches, rgb_best
@@ -126,39 +126,27 @@ def log_light(stream: rr.RecordingStream, trace: Trace, recording, patches: dict
               source_text: str) -> None:
     """The light recording (module docstring) into ``stream``."""
     dets, frames = trace.detections, [int(f) for f in trace.frames]
-    first = frames[0] if frames else 0
     rank_of = {int(i): r for r, i in enumerate(trace.selection)}
     flag_of = {p.detection: p for p in trace.flags.patches}
-    flagged = frozenset(p.detection for p in trace.flags.flagged)
-    rl.log_annotation_context(stream, trace.k)
-    rl.log_summary(stream, trace)
+    log_opening(stream, trace)
     stream.log("/source", rr.TextDocument(source_text, media_type=rr.MediaType.MARKDOWN), static=True)
-    by_frame: dict[int, list[int]] = {}
-    for i, f in enumerate(dets.frame):
-        by_frame.setdefault(int(f), []).append(i)
     best = best_frame(trace)
     log_thumbnail(stream, rgb_best)
-    for f in frames:
-        stream.set_time("frame", sequence=f)
-        if f == first and recording.intrinsics is not None:
-            rl.log_pinhole(stream, recording.intrinsics, 0.3)
-        if f == best and rgb_best is not None:
-            stream.log("/camera/rgb", rr.EncodedImage(contents=rl.jpeg_bytes(rgb_best, 85), media_type="image/jpeg"))
-        idx = by_frame.get(f, [])
-        class_ids = rl.detection_class_ids(dets, idx, rank_of, trace.threshold, flagged)
-        rl.log_detections(stream, dets, idx, class_ids, rank_of)
+    if frames and recording.intrinsics is not None:
+        stream.set_time("frame", sequence=frames[0])
+        rl.log_pinhole(stream, recording.intrinsics, 0.3)
+    if best in frames and rgb_best is not None:
+        stream.set_time("frame", sequence=best)
+        stream.log("/camera/rgb", rr.EncodedImage(contents=rl.jpeg_bytes(rgb_best, 85), media_type="image/jpeg"))
+    log_overlays(stream, trace)  # detections only: a light recording has no masks
     # the chosen patches are static: every tile shows its patch whatever the time cursor (a recording opens at its
     # best frame, before the frames some patches come from); each says its frame (``frame`` in its values)
     stream.reset_time()
     for i, rank in rank_of.items():
         if i in patches:
             rl.log_patch(stream, rank, dets, i, patches[i], flag_of.get(i), static=True)
-    rl.log_predictions(stream, trace)
-    rl.log_running(stream, trace)
-    rl.log_events(stream, trace.events, first)
-    rl.log_flags(stream, trace)
+    log_conclusion(stream, trace)
     rl.log_timings(stream, trace.timings, len(frames))
-    stream.reset_time()
 
 
 def light_blueprint(n_patches: int, flagged=()) -> rrb.Blueprint:
@@ -304,7 +292,7 @@ def write_link(path: str | Path, segment_id: str, url: str) -> Path:
     ``rerun.components.Url`` (the viewer shows it as a button that opens it): what ``massviz serve`` registers as
     each segment's ``link`` layer (``LINK_LAYER``) once the dataset's URL is known."""
     path = Path(path)
-    stream = rr.RecordingStream(rl.APPLICATION_ID, recording_id=segment_id)
+    stream = rr.RecordingStream(APPLICATION_ID, recording_id=segment_id)
     try:
         data = stream.binary_stream()  # in memory, then one write: a third of a file sink's time (~1 ms)
         stream.send_property(PROPERTY, rr.AnyValues().with_component_override(OPEN, "rerun.components.Url", url))
@@ -318,8 +306,8 @@ def save_blueprints(folder: str | Path, k: int = 5) -> tuple[Path, Path]:
     """Write the dataset's recording layout and segment-table layout as ``.rbl`` files into ``folder``."""
     folder = Path(folder)
     recording, table = folder / "massviz_recording.rbl", folder / "massviz_table.rbl"
-    dataset_blueprint(k).save(rl.APPLICATION_ID, recording)
-    table_blueprint().save(rl.APPLICATION_ID, table)
+    dataset_blueprint(k).save(APPLICATION_ID, recording)
+    table_blueprint().save(APPLICATION_ID, table)
     return recording, table
 
 

@@ -173,14 +173,16 @@ def log_points(rec: rr.RecordingStream, depth: np.ndarray, rgb: np.ndarray, intr
 
 
 # ------------------------------------------------------------------------------------------ detections and masks
-def detection_class_ids(dets: Detections, idx: list[int], rank_of: dict[int, int], threshold: float,
+def detection_class_ids(dets: Detections, idx: list[int], rank_of: dict[int, int], active: np.ndarray,
                         flagged=frozenset()) -> np.ndarray:
-    """Annotation class id of each detection in ``idx``: flagged or chosen rank, below threshold, or its class."""
+    """Annotation class id of each detection in ``idx``: flagged or chosen rank, below the selection's threshold
+    (``active``: one bool per detection of ``dets``, True above it: ``Trace.active``, ``FrameResult.active``), or
+    its class."""
     out = []
     for i in idx:
         if i in rank_of:
             out.append((FLAGGED_ID if i in flagged else CHOSEN_ID) + rank_of[i])
-        elif dets.score[i] <= threshold:
+        elif not active[i]:
             out.append(BELOW_THRESHOLD_ID)
         else:
             out.append(class_id_of(class_name(dets.class_id[i])))
