@@ -6,7 +6,7 @@ import logging
 
 from massviz.logs import ROOT, to_stderr
 from massviz.views.rerun.output import Output, RerunLogHandler
-from massviz.views.rerun.rrd_reader import rrd_rows
+from rrd_reader import rrd_rows
 
 
 def test_a_library_call_prints_nothing_itself(capsys, caplog):
