@@ -31,13 +31,10 @@ import numpy as np
 import pandas as pd
 
 from massviz.errors import DataError
+from massviz.io.challenge_csv import ANN_CONTAINER, ANN_ID, ANN_MASS, ANN_SIZES  # noqa: F401 - re-exported
 
 #: Key and value columns of the challenge prediction CSV.
 PRED_ID, PRED_MASS = "Configuration ID", "Container mass"
-#: Recording id, container id and empty container mass (g) columns of the CCM annotation CSV.
-ANN_ID, ANN_CONTAINER, ANN_MASS = "id", "container id", "container mass"
-#: Size columns of the CCM annotation CSV read as numbers (the 3D stage compares with them).
-ANN_SIZES = ("width at the top", "width at the bottom", "height", "depth", "container capacity")
 #: The paper's classes, in the order of its tables and figure.
 CLASS_ORDER = ("cup", "glass", "box")
 

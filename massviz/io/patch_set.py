@@ -20,8 +20,8 @@ from PIL import Image
 
 from massviz.core.types import GroundTruth
 from massviz.errors import DataError, MassvizError
-from massviz.evaluation.metrics import ANN_CONTAINER, ANN_ID, ANN_MASS
 from massviz.io.atomic import atomic_dir
+from massviz.io.challenge_csv import ANN_CONTAINER, ANN_ID, ANN_MASS
 from massviz.io.untrusted import check_image_size, confined, csv_safe, safe_filename, text_id
 
 #: file name of a patch set's index, inside the PATCHES folder.
