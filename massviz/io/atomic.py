@@ -201,6 +201,40 @@ def native_stderr(keep: int = 4096) -> Iterator[list[str]]:
         lines.extend(line for line in b"".join(chunks).decode("utf-8", "replace").splitlines() if line.strip())
 
 
+# ------------------------------------------------------------------------------------------- replacing own folders
+def _own(rel: str, owned: tuple[str, ...]) -> bool:
+    from pathlib import PurePosixPath
+
+    parts = PurePosixPath(rel)
+    return any(len(parts.parts) == len(PurePosixPath(p).parts) and parts.match(p) for p in owned)
+
+
+def check_replaceable(path: str | Path, owned: tuple[str, ...], what: str, *, link_ok: bool = True) -> None:
+    """Before a command replaces the folder ``path`` that it wrote before (``--force``, a sample regenerated): every
+    entry under it is something massviz writes there (its path relative to ``path`` matches one of ``owned``, e.g.
+    ``images`` and ``images/*.png``) and none is a symlink. Otherwise one ``MassvizError`` naming ``path`` and the
+    entry, before anything is removed: a replacement never deletes what someone else put there, and never follows a
+    link out of the folder. ``link_ok``: ``path`` itself may be a symlink (the user's own path, written through);
+    False where massviz chose the name."""
+    path = Path(path)
+    if path.is_symlink() and not link_ok:
+        raise MassvizError(f"is a symlink; massviz replaces only a {what} folder it wrote, never through a link "
+                           "(remove the link)", path)
+    root = output_target(path, folder=True)
+    if not root.is_dir():
+        return
+    for folder, dirs, files in os.walk(root):
+        for name in sorted(dirs) + sorted(files):
+            full = Path(folder) / name
+            rel = full.relative_to(root).as_posix()
+            if full.is_symlink():
+                raise MassvizError(f"holds the symlink {rel}; massviz never removes or writes through a link in an "
+                                   f"output it replaces (remove the link, or choose another folder)", path)
+            if not _own(rel, owned):
+                raise MassvizError(f"holds {rel}, which is not part of a {what}; massviz replaces only what it wrote "
+                                   "(move it away, or choose another folder)", path)
+
+
 # ------------------------------------------------------------------------------------------- checking outputs first
 def _probe_writable(folder: Path, path: Path) -> None:
     """Create and remove a temporary file in ``folder`` (the only sure test: modes, read-only mounts, quotas)."""

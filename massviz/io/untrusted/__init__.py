@@ -26,7 +26,7 @@ from massviz.io.untrusted.jsonfile import MAX_JSON_BYTES, MAX_JSON_DEPTH, MAX_JS
 from massviz.io.untrusted.npz import MAX_NPZ_BYTES, MAX_NPZ_RATIO, load_npz_checked
 from massviz.io.untrusted.paths import confined, frame_path
 from massviz.io.untrusted.pickles import MAX_CALIB_BYTES, RestrictedUnpickler, load_calibration_pickle
-from massviz.io.untrusted.tables import csv_cell, csv_safe
+from massviz.io.untrusted.tables import csv_cell, csv_safe, csv_writer, write_csv
 from massviz.io.untrusted.text import MAX_ID_CHARS, printable, safe_filename, text_id
 from massviz.io.untrusted.values import MAX_INDEX, json_safe, number
 
@@ -34,4 +34,4 @@ __all__ = ["read_bounded", "MAX_NPZ_RATIO", "MAX_JSON_BYTES", "MAX_JSON_DEPTH", 
            "load_json", "MAX_NPZ_BYTES", "load_npz_checked", "MAX_CALIB_BYTES", "MAX_ID_CHARS", "MAX_IMAGE_SIDE",
            "MAX_IMAGE_PIXELS", "MAX_INDEX", "RestrictedUnpickler", "load_calibration_pickle", "confined", "text_id",
            "safe_filename", "number", "check_image_size", "image_header_size", "png_header_size", "frame_path",
-           "printable", "csv_cell", "csv_safe", "json_safe"]
+           "printable", "csv_cell", "csv_safe", "csv_writer", "write_csv", "json_safe"]
