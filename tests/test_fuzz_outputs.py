@@ -275,3 +275,67 @@ def test_a_formula_id_reaches_no_csv_as_a_formula(command, rec_id, base, tmp_pat
         assert not bad, (out.name, bad)
         if command != "cloud":
             assert "'" + rec_id in cells, (out.name, cells[:30])
+
+
+# ============================================================================== a signal while an output is committed
+from test_fuzz2 import patch_set  # noqa: E402,F401 - the 4-recording patch set of the training cases
+
+
+def signal_at_commit(monkeypatch, out: Path, sig: int, nth: int = 1) -> list:
+    """Send ``sig`` to this process right after the ``nth`` rename that moves something into or out of ``out`` (the
+    renames that put a finished output in place): the worst moment for an interrupt."""
+    real, seen = os.replace, []
+
+    def replace(src, dst, *args, **kwargs):
+        result = real(src, dst, *args, **kwargs)
+        if str(out) in (os.fspath(src), os.fspath(dst)) or Path(os.fspath(dst)).parent == out:
+            seen.append(dst)
+            if len(seen) == nth:
+                os.kill(os.getpid(), sig)
+        return result
+
+    monkeypatch.setattr(os, "replace", replace)
+    return seen
+
+
+def hidden(folder: Path) -> list[str]:
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob(".*"))
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+@pytest.mark.parametrize("nth", [1, 2])
+def test_a_signal_while_cloud_moves_its_files_in_leaves_all_or_none(sig, nth, base, tmp_path, capsys, monkeypatch):
+    work = tmp_path / "w"
+    work.mkdir()
+    rec = copy_sample(work / "rec")
+    clean = work / "clean"
+    code, err = run_cli(pipeline(base, work, "cloud", rec, "--out", clean, "--all-frames"), capsys)
+    assert code == 0, err
+    whole = sorted(os.listdir(clean))
+    out = work / "out"
+    out.mkdir()  # the user's folder: cloud writes into it
+    seen = signal_at_commit(monkeypatch, out, sig, nth)
+    code, err = run_cli(pipeline(base, work, "cloud", rec, "--out", out, "--all-frames"), capsys)
+    monkeypatch.undo()
+    assert len(seen) >= nth and code == 128 + sig and err[-1].startswith("massviz cloud: interrupted"), (code, err)
+    assert sorted(os.listdir(out)) in ([], whole), sorted(os.listdir(out))
+    assert hidden(work) == []
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+@pytest.mark.parametrize("nth", [1, 2])
+def test_a_signal_while_train_swaps_its_run_folder_leaves_a_whole_run(sig, nth, patch_set, tmp_path, capsys,
+                                                                      monkeypatch):
+    work = tmp_path / "w"
+    work.mkdir()
+    run = work / "run"
+    argv = ["train", patch_set, "--out", run, "--epochs", "1", "--augment", "1", "--quiet", "--force"]
+    code, err = run_cli(argv, capsys)
+    assert code == 0, err
+    whole = sorted(os.listdir(run))
+    seen = signal_at_commit(monkeypatch, run, sig, nth)
+    code, err = run_cli(argv, capsys)
+    monkeypatch.undo()
+    assert len(seen) >= nth and code == 128 + sig and err[-1].startswith("massviz train: interrupted"), (code, err)
+    assert run.is_dir() and sorted(os.listdir(run)) == whole
+    assert hidden(work) == []

@@ -17,6 +17,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from massviz.errors import MassvizError
+from massviz.signals import deferred
 
 
 _KINDS = {stat.S_IFCHR: "a character device", stat.S_IFBLK: "a block device", stat.S_IFIFO: "a FIFO (named pipe)",
@@ -63,20 +64,33 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         raise MassvizError("is a directory; a file path is needed", path)
     if not path.parent.is_dir():
         raise MassvizError(f"cannot write: folder {path.parent} does not exist", path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=path.parent)
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)
+    tmp = None
     try:
+        with deferred():  # a signal now would leave the new temporary file behind
+            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+            os.close(fd)
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(tmp, 0o666 & ~umask)
         yield Path(tmp)
         os.replace(tmp, path)
     except OSError as err:
-        Path(tmp).unlink(missing_ok=True)
+        _remove(tmp)
         raise _naming(err, path, tmp) from None
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        _remove(tmp)
         raise
+
+
+def _remove(tmp) -> None:
+    """Remove the temporary file or folder ``tmp`` (None: not made yet) whole, a signal held until it is gone."""
+    if tmp is None:
+        return
+    with deferred():
+        if os.path.isdir(tmp) and not os.path.islink(tmp):
+            shutil.rmtree(tmp, ignore_errors=True)
+        else:
+            Path(tmp).unlink(missing_ok=True)
 
 
 def check_room(tmp: str | Path, nbytes: int = 1 << 16) -> None:
@@ -109,24 +123,27 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     if path.exists() and not path.is_dir():
         raise MassvizError("exists and is not a folder", path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part"))
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o777 & ~umask)
+    tmp = None
     try:
+        with deferred():  # a signal now would leave the new temporary folder behind
+            tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part"))
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(tmp, 0o777 & ~umask)
         yield tmp
-        if path.exists():
-            old = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".old"))
-            os.replace(path, old / path.name)
-            os.replace(tmp, path)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, path)
+        with deferred():  # the swap runs to its end: the old folder or the new one is in place, never neither
+            if path.exists():
+                old = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".old"))
+                os.replace(path, old / path.name)
+                os.replace(tmp, path)
+                shutil.rmtree(old, ignore_errors=True)
+            else:
+                os.replace(tmp, path)
     except OSError as err:
-        shutil.rmtree(tmp, ignore_errors=True)
+        _remove(tmp)
         raise _naming(err, path, tmp) from None
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        _remove(tmp)
         raise
 
 
@@ -138,25 +155,28 @@ def staged_files(folder: str | Path) -> Iterator[Path]:
     a command writing several files into the user's folder leaves all of them or none."""
     folder = Path(folder)
     created = not folder.exists()
-    folder.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(dir=folder, prefix=".massviz.", suffix=".part"))
+    stage = None
     try:
+        with deferred():  # a signal now would leave the folder or the stage behind
+            folder.mkdir(parents=True, exist_ok=True)
+            stage = Path(tempfile.mkdtemp(dir=folder, prefix=".massviz.", suffix=".part"))
         yield stage
-        for item in sorted(stage.iterdir()):
-            os.replace(item, folder / item.name)
-        stage.rmdir()
+        with deferred():  # every file moves in, or (a failure) none: a signal waits for the end of the moves
+            for item in sorted(stage.iterdir()):
+                os.replace(item, folder / item.name)
+            stage.rmdir()
     except MassvizError as err:  # name the file the user will look for, not the hidden one
-        shutil.rmtree(stage, ignore_errors=True)
+        _remove(stage)
         if created:
-            shutil.rmtree(folder, ignore_errors=True)
+            _remove(folder)
         if err.path is None or not err.path.startswith(str(stage)):
             raise
         message = str(err)[len(err.path) + 2:]
         raise MassvizError(message, folder / Path(err.path).relative_to(stage)) from None
     except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
+        _remove(stage)
         if created:
-            shutil.rmtree(folder, ignore_errors=True)
+            _remove(folder)
         raise
 
 
