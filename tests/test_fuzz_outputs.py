@@ -339,3 +339,63 @@ def test_a_signal_while_train_swaps_its_run_folder_leaves_a_whole_run(sig, nth, 
     assert len(seen) >= nth and code == 128 + sig and err[-1].startswith("massviz train: interrupted"), (code, err)
     assert run.is_dir() and sorted(os.listdir(run)) == whole
     assert hidden(work) == []
+
+
+# ================================================================================= a full disk while an .rrd is written
+from test_fuzz2 import Case, check_promise, pipeline_argv, run_massviz, snapshot  # noqa: E402
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 2 MiB tmpfs (root, where mounting is allowed); None elsewhere."""
+    import subprocess
+
+    mount = tmp_path / "small"
+    mount.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(mount)],
+                                           capture_output=True).returncode != 0:
+        yield None
+        return
+    yield mount
+    subprocess.run(["umount", "-l", str(mount)], capture_output=True)
+
+
+def _fill(mount: Path, free_kib: int) -> None:
+    st = os.statvfs(mount)
+    with open(mount / "filler", "wb") as fh:
+        fh.write(bytes(max(0, st.f_bavail * st.f_frsize - (free_kib << 10))))
+
+
+def _fsize(nbytes: int):
+    def limit():  # Python ignores SIGXFSZ: a write beyond the limit fails with EFBIG
+        import resource
+
+        resource.setrlimit(resource.RLIMIT_FSIZE, (nbytes, nbytes))
+    return limit
+
+
+#: room left on the disk (KiB): more than the first write massviz checks (64 KiB), less than the .rrd (~1 MB).
+FULL_DISK_ROOM = [300, pytest.param(150, marks=pytest.mark.slow), pytest.param(600, marks=pytest.mark.slow)]
+
+
+@pytest.mark.parametrize("room", FULL_DISK_ROOM)
+def test_log_rrd_onto_a_disk_that_fills_up_ends_with_one_line(room, base, small_disk, tmp_path):
+    """Rerun's file writer dies on the first failed write and never answers a flush again (a hang in one run of
+    two): massviz notices the file stopped growing, says "No space left on device" (or "File too large" under a
+    file-size limit, where no small disk can be mounted), and leaves nothing."""
+    work = tmp_path / "w"
+    work.mkdir()
+    (work / "home").mkdir()
+    rec = copy_sample(work / "rec", n=12)
+    if small_disk is not None:
+        _fill(small_disk, room)
+        out, preexec, what = small_disk / "o.rrd", None, r"\(No space left on device\)$"
+    else:
+        out, preexec, what = work / "o.rrd", _fsize(room << 10), r"\(File too large\)$"
+    argv = pipeline_argv(work, base, "log", rec, "--rrd", out, cache=False)
+    case = Case("log-rrd-disk-fills-up", argv, out, what, [out], preexec=preexec)
+    before = snapshot(work, tuple(work / w for w in ("usercache", "xdg", "home", "tmpdir")))
+    run = run_massviz(argv, work, preexec=preexec, timeout=90)
+    check_promise(case, run, work, before)
+    if small_disk is not None:
+        assert sorted(os.listdir(small_disk)) == ["filler"]
