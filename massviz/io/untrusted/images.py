@@ -5,9 +5,10 @@ from pathlib import Path
 
 from massviz.errors import MassvizError
 
-#: largest image side and pixel count massviz decodes (any RGB-D camera frame is far below).
+#: largest image side and pixel count massviz decodes (any RGB-D camera frame is below: 4096x3072 is 12.6 Mpixel); a
+#: file declaring more is refused from its header, before a decoder allocates anything.
 MAX_IMAGE_SIDE = 16384
-MAX_IMAGE_PIXELS = 1 << 26  # 67 Mpixel
+MAX_IMAGE_PIXELS = 1 << 24  # 16.8 Mpixel: at most 48 MiB decoded as 8-bit RGB, 32 MiB as 16-bit depth
 
 
 def png_header_size(head: bytes) -> tuple[int, int] | None:
@@ -48,14 +49,17 @@ def image_header_size(path: str | Path, data: bytes | None = None) -> tuple[int,
         return None
 
 
-def check_image_size(path: str | Path, error=MassvizError, what: str = "image", data: bytes | None = None) -> None:
-    """Refuse (``error`` naming ``path``) an image whose header declares more than MAX_IMAGE_SIDE per side or
-    MAX_IMAGE_PIXELS pixels, before it is decoded (a small file may declare gigabytes of pixels). ``data``: the
-    file's bytes when already read."""
+def check_image_size(path: str | Path, error=MassvizError, what: str = "image", data: bytes | None = None,
+                     expected: tuple[int, int] | None = None, of: str = "the recording's frames") -> None:
+    """Refuse (``error`` naming ``path``) an image whose header declares another size than ``expected`` (width,
+    height; ``of`` says whose size that is), or more than MAX_IMAGE_SIDE per side or MAX_IMAGE_PIXELS pixels, before
+    it is decoded (a small file may declare gigabytes of pixels). ``data``: the file's bytes when already read."""
     size = image_header_size(path, data)
     if size is None:
         return
     w, h = size
+    if expected is not None and (w, h) != tuple(expected):
+        raise error(f"{what} declares {w}x{h} pixels but {of} are {expected[0]}x{expected[1]}; not decoded", path)
     if w > MAX_IMAGE_SIDE or h > MAX_IMAGE_SIDE or w * h > MAX_IMAGE_PIXELS:
         raise error(f"{what} declares {w}x{h} pixels (at most {MAX_IMAGE_SIDE} per side and {MAX_IMAGE_PIXELS} "
                     "pixels); not decoded", path)
