@@ -123,3 +123,36 @@ def test_a_decompression_bomb_is_refused_from_its_header(name, base, clean_peak_
     check_promise(case, run, work, before)
     bound = max(BOMB_MEM_MB, clean_peak_mb + BOMB_EXTRA_MB)
     assert run.peak_mb < bound, f"{name}: peak memory {run.peak_mb:.0f} MB (a clean run: {clean_peak_mb:.0f} MB)"
+
+
+# ====================================================================================== checkpoints of complex numbers
+COMPLEX = {"complex64-linear": ("linear3.weight", "complex64"), "complex128-bn-mean": ("bn1.running_mean", "complex128"),
+           "complex64-conv": (None, "complex64")}
+
+
+@pytest.mark.parametrize("name", list(COMPLEX))
+def test_a_checkpoint_of_complex_tensors_is_massviz_s_one_line(name, base, tmp_path, capsys):
+    """Loading complex weights into MassNet drops their imaginary parts with a UserWarning of torch's: refused,
+    one line naming the file and the parameter, and no warning printed besides."""
+    import warnings
+
+    import torch
+
+    from massviz import cli
+
+    key, dtype = COMPLEX[name]
+    payload = torch.load(base.weights, weights_only=True)
+    key = key or next(k for k in payload["state_dict"] if k.endswith(".weight") and payload["state_dict"][k].ndim == 4)
+    payload["state_dict"][key] = payload["state_dict"][key].to(getattr(torch, dtype))
+    ckpt = tmp_path / "ckpt.torch"
+    torch.save(payload, ckpt)
+    out = tmp_path / "p.csv"
+    argv = pipeline_argv(tmp_path, base, "estimate", copy_sample(tmp_path / "rec"), "--out", out, weights=ckpt)
+    capsys.readouterr()
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        code = cli.main([str(a) for a in argv])
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert code == 2 and len(err) == 1 and not out.exists(), err
+    assert err[0].startswith(f"massviz estimate: error: {ckpt}: parameter {key} holds complex numbers ({dtype})"), err
+    assert [str(w.message) for w in seen] == []
