@@ -156,3 +156,41 @@ def test_a_checkpoint_of_complex_tensors_is_massviz_s_one_line(name, base, tmp_p
     assert code == 2 and len(err) == 1 and not out.exists(), err
     assert err[0].startswith(f"massviz estimate: error: {ckpt}: parameter {key} holds complex numbers ({dtype})"), err
     assert [str(w.message) for w in seen] == []
+
+
+# ====================================================================================== RealSense timing that is no number
+REALSENSE_TIMES = {"nan": lambda i: float("nan"), "inf": lambda i: float("inf"), "minus-inf": lambda i: float("-inf"),
+                   "backwards": lambda i: 1000.0 - 100.0 * i}
+
+
+@pytest.mark.parametrize("command", ["live", pytest.param("estimate", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("times", [pytest.param(n, marks=() if i == 0 else pytest.mark.slow)
+                                   for i, n in enumerate(REALSENSE_TIMES)])
+def test_a_realsense_file_whose_duration_is_no_number_is_one_line(command, times, base, tmp_path, capsys):
+    """Frames stamped NaN, inf or going backwards: the duration ``live --file`` plays in real time is not a number
+    (it played and exited 0); one line naming the file, exit 2, nothing written."""
+    pytest.importorskip("pyrealsense2")
+    from massviz import cli
+    from massviz.io.formats.realsense_decode import import_rs
+    from massviz.io.formats.realsense_write import SoftwareRig
+    from massviz.io.recording import open_recording
+
+    sample = open_recording(Path(__file__).resolve().parents[1] / "data_samples" / "cup_handover")
+    db3 = tmp_path / "cam.db3"
+    rig = SoftwareRig(import_rs(), sample.intrinsics, 30.0)
+    with rig.record(db3):
+        for i, frame in enumerate(sample.frames(indices=range(3))):
+            rig.push(frame, i, REALSENSE_TIMES[times](i))
+    work = tmp_path / "w"
+    work.mkdir()
+    if command == "live":
+        argv = ["live", "--file", db3, "--rrd", work / "o.rrd", "--save", work / "rec", "--no-cache", "--quiet",
+                "--detector", "replay", "--replay", base.replay, "--weights", base.weights]
+    else:
+        argv = pipeline_argv(work, base, "estimate", db3, "--out", work / "p.csv", cache=False)
+    capsys.readouterr()
+    code = cli.main([str(a) for a in argv])
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert code == 2 and len(err) == 1 and err[0].startswith(f"massviz {command}: error: {db3}: frame "), err
+    assert "not a playable RealSense recording" in err[0]
+    assert list(work.iterdir()) == []
