@@ -8,6 +8,7 @@ refused (one line; massviz writes whole files, never streams into devices or pip
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import stat
@@ -67,7 +68,8 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     tmp = None
     try:
         with deferred():  # a signal now would leave the new temporary file behind
-            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+            sweep_stale(path.parent, path.name)
+            fd, tmp = tempfile.mkstemp(prefix=_prefix(path.name), suffix=f".tmp{path.suffix}", dir=path.parent)
             os.close(fd)
             umask = os.umask(0)
             os.umask(umask)
@@ -80,6 +82,45 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     except BaseException:
         _remove(tmp)
         raise
+
+
+def _prefix(name: str) -> str:
+    """The start of a temporary's name for the output ``name``: hidden, and carrying this process's id (a temporary
+    of a process that is gone, killed before it could remove it, is found by :func:`sweep_stale`)."""
+    return f".{name}.{os.getpid()}."
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # another user's process: alive
+        return True
+    return True
+
+
+def sweep_stale(folder: str | Path, name: str) -> None:
+    """Remove the temporaries of the output ``name`` in ``folder`` that a process left when it was killed
+    (SIGKILL, a power cut): hidden ``.NAME.PID.*`` files and folders ending ``.tmp*``, ``.part`` or ``.old`` whose
+    process no longer runs. Repeated kills leave at most one run's temporaries, never an accumulation."""
+    import re
+
+    pattern = re.compile(rf"\.{re.escape(name)}\.(\d+)\.[^/]*\.(tmp[^/]*|part|old)$")
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return
+    for entry in entries:
+        m = pattern.match(entry.name)
+        if m is None or int(m.group(1)) == os.getpid() or _alive(int(m.group(1))):
+            continue
+        with deferred():
+            if entry.is_dir(follow_symlinks=False):
+                shutil.rmtree(entry.path, ignore_errors=True)
+            else:
+                with contextlib.suppress(OSError):
+                    os.unlink(entry.path)
 
 
 def _remove(tmp) -> None:
@@ -126,14 +167,15 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     tmp = None
     try:
         with deferred():  # a signal now would leave the new temporary folder behind
-            tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part"))
+            sweep_stale(path.parent, path.name)
+            tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=_prefix(path.name), suffix=".part"))
             umask = os.umask(0)
             os.umask(umask)
             os.chmod(tmp, 0o777 & ~umask)
         yield tmp
         with deferred():  # the swap runs to its end: the old folder or the new one is in place, never neither
             if path.exists():
-                old = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".old"))
+                old = Path(tempfile.mkdtemp(dir=path.parent, prefix=_prefix(path.name), suffix=".old"))
                 os.replace(path, old / path.name)
                 os.replace(tmp, path)
                 shutil.rmtree(old, ignore_errors=True)
@@ -159,7 +201,8 @@ def staged_files(folder: str | Path) -> Iterator[Path]:
     try:
         with deferred():  # a signal now would leave the folder or the stage behind
             folder.mkdir(parents=True, exist_ok=True)
-            stage = Path(tempfile.mkdtemp(dir=folder, prefix=".massviz.", suffix=".part"))
+            sweep_stale(folder, "massviz")
+            stage = Path(tempfile.mkdtemp(dir=folder, prefix=_prefix("massviz"), suffix=".part"))
         yield stage
         with deferred():  # every file moves in, or (a failure) none: a signal waits for the end of the moves
             for item in sorted(stage.iterdir()):
