@@ -113,6 +113,21 @@ def main(argv: list[str] | None = None) -> int:
             sys.stderr = real_stderr
 
 
+def _out_of_memory_line(err: BaseException) -> str | None:
+    """The line for a run that ran out of memory or address space (a ``MemoryError``, or a native library that could
+    not be mapped: ``ulimit -v`` set too low for torch), naming the limit when one is set; None for other errors."""
+    import resource
+
+    text = str(err).splitlines()[0] if str(err).strip() else type(err).__name__
+    if isinstance(err, ImportError) and not re.search(r"map segment|allocate memory|Cannot allocate", text):
+        return None
+    limit = resource.getrlimit(resource.RLIMIT_AS)[0]
+    why = (f"the address-space limit (ulimit -v {limit // 1024} KiB) is too low" if limit != resource.RLIM_INFINITY
+           else "not enough memory")
+    what = f"cannot load a library ({text})" if isinstance(err, ImportError) else "out of memory"
+    return f"{what}: {why}"
+
+
 def _interrupted(command: str, err: KeyboardInterrupt) -> int:
     """``massviz CMD: interrupted`` (with the signal's name unless it was Ctrl-C); returns the exit code 128 + N."""
     signum = getattr(err, "signum", signal.SIGINT)
@@ -152,6 +167,12 @@ def _run(parser: argparse.ArgumentParser, argv) -> int:
         return 141
     except KeyboardInterrupt as err:
         return _interrupted(args.command, err)
+    except (MemoryError, ImportError) as err:
+        line = _out_of_memory_line(err)
+        if line is None or os.environ.get("MASSVIZ_DEBUG"):
+            raise
+        print(error_line(args.command, line), file=sys.stderr)
+        return 2
     except OSError as err:  # a file system refusal the command did not foresee: still one line naming the path
         if os.environ.get("MASSVIZ_DEBUG"):
             raise

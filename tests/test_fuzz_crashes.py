@@ -61,11 +61,12 @@ def pipeline(b: Base, work: Path, command: str, *extra) -> list:
 def command_case(command: str, work: Path, b: Base, patches: Path) -> tuple[list, Path]:
     """(argv, output) of one command on a fresh copy of the sample."""
     if command == "train":
-        return ["train", patches, "--out", work / "run", "--epochs", "2", "--augment", "1", "--quiet"], work / "run"
+        return (["train", patches, "--out", work / "run", "--epochs", "2", "--augment", "1", "--quiet", "--force"],
+                work / "run")  # --force: a rerun after a kill that came once the run was in place replaces it
     rec = work / "rec"
     if not rec.exists():
         copy_sample(rec)
-    outs = {"estimate": ("--out", work / "p.csv", "--exact"), "extract": ("--out", work / "patches"),
+    outs = {"estimate": ("--out", work / "p.csv", "--exact"), "extract": ("--out", work / "patches", "--force"),
             "cloud": ("--out", work / "clouds"), "log": ("--rrd", work / "o.rrd")}
     extra = outs[command]
     return pipeline(b, work, command, rec, *extra), extra[1]
