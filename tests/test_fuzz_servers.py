@@ -67,3 +67,31 @@ def test_serve_listens_on_localhost_only_and_skips_hostile_rrds_with_one_line_ea
     named = sorted(re.match(r"massviz: warning: (\S+): .*; not served$", line).group(1) for line in warnings)
     assert named == sorted(str(dataset / f"{n}.rrd") for n in HOSTILE_RRDS), err
     assert code == 0 and "Traceback" not in err
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_live_serve_web_listens_on_localhost_only():
+    """``massviz live --serve-web``'s server (Rerun's binary: gRPC and the web viewer): every socket it listens on is
+    127.0.0.1, and it is gone once stopped."""
+    import psutil
+
+    from massviz.commands.live import _WebServer
+
+    web, grpc = _free_port(), _free_port()
+    server = _WebServer(web, grpc)
+    try:
+        proc = psutil.Process(server.proc.pid)
+        tree = [proc, *proc.children(recursive=True)]
+        listening = [c.laddr for p in tree for c in p.net_connections(kind="inet") if c.status == psutil.CONN_LISTEN]
+    finally:
+        server.stop()
+    assert {a.port for a in listening} >= {web, grpc}, listening
+    assert {a.ip for a in listening} == {"127.0.0.1"}, listening
+    assert not proc.is_running() or proc.status() == psutil.STATUS_ZOMBIE
