@@ -12,7 +12,7 @@ pipeline itself (detection) is not timed here: see benchmarks/scale.py.
 
     .venv/bin/python benchmarks/dataset_catalog.py [--n 1140] [--out DIR] [--weights PATH] [--cache DIR]
 
-Goals (issue #21): serve start to table listed <= 10 s, a catalog query <= 1 s, a slider change <= 300 ms.
+Goals: serve start to table listed <= 10 s, a catalog query <= 1 s, a slider change <= 300 ms.
 """
 from __future__ import annotations
 

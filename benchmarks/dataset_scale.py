@@ -1,4 +1,4 @@
-"""Every cached operation at dataset scale (issue 24): a synthetic CCM-sized cached dataset of up to 1,140 recordings,
+"""Every cached operation at dataset scale: a synthetic CCM-sized cached dataset of up to 1,140 recordings,
 and at 10 / 100 / 1,140 recordings the CLI sweep of 100 (threshold, K) pairs end to end, the in-process sweep, the
 Tuner's build time and memory, its slider latency, the failure panel's build time and slider latency, and a warm
 ``estimate`` of one cached recording.

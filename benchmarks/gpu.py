@@ -126,10 +126,10 @@ def variants(args) -> dict:
         p = build_pipeline(PipelineOptions(detector="maskrcnn", detector_weights=str(args.detector_weights),
                                            weights=str(args.weights), device=args.device, precision=precision,
                                            batch=batch, no_cache=True, quiet=True))
-        run(rec, p.detector, p.model, batch=p.batch, stride=max(1, rec.num_frames // 8), measure=False)  # warm-up
+        run(rec, p.detector, p.model, batch=p.batch, stride=max(1, rec.num_frames // 8))  # warm-up
         for overlap in (True, False):
             t0 = time.perf_counter()
-            trace = run(rec, p.detector, p.model, batch=p.batch, overlap=overlap, measure=False)
+            trace = run(rec, p.detector, p.model, batch=p.batch, overlap=overlap)
             fps = len(trace.frames) / (time.perf_counter() - t0)
             key = f"{mode} b{p.batch} overlap={overlap}"
             out[key] = {"fps": fps, "estimate": trace.estimate,

@@ -68,9 +68,9 @@ class StandInModel:
 def session(frames, intr, *, seconds: float, points: bool, detector, model, out: Path) -> dict:
     from massviz.core.pipeline import FramePipeline
     from massviz.core.types import RecordingInfo
-    from massviz.io.realsense import SoftwareCamera, open_device_stream
+    from massviz.io.formats.realsense_live import SoftwareCamera, open_device_stream
     from massviz.runners.live import run_live
-    from massviz.views.rerun_live import LiveLogger
+    from massviz.views.rerun.live import LiveLogger
 
     cam = SoftwareCamera(frames, intr, fps=30, loops=1000, translation_m=(0.015, 0.0, 0.0))
     stream = open_device_stream(cam.device, "software camera", on_stop=cam.stop)
@@ -78,7 +78,7 @@ def session(frames, intr, *, seconds: float, points: bool, detector, model, out:
     stream.start = lambda sink: (start(sink), cam.start())[0]
     info = RecordingInfo(id="bench", kind="live", width=intr.width, height=intr.height, fps=30, intrinsics=intr)
     fp = FramePipeline(detector, model, k=5, recording=info)
-    logger = LiveLogger(name="bench", k=5, threshold=0.4, intrinsics=intr, rrd=out, points=points)
+    logger = LiveLogger(name="bench", k=5, intrinsics=intr, rrd=out, points=points)
     result = run_live(stream, fp, logger=logger, duration=seconds)
     s = result.stats
     return {"stats": s, "aligned": not stream.info.registered, "rrd_mb": out.stat().st_size / 2**20}

@@ -1,4 +1,4 @@
-"""The mass CNN with 1 vs 2 torch intra-op threads, side by side in one run (issue 24): the same patches predicted
+"""The mass CNN with 1 vs 2 torch intra-op threads, side by side in one run: the same patches predicted
 alternately with each thread count, so that both see the same load on the shared machine.
 
     MASSVIZ_WEIGHTS=../shared/weights/corsmal_visual/Encoder_pool_aug_158.torch \\

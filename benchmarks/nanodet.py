@@ -9,9 +9,9 @@ them much: the box post-processing keeps few boxes either way) on fewer frames (
 
     .venv/bin/python benchmarks/nanodet.py [--rounds 3] [--maskrcnn-frames 3] [--threads N]
 
-NanoDet runs twice per size: with the 3D measure stage that ``run`` includes by default (Open3D: the chosen
-detections' measured sizes, once per recording, at its end: a fixed cost that 8 frames amortise poorly) and without
-it (``measure=False``: the stages the goal names). Prints frames/s per detector and size, the ratio, and ``uptime``
+NanoDet runs twice per size: with the 3D measure stage observing the run (``massviz.measure.stage.MeasureStage``,
+Open3D: the chosen detections' measured sizes, once per recording, at its end: a fixed cost that 8 frames amortise
+poorly), as ``massviz log`` and ``cloud`` run it, and without it (the stages the goal names, as ``estimate`` runs). Prints frames/s per detector and size, the ratio, and ``uptime``
 (the machine is shared: every figure is inflated by other work on it).
 """
 from __future__ import annotations
@@ -56,17 +56,24 @@ def make_folder(dst: Path, width: int, height: int, n: int | None = None) -> Pat
 
 def frames_per_second(folder: Path, detector, model, rounds: int, measure: bool = True) -> tuple[float, float, dict]:
     """Best-of-``rounds`` frames/s of ``pipeline.run`` over the folder (after one warm-up frame), and its estimate;
-    ``measure``: with the 3D measure stage (on by default in ``run``: the chosen detections' sizes, once per
-    recording at its end), or without it."""
+    ``measure``: with the 3D measure stage observing the run (the chosen detections' sizes, once per recording at
+    its end), or without it."""
     from massviz.core.pipeline import run
     from massviz.io.recording import open_recording
+    from massviz.measure.stage import MeasureStage
+
+    def measured_run(rec):
+        if not measure:
+            return run(rec, detector, model, k=5)
+        stage = MeasureStage(rec)
+        return stage.finish(run(rec, detector, model, k=5, on_frame=stage.on_frame))
 
     rec = open_recording(folder)
     run(open_recording(folder), detector, model, k=5, stride=rec.info().num_frames or 8)  # warm-up: loads the models
     best, trace = 0.0, None
     for _ in range(rounds):
         t0 = time.perf_counter()
-        trace = run(open_recording(folder), detector, model, k=5, measure=measure)
+        trace = measured_run(open_recording(folder))
         best = max(best, len(trace.frames) / (time.perf_counter() - t0))
     stages = {k: v / max(1, len(trace.frames)) * 1000 for k, v in trace.timings.items() if k != "total"}
     stages["measure3d_recording"] = trace.timings.get("measure3d", float("nan")) * 1000

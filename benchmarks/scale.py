@@ -2,7 +2,7 @@
 
     python benchmarks/scale.py [--weights PATH] [--recordings 200] [--depth-copies 2] [--maskrcnn-frames 2]
 
-Prints three figures (issue 11):
+Prints three figures:
 
 (a) per-recording scheduling overhead of ``--engine ray`` over ``--engine local``: 200 one-frame recordings with the
     replay detector (one detection per frame, no cache), Ray with 1 worker vs local, run time without start-up,

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from massviz.core.pipeline import FramePipeline, repredict, resolve_selection, run
 from massviz.core.selection import Selection
-from massviz.core.trace import Event
+from massviz.core.trace import Event, analyse_trace
 from massviz.core.types import PRECISIONS
 from massviz.errors import MassvizError
 
@@ -99,14 +99,20 @@ class Pipeline:
         the options' ``selection``) plus the exclusions ``exclude``; ``on_frame``: the per-frame observer of
         ``massviz.core.pipeline.run`` (not called when the trace comes from the cache)."""
         progress = not self.options.quiet if progress is None else progress
-        selection = self.options.selection if selection is None else selection
+        selection = self.selection if selection is None else selection
         return process(recording, self.detector, self.model, selection=selection, cache=self.cache,
                        progress=progress, exclude=exclude, batch=self.batch, on_frame=on_frame)
 
     @property
+    def selection(self) -> Selection:
+        """The selection this pipeline selects with, resolved once here (the edge): the options' K, stride and
+        threshold, the detector's own score cut when the options name none (``Selection.at_cut``)."""
+        return self.options.selection.at_cut(self.detector.threshold)
+
+    @property
     def threshold(self) -> float:
-        """The score cut this pipeline selects with: ``options.threshold``, else the detector's default."""
-        return float(self.detector.threshold if self.options.threshold is None else self.options.threshold)
+        """The score cut this pipeline selects with (``selection.threshold``)."""
+        return float(self.selection.threshold)
 
     @property
     def batch(self) -> int:
@@ -115,7 +121,7 @@ class Pipeline:
 
     def frame_pipeline(self, recording_info=None) -> FramePipeline:
         """A fresh per-frame step for one recording (live camera, dataset workers, batched runners)."""
-        return FramePipeline(self.detector, self.model, selection=self.options.selection, recording=recording_info)
+        return FramePipeline(self.detector, self.model, selection=self.selection, recording=recording_info)
 
 
 def process(recording, detector, model, *, selection: Selection | None = None, k: int | None = None,
@@ -131,9 +137,7 @@ def process(recording, detector, model, *, selection: Selection | None = None, k
     from massviz.io.ground_truth import with_ground_truth
 
     annotate = annotate or with_ground_truth
-    selection = resolve_selection(selection, k, stride)
-    if selection.threshold is None:
-        selection = selection.replace(threshold=float(detector.threshold))
+    selection = resolve_selection(selection, k, stride).at_cut(detector.threshold)
     if exclude is not None:
         selection = selection.replace(exclude=tuple(selection.exclude) + tuple(Selection(exclude=exclude).exclude))
     k, stride, threshold = selection.k, selection.stride, selection.threshold
@@ -147,23 +151,26 @@ def process(recording, detector, model, *, selection: Selection | None = None, k
             trace = repredict(trace, recording, model, progress=progress)
             cache.save(trace, recording, info)
             note += "; predictions recomputed for this model"
+        # the key is the frames' content: the recording's path, meta and intrinsics are today's, not the cached run's;
+        # annotated with them, then selected and analysed once
+        trace = annotate(dataclasses.replace(trace, recording=recording.info()))
         trace = trace.reselect(k=k, threshold=threshold, exclude=exclude)
         events = [e for e in trace.events if not e.is_selection]
         events.append(Event(-1, note, "cache", "debug"))
         events.extend(e for e in trace.events if e.is_selection)
         timings = {"cache": time.perf_counter() - t0}
-        # the key is the frames' content: the recording's path, meta and intrinsics are today's, not the cached run's
-        return annotate(dataclasses.replace(trace, recording=recording.info(), events=events,
-                                            timings={**trace.timings, **timings}))
-    if not hasattr(recording, "frames"):  # recognised from its files (massviz.io.identity): only the cache serves it
+        return analyse_trace(dataclasses.replace(trace, events=events, timings={**trace.timings, **timings}))
+    from massviz.io.identity import LocatedRecording
+
+    if isinstance(recording, LocatedRecording):  # recognised from its files, not opened: only the cache serves it
         raise MassvizError("its cached trace was found when this run started but could not be read now (removed, or "
                            "damaged and dropped); run the command again to compute it", recording.path)
     # the content key of the bytes the run reads (each frame file read once), not of a second read
     with cache.watch(recording) if cache is not None else contextlib.nullcontext() as read:
         # the cached trace holds every detection (no exclusions): they are applied to the trace returned
         trace = run(recording, detector, model, selection=selection.replace(exclude=()), progress=progress,
-                    batch=batch, prefetch=prefetch, on_frame=on_frame)
-    trace = annotate(trace)
+                    batch=batch, prefetch=prefetch, on_frame=on_frame, analyse=False)
+    trace = analyse_trace(annotate(trace))  # the flags, once, with the ground truth's overlaps
     if cache is not None:
         cache.save(trace, recording, info, known=read)
     if exclude is not None:

@@ -22,6 +22,7 @@ import sys
 
 from massviz import __version__
 from massviz.errors import MassvizError
+from massviz.logs import to_stderr
 from massviz.signals import CLEANUP_SIGNALS, Terminated, interrupt_behind, signals_end_like_ctrl_c
 
 __all__ = ["main", "build_parser", "error_line", "os_error_line", "EscapingStream", "Terminated", "CLEANUP_SIGNALS"]
@@ -104,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         _quiet_native_logs()
         sys.stderr = EscapingStream(real_stderr)
-        with signals_end_like_ctrl_c():
+        with to_stderr(), signals_end_like_ctrl_c():  # the library's log records: one line each on stderr
             return _run(build_parser(), argv)
     except KeyboardInterrupt as err:  # before the command started (its parser built, the handlers going in) or
         return _interrupted(_command_word(argv), err)  # after it ended (the handlers coming out): nothing to undo

@@ -1,13 +1,19 @@
-"""The package layout is the architecture (README, "Architecture"): these tests read every module's imports (also the
+"""The package layout is the architecture (docs/architecture.md): these tests read every module's imports (also the
 ones inside functions) and fail on an arrow that breaks it.
 
 * ``massviz.core`` is the ground floor: it imports nothing of massviz but ``core`` and ``errors`` (no io, detect,
   view, command, evaluation, training, sample generator, runner or the builder ``massviz.app``);
 * ``massviz.core`` does no file I/O: no ``open``, ``cv2.imread``, ``np.load``, ``Path.read_*``, ``torch.load`` ...
   (an AST scan of its calls);
+* ``massviz.core`` never imports Open3D, directly or through a module it imports (and importing every core module
+  leaves ``open3d`` out of ``sys.modules``): clouds and measured sizes are the measure stage's (``massviz.measure``);
 * no two modules import each other, directly or round a longer circle (imports inside functions count);
 * no stage (``core``, ``detect``, ``io``) imports a sink (``views``);
 * no view imports a stage module for its logic (the pipeline, the builder, a detector) or a runner or command;
+* no view calls the measure stage (``massviz.measure.stage``, or the geometry's cloud making and measuring): views
+  draw the clouds and measurements they are given;
+* no view imports a function that computes: the pipeline and its stage, the mass CNN, a detector, a measurement
+  (a sink is given each frame's result and the trace; it draws them);
 * no command imports another command (only the private helpers ``commands/_*.py``);
 * library code names no repository-relative path and never switches matplotlib's backend.
 
@@ -61,15 +67,15 @@ def arrows(source_packages, target_packages, allowed=()):
 
 def test_the_graph_is_read():
     # the reader itself can fail: the CLI imports its commands' package, the pipeline its detector protocol
-    assert "massviz.core.pipeline" in MODULES and "massviz.views.rerun_log" in MODULES
+    assert "massviz.core.pipeline" in MODULES and "massviz.views.rerun.replay" in MODULES
     assert "massviz.core.detector" in GRAPH["massviz.core.pipeline"]
-    assert "massviz.core.detector" in GRAPH["massviz.detect.base"]
+    assert "massviz.core.detector" in GRAPH["massviz.detect"]
     assert "massviz.core.trace" in GRAPH["massviz.views.rerun.replay"]
     assert "massviz.io.ground_truth" in GRAPH["massviz.app"]  # an import inside a function
 
 
-#: what core may import of massviz: itself, the errors and the one Open3D import (a library shim, no massviz logic).
-CORE_MAY_IMPORT = ("core", "errors", "_open3d")
+#: what core may import of massviz: itself and the errors.
+CORE_MAY_IMPORT = ("core", "errors")
 
 
 def core_arrows(graph) -> list:
@@ -81,6 +87,52 @@ def core_arrows(graph) -> list:
 
 def test_core_imports_only_core():
     assert core_arrows(GRAPH) == []
+
+
+def third_party_imports(path: Path) -> set[str]:
+    """The top-level names of the packages outside massviz that ``path`` imports, at any depth of the file."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            out.add(node.module.split(".")[0])
+    return out - {"massviz"}
+
+
+THIRD_PARTY = {module_name(p): third_party_imports(p) for p in FILES}
+
+
+def open3d_in_core(graph, third_party) -> list[tuple[str, str]]:
+    """(core module, the module of its imports' closure that imports Open3D) for every core module that reaches
+    ``open3d`` (or ``massviz._open3d``), directly or through massviz modules it imports."""
+    found = []
+    for root in sorted(m for m in graph if under(m, "core")):
+        seen, todo = set(), [root]
+        while todo:
+            m = todo.pop()
+            if m in seen:
+                continue
+            seen.add(m)
+            if "open3d" in third_party.get(m, ()) or "massviz._open3d" in graph.get(m, ()):
+                found.append((root, m))
+            todo.extend(graph.get(m, ()))
+    return sorted(set(found))
+
+
+def test_core_never_imports_open3d():
+    assert open3d_in_core(GRAPH, THIRD_PARTY) == []
+    # and at run time: importing every core module loads no Open3D (nor the measure stage)
+    import subprocess
+    import sys
+
+    core = sorted(m for m in MODULES if under(m, "core"))
+    code = (f"import importlib, sys\nfor m in {core!r}:\n    importlib.import_module(m)\n"
+            "print('open3d' in sys.modules, any(m.startswith('massviz.measure') for m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=PKG.parent).stdout.strip()
+    assert out == "False False"
 
 
 def import_circles(graph) -> list[list[str]]:
@@ -126,17 +178,8 @@ def import_circles(graph) -> list[list[str]]:
     return sorted(out)
 
 
-#: circles another branch of this wave removes (issue 19: one module per format, i19b); each entry must still exist
-#: (test_known_circles_still_exist), so it is deleted here when the circle goes.
-KNOWN_CIRCLES: list = []
-
-
 def test_no_import_circle():
-    assert [c for c in import_circles(GRAPH) if c not in KNOWN_CIRCLES] == []
-
-
-def test_known_circles_still_exist():
-    assert [c for c in KNOWN_CIRCLES if c not in import_circles(GRAPH)] == [], "delete it from KNOWN_CIRCLES"
+    assert import_circles(GRAPH) == []
 
 
 #: calls that read or write files: plain names, and attribute names on any object (``cv2.imread``, ``np.load``,
@@ -214,6 +257,81 @@ def test_views_import_no_stage_module_for_logic():
     assert view_arrows(GRAPH) == []
 
 
+#: what a view may take from the measure stage's package: settings, the intrinsics check and back-projection for a
+#: picture (the scene around the clouds, ``--points``) and the measured box as Open3D draws it; never a detection's
+#: cloud, a measurement or the stage itself.
+VIEW_MAY_USE_OF_MEASURE = {"DEPTH_TRUNC_M", "BAND_M", "skip_reason", "require_intrinsics", "pinhole", "rgbd_cloud",
+                           "depth_to_points", "measured_box"}
+
+
+def view_measure_calls(path: Path) -> list[str]:
+    """What a view file takes from ``massviz.measure`` beyond ``VIEW_MAY_USE_OF_MEASURE``: ``line name`` for each
+    name imported from it and each whole-module import (``import massviz.measure.stage``, ``from massviz.measure
+    import stage``: its functions would be called through it)."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("massviz.measure"):
+            for a in node.names:
+                if f"{node.module}.{a.name}" in MODULES or node.module == "massviz.measure" or \
+                        a.name not in VIEW_MAY_USE_OF_MEASURE:
+                    found.append(f"{node.lineno} {node.module}.{a.name}")
+        elif isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name.startswith("massviz.measure"):
+                    found.append(f"{node.lineno} {a.name}")
+    return found
+
+
+def test_views_call_no_measure_stage():
+    bad = {str(p.relative_to(PKG)): view_measure_calls(p) for p in FILES if under(module_name(p), "views")}
+    assert {f: calls for f, calls in bad.items() if calls} == {}
+    assert arrows(["views"], ["measure.stage"]) == []
+#: what computes and so is no view's to call: the per-frame step and its stage (``core.pipeline``, ``core.stage``),
+#: the mass CNN's predictions (``core.model``), the detectors (``detect``) and the measure stage (``measure.stage``
+#: and the geometry's cloud making and measuring). A sink is given results and traces; it draws them.
+COMPUTE_FOR_VIEWS = {"massviz.core.pipeline": None, "massviz.core.stage": None, "massviz.core.model": None,
+                     "massviz.detect": None,
+                     "massviz.measure.stage": None,
+                     "massviz.measure.geometry": {"measure_cloud", "measure_cloud_as", "measure_crop",
+                                                  "measure_detection", "detection_cloud", "masked_cloud"}}
+
+
+def view_calls(sources: dict[str, str]) -> list[tuple[str, str]]:
+    """(view module, ``module.name``) for every name a view imports from a module that computes
+    (:data:`COMPUTE_FOR_VIEWS`; None: every name of it), at any depth of the file; ``sources``: module -> text."""
+    out = []
+    for module, text in sources.items():
+        if not under(module, "views"):
+            continue
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.ImportFrom) and node.module and not node.level:
+                for target, names in COMPUTE_FOR_VIEWS.items():
+                    if node.module == target or node.module.startswith(target + "."):
+                        out += [(module, f"{node.module}.{a.name}") for a in node.names
+                                if names is None or a.name in names]
+            elif isinstance(node, ast.Import):
+                out += [(module, a.name) for a in node.names for target, names in COMPUTE_FOR_VIEWS.items()
+                        if names is None and (a.name == target or a.name.startswith(target + "."))]
+    return sorted(out)
+
+
+def test_views_call_no_pipeline_detector_or_measure_function():
+    assert view_calls({module_name(p): p.read_text() for p in FILES}) == []
+
+
+def test_the_checks_catch_a_view_calling_the_pipeline_a_detector_or_a_measurement():
+    bad = {"massviz.views.rerun.bad": "def f(trace):\n    from massviz.measure.geometry import measure_crop, measured_box\n"
+                                      "    from massviz.core.pipeline import run\n    import massviz.detect.depth\n"
+                                      "    from massviz.detect.depth import DepthDetector\n",
+           "massviz.views.fine": "from massviz.measure.geometry import measured_box\nfrom massviz.core.trace import Trace\n",
+           "massviz.runners.logged": "from massviz.core.pipeline import run\n"}
+    assert view_calls(bad) == [("massviz.views.rerun.bad", "massviz.core.pipeline.run"),
+                               ("massviz.views.rerun.bad", "massviz.detect.depth"),
+                               ("massviz.views.rerun.bad", "massviz.detect.depth.DepthDetector"),
+                               ("massviz.views.rerun.bad", "massviz.measure.geometry.measure_crop")]
+
+
 def test_no_command_imports_another_command():
     bad = [(m, t) for m, targets in GRAPH.items() if under(m, "commands") for t in targets
            if under(t, "commands") and t != m and not t.split(".")[-1].startswith("_") and t != "massviz.commands"]
@@ -259,6 +377,35 @@ def test_the_checks_catch_file_io_in_core(tmp_path):
         ["cv2.imread()", "open()", "np.load()", "....read_text()", "torch.load()"])
 
 
+def test_the_checks_catch_core_reaching_open3d():
+    graph = {m: set(t) for m, t in GRAPH.items()}
+    third_party = {m: set(t) for m, t in THIRD_PARTY.items()}
+    # directly, through the library shim, and through a core module that imports one that does
+    third_party["massviz.core.flags"].add("open3d")
+    assert ("massviz.core.flags", "massviz.core.flags") in open3d_in_core(graph, third_party)
+    assert ("massviz.core.trace", "massviz.core.flags") in open3d_in_core(graph, third_party)  # trace imports flags
+    assert open3d_in_core({"massviz.core.x": {"massviz._open3d"}}, {}) == [("massviz.core.x", "massviz.core.x")]
+    assert open3d_in_core({"massviz.core.x": {"massviz.core.y"}, "massviz.core.y": set()},
+                          {"massviz.core.y": {"open3d"}}) == [("massviz.core.x", "massviz.core.y"),
+                                                              ("massviz.core.y", "massviz.core.y")]
+    assert core_arrows({"massviz.core.x": {"massviz.measure.geometry"}}) == [("massviz.core.x",
+                                                                               "massviz.measure.geometry")]
+
+
+def test_the_checks_catch_a_view_calling_the_measure_stage(tmp_path):
+    bad = tmp_path / "bad.py"
+    bad.write_text("from massviz.measure.geometry import rgbd_cloud, detection_cloud\n"
+                   "def f(t, r):\n    from massviz.measure.stage import MeasureStage\n"
+                   "    from massviz.measure import stage\n    import massviz.measure.geometry as G\n"
+                   "    return G.measure_cloud(MeasureStage(r).finish(t))\n")
+    assert [c.split(" ", 1)[1] for c in view_measure_calls(bad)] == [
+        "massviz.measure.geometry.detection_cloud", "massviz.measure.stage.MeasureStage", "massviz.measure.stage",
+        "massviz.measure.geometry"]
+    fine = tmp_path / "fine.py"
+    fine.write_text("from massviz.measure.geometry import DEPTH_TRUNC_M, measured_box, rgbd_cloud\n")
+    assert view_measure_calls(fine) == []
+
+
 def test_the_checks_catch_a_view_importing_a_stage():
     graph = {"massviz.views.plots": {"massviz.core.trace", "massviz.app"},
              "massviz.views.widgets": {"massviz.detect.depth", "massviz.core.flags"}}
@@ -279,6 +426,34 @@ def test_one_selection_one_score_formula_one_ground_truth_reader():
     assert files_with('get("container")') == ["core/types.py", "io/meta.py"]
 
 
+#: the CCM annotation CSV's columns: only its one reader (massviz/io/ccm_annotations.py) names them
+CCM_COLUMNS = {"id", "container id", "container mass", "width at the top", "width at the bottom", "height", "depth",
+               "container capacity"}
+
+
+def files_naming(strings, files) -> dict[str, list[str]]:
+    """{file: the ``strings`` it has as string constants (not counting docstrings)}, for the files that have some."""
+    out = {}
+    for p in files:
+        tree = ast.parse(p.read_text(), filename=str(p))
+        docs = {id(n.body[0].value) for n in ast.walk(tree) if isinstance(n, (ast.Module, ast.FunctionDef,
+                ast.ClassDef, ast.AsyncFunctionDef)) and n.body and isinstance(n.body[0], ast.Expr)}
+        found = sorted({n.value for n in ast.walk(tree) if isinstance(n, ast.Constant) and n.value in strings
+                        and id(n) not in docs})
+        if found:
+            out[str(p.relative_to(PKG)) if PKG in p.parents else p.name] = found
+    return out
+
+
+def test_one_ccm_annotation_reader(tmp_path):
+    # "height" and "id" are also other things' names: the columns that only an annotation file has are checked
+    only_ccm = CCM_COLUMNS - {"id", "height", "depth"}
+    assert files_naming(only_ccm, FILES) == {"io/ccm_annotations.py": sorted(only_ccm)}
+    bad = tmp_path / "bad.py"
+    bad.write_text('"""reads \'container mass\'"""\ndef f(row):\n    return row["container mass"], row["width at the top"]\n')
+    assert files_naming(only_ccm, [bad]) == {"bad.py": ["container mass", "width at the top"]}  # not the docstring
+
+
 def test_help_start_up_loads_no_heavy_library():
     # `massviz --help` (and `import massviz`) must not load torch, open3d, pandas or rerun: commands import them
     # when they run
@@ -297,3 +472,31 @@ def test_baseline_help_range_is_the_baselines_range():
     from massviz.evaluation import baselines
 
     assert command.RANDOM_RANGE_G == baselines.RANDOM_RANGE_G
+
+
+def calls_of(text: str, names) -> set[str]:
+    """The functions of ``names`` that ``text`` calls (plain or attribute calls), at any depth."""
+    out = set()
+    for node in ast.walk(ast.parse(text)):
+        if isinstance(node, ast.Call):
+            f = node.func
+            name = f.id if isinstance(f, ast.Name) else f.attr if isinstance(f, ast.Attribute) else None
+            if name in names:
+                out.add(name)
+    return out
+
+
+#: what a finished trace's conclusion and overlays are logged with: called in one place, the one trace-to-Rerun path
+ONE_PATH = {"log_predictions", "log_running", "log_events", "log_flags", "log_detections", "detection_class_ids"}
+
+
+def test_one_path_from_a_finished_trace_to_rerun():
+    # massviz log, the dataset's light recordings and massviz live log a finished trace's overlays, predictions,
+    # decisions and flags through views/rerun/replay.py (log_overlays, log_conclusion); the live sink's per-frame
+    # overlays of a FrameResult are its own
+    callers = {str(p.relative_to(PKG)): sorted(calls_of(p.read_text(), ONE_PATH)) for p in FILES}
+    assert {f: c for f, c in callers.items() if c} == {
+        "views/rerun/replay.py": sorted(ONE_PATH),
+        "views/rerun/live.py": ["detection_class_ids", "log_detections"]}
+    assert calls_of("def f(s, t):\n    rl.log_flags(s, t)\n    log_predictions(s, t)\n", ONE_PATH) == {
+        "log_flags", "log_predictions"}

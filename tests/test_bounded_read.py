@@ -1,4 +1,4 @@
-"""``massviz.io.untrusted.read_bounded`` is the only hand-written bounded file read;
+"""One bounded reader: ``massviz.io.untrusted.read_bounded`` is the only hand-written bounded file read;
 frame files (``formats.common.read_bytes``), JSON (``untrusted.load_json``) and calibration pickles go through it,
 with one wording for each failure, the size checked before anything is read."""
 from __future__ import annotations

@@ -166,14 +166,17 @@ def record_timing(key: str, value) -> None:
     path.write_text(json.dumps(data, indent=1) + "\n")
 
 
-def picture_difference(a: np.ndarray, b: np.ndarray, px: int = 40, panel: float = 0.766) -> float:
+def picture_difference(a: np.ndarray, b: np.ndarray, px: int = 40, panel: float = 0.766, ignore=()) -> float:
     """How much two screenshots of the viewer differ where it matters: the largest mean absolute difference (0-255) of
     any ``px``-pixel block, left of Rerun's selection panel (the right ``1 - panel`` of the page, which shows each
-    run's recording id, times and URL). A plot left empty, an empty table, another title or tile colour: tens."""
+    run's recording id, times and URL) and outside the ``ignore`` boxes (x1, y1, x2, y2: e.g. a server's port). A
+    plot left empty, an empty table, another title or tile colour: tens."""
     if a is None or a.shape != b.shape:
         return 255.0
     w = int(a.shape[1] * panel)
     d = np.abs(a[:, :w].astype(np.int16) - b[:, :w].astype(np.int16)).mean(axis=2)
+    for x1, y1, x2, y2 in ignore:
+        d[y1:y2, x1:x2] = 0
     return float(max(d[y:y + px, x:x + px].mean() for y in range(0, d.shape[0], px) for x in range(0, w, px)))
 
 
@@ -268,7 +271,6 @@ def expected_views(rec, trace):
     """What the viewer shows at its start (the last processed frame): that frame's RGB, the chosen boxes' colours
     there, and every chosen patch as the model saw it (BGR)."""
     from massviz.core.patches import crop, model_view
-    from massviz.views import rerun_log
 
     last = int(trace.frames[-1])
     frame = rec.read_frame(last)
@@ -317,7 +319,7 @@ def check_viewer(image: np.ndarray, frame: np.ndarray, colours, patches) -> dict
     # the 3D view is the right half of the row below the RGB view (default_blueprint)
     region = image[int(y2 + 0.2 * h):int(y2 + 0.7 * h), int(x1 + 0.55 * w):int(x2 - 0.05 * w)]
     out["3d_coloured"] = round(saturated_fraction(region), 3)
-    # a blank view has ~0 %; since the 3D view starts oblique and backed off (issue 22 item 7) the cloud covers less
+    # a blank view has ~0 %; the 3D view starts oblique and backed off, so the cloud covers a small part
     # of it (8 % in the notebook's 640-pixel-high inline viewer, where the region also takes in the time panel)
     if out["3d_coloured"] < 0.04:
         out["failures"].append(f"the 3D view is blank ({out['3d_coloured']:.0%} coloured pixels)")
@@ -386,7 +388,7 @@ def test_rerun_web_viewer_shows_the_demo_recording(browser, demo_rrd, cup, tmp_p
     assert not [p for p in tree if p.is_running() and p.status() != psutil.STATUS_ZOMBIE], tree
     print("rerun web viewer:", result)
     assert not result["failures"], f"{result} (see {ARTIFACTS / 'rerun_web_viewer.png'})"
-    # the 2D view fits the whole image (issue 20: its right edge was cropped): the frame's right-most tenth is found
+    # the 2D view fits the whole image (its right edge is not cropped): the frame's right-most tenth is found
     # at the right end of where the whole frame is found, at the same scale
     image = cv2.imread(str(ARTIFACTS / "rerun_web_viewer.png"))
     frame = expected[0]
@@ -416,10 +418,10 @@ def test_live_tiles_show_the_flag_in_the_browser(browser, rs_module, tmp_path_fa
     from test_live_tiles import flagged_session
     from test_recording import write_recording
 
-    from massviz.io.realsense import write_realsense
+    from massviz.io.formats.realsense_write import write_realsense
     from massviz.io.recording import open_recording
     from massviz.views.palette import CHOSEN_COLOUR, FLAGGED_COLOUR, rgb255
-    from massviz.views.rerun.rrd_reader import rrd_rows
+    from rrd_reader import rrd_rows
 
     sample = open_recording(ROOT / "data_samples" / "cup_handover")
     frames = list(sample.frames(indices=range(18, 30)))

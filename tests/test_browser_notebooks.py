@@ -1,6 +1,6 @@
-"""What a new user sees opening the notebooks the README's way (issue 22, items 3 and 4), in Debian's Chromium.
+"""What a new user sees opening the notebooks the README's way, in Debian's Chromium.
 
-1. JupyterLab started with the README's command (read from README's "Notebooks" section, plus a free port on
+1. JupyterLab started with the documented command (read from docs/notebooks.md, plus a free port on
    127.0.0.1, a random token and ``--allow-root``) opens notebook 01 with no "Build Recommended" dialog (dash's
    source extension must not trigger JupyterLab's build check); no process of the server outlives the test;
 2. notebook 03 after Run All: the interactive panel shows the worst recording as displayed (every patch on "keep",
@@ -32,14 +32,13 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def readme_lab_command() -> list[str]:
-    """The ``jupyter lab`` command of README's Notebooks section, as argv."""
-    text = (ROOT / "README.md").read_text()
-    section = text.split("\n## Notebooks", 1)[1].split("\n## ", 1)[0]
+    """The ``jupyter lab`` command of docs/notebooks.md, as argv."""
+    section = (ROOT / "docs" / "notebooks.md").read_text()
     for block in re.findall(r"```(?:bash|sh|console)\n(.*?)```", section, re.S):
         for line in block.splitlines():
             if "jupyter lab" in line:
                 return shlex.split(line.split("#", 1)[0])
-    raise AssertionError("README's Notebooks section has no `jupyter lab` command")
+    raise AssertionError("docs/notebooks.md has no `jupyter lab` command")
 
 
 @pytest.fixture(scope="module")

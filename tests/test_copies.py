@@ -1,4 +1,4 @@
-"""One copy of each small thing (issue 19): the shared helpers equal the library calls they stand for."""
+"""One copy of each small thing: the shared helpers equal the library calls they stand for."""
 from __future__ import annotations
 
 import numpy as np

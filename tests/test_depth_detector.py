@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from massviz.detect.base import Detector
+from massviz.core.detector import Detector
 from massviz.detect.depth import DepthDetector
-from massviz.core.types import OBJECT_CLASS_ID, Frame
+from massviz.core.types import OBJECT_CLASS_ID, Frame, Rejection
 
 NAMES = ["cup_handover", "glass_handover", "box_handover"]
 CONTAINER, PITCHER = 1, 2
@@ -145,8 +145,10 @@ def test_real_ccm_frame(shared_dir):
     box = np.flatnonzero((centres[:, 0] > 640) & (centres[:, 0] < 850) & (centres[:, 1] > 250) & (centres[:, 1] < 440))
     assert len(box) == 1 and dets.score[box[0]] > 0.4, dets.xyxy  # the pasta box, held at 1.2 m
     notes = det.pop_notes(20)
-    assert any(n.startswith("border-cut object (box [1256, 0, 1280,") for n in notes), notes  # the sliver
-    assert any("part of a border-cut object" in n for n in notes), notes  # the gripper's top, inside the view
+    assert any(n.reason == "border-cut object" and n.text.startswith("border-cut object (box [1256, 0, 1280,")
+               for n in notes), notes  # the sliver
+    assert any(n.reason == "part of a border-cut object" and "part of a border-cut object" in n.text
+               for n in notes), notes  # the gripper's top, inside the view
     assert det.pop_notes(20) == []
 
 
@@ -157,12 +159,13 @@ def test_border_cut_and_implausibly_sized_objects_are_not_candidates():
     det = DepthDetector(threshold=0.0)
     dets = det.detect(Frame(0, np.zeros((120, 160, 3), np.uint8), depth))
     assert dets.xyxy.tolist() == [[60, 40, 90, 80]]
-    assert det.pop_notes(0) == ["border-cut object (box [0, 90, 30, 120] at 500 mm)"]
+    assert det.pop_notes(0) == [Rejection("border-cut object", "border-cut object (box [0, 90, 30, 120] at 500 mm)")]
     big = np.full((120, 160), 2500, np.uint16)  # the room, beyond the working range
     big[20:100, 40:115] = 1900  # 75 × 80 px at 1.9 m with fx = 0.72 × 160: 1237 × 1319 mm
     det = DepthDetector(threshold=0.0)
     assert len(det.detect(Frame(1, np.zeros((120, 160, 3), np.uint8), big))) == 0
-    assert det.pop_notes(1) == ["implausibly sized object, 1237×1319 mm (box [40, 20, 115, 100] at 1900 mm)"]
+    assert det.pop_notes(1) == [Rejection("implausibly sized object",
+                                          "implausibly sized object, 1237×1319 mm (box [40, 20, 115, 100] at 1900 mm)")]
 
 
 @pytest.mark.parametrize("seed", range(6))

@@ -1,8 +1,9 @@
-"""``--detector auto`` decides from local files only (issue 20 / 24): Mask R-CNN weights given or cached, else the
+"""``--detector auto`` decides from local files only: Mask R-CNN weights given or cached, else the
 NanoDet model given or cached, else depth; no connection is ever attempted, it returns at once, and it always says
 which detector it chose and why, ``--quiet`` or not."""
 from __future__ import annotations
 
+import logging
 import socket
 import time
 from pathlib import Path
@@ -32,18 +33,27 @@ def no_network(monkeypatch, tmp_path):
     return attempts
 
 
-def test_auto_offline_returns_at_once_without_connecting(no_network, capsys):
+def said(caplog) -> list[str]:
+    """The lines massviz logged (its ``logging`` records; the command line prints each on stderr), then forgotten."""
+    lines = [r.getMessage() for r in caplog.records if r.name.startswith("massviz")]
+    caplog.clear()
+    return lines
+
+
+def test_auto_offline_returns_at_once_without_connecting(no_network, caplog):
+    caplog.set_level(logging.INFO, logger="massviz")
     t0 = time.perf_counter()
     det = make_detector("auto", 0.4, quiet=True)
     elapsed = time.perf_counter() - t0
     assert det.name == "depth"
     assert elapsed < 1.0, elapsed
     assert no_network == []  # no connection was even attempted
-    err = capsys.readouterr().err.strip().splitlines()
+    err = said(caplog)
     assert len(err) == 1 and err[0].startswith("massviz: --detector auto: using depth: ") and "is cached" in err[0]
 
 
-def test_auto_prefers_maskrcnn_then_nanodet_then_depth(no_network, tmp_path, shared_dir, capsys):
+def test_auto_prefers_maskrcnn_then_nanodet_then_depth(no_network, tmp_path, shared_dir, caplog):
+    caplog.set_level(logging.INFO, logger="massviz")
     onnx = shared_dir / "detectors" / "nanodet" / "object_detection_nanodet_2022nov.onnx"
     assert choose_auto()[0] == "depth"
     cache = tmp_path / "cache" / "weights"
@@ -53,7 +63,7 @@ def test_auto_prefers_maskrcnn_then_nanodet_then_depth(no_network, tmp_path, sha
     assert name == "nanodet" and str(cache / onnx.name) in why
     det = make_detector("auto", 0.45, quiet=True)
     assert det.name == "nanodet" and det.threshold == 0.45
-    assert "using nanodet" in capsys.readouterr().err
+    assert any("using nanodet" in line for line in said(caplog))
     ckpt = tmp_path / "torch" / "hub" / "checkpoints"
     ckpt.mkdir(parents=True)
     (ckpt / MASKRCNN_COCO_FILE).write_bytes(b"x")

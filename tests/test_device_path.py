@@ -149,8 +149,8 @@ def test_device_kernels_on_the_cpu_equal_the_exact_path_with_the_depth_detector(
 
     for rec in samples:
         det = make_detector("depth", 0.4, quiet=True)
-        exact = run(rec, det, model, k=5, batch=1, prefetch=0, measure=False)
-        device = run(rec, det, model, k=5, batch=4, prefetch=0, kernels="device", measure=False)
+        exact = run(rec, det, model, k=5, batch=1, prefetch=0)
+        device = run(rec, det, model, k=5, batch=4, prefetch=0, kernels="device")
         assert exact.compute["kernels"] == "exact" and device.compute["kernels"] == "device"
         assert exact.compute["device"] == device.compute["device"] == "cpu" and device.compute["batch"] == 4
         assert np.isfinite(exact.detections.pred).sum() >= 2
@@ -167,8 +167,8 @@ def test_device_kernels_on_the_cpu_with_mask_rcnn_masks_on_the_device(samples, m
     torch.manual_seed(0)
     det = rig(MaskRCNNDetector(pretrained=False, device="cpu"), rec.width, rec.height)
     # the same detector batches on both sides (a batch of 2 may round differently from single frames)
-    exact = run(rec, det, model, k=5, stride=9, batch=2, prefetch=0, measure=False)
-    device = run(rec, det, model, k=5, stride=9, batch=2, prefetch=0, kernels="device", measure=False)
+    exact = run(rec, det, model, k=5, stride=9, batch=2, prefetch=0)
+    device = run(rec, det, model, k=5, stride=9, batch=2, prefetch=0, kernels="device")
     assert len(exact.detections) >= 4
     _same_detections(exact, device)
 
@@ -296,8 +296,8 @@ def test_cuda_end_to_end_equals_the_cpu_within_half_a_percent(samples, model):
 
     gpu = copy.deepcopy(model).to("cuda")
     for rec in samples:
-        cpu = run(rec, make_detector("depth", 0.4, quiet=True), model, k=5, measure=False)
-        cuda = run(rec, make_detector("depth", 0.4, quiet=True), gpu, k=5, batch=4, measure=False)
+        cpu = run(rec, make_detector("depth", 0.4, quiet=True), model, k=5)
+        cuda = run(rec, make_detector("depth", 0.4, quiet=True), gpu, k=5, batch=4)
         assert cuda.compute["device"].startswith("cuda:0") and cuda.compute["kernels"] == "device"
         assert cuda.compute["mode"] == "faithful"
         assert np.array_equal(cpu.detections.d, cuda.detections.d, equal_nan=True)

@@ -21,11 +21,11 @@ from massviz.errors import DataError
 from massviz.evaluation.metrics import (
     default_class_of,
     parse_class_map,
-    read_annotations,
     read_predictions,
     score,
     score_from_estimates,
 )
+from massviz.io.ccm_annotations import read_annotations
 
 # The challenge CSV header, copied from /work/shared/ccm/README.md.
 README_COLUMNS = (

@@ -1,7 +1,7 @@
-"""One ``Recording`` protocol, one module per format (issue 19): every format implements the protocol of
+"""One ``Recording`` protocol, one module per format: every format implements the protocol of
 ``massviz.core.recording``, the folder format's writer writes what its reader reads, ``read_depth`` reads one file
 where the format allows, a .db3 is counted from its SQLite table (no playback), a recording is opened once per run,
-and a CCM root without the asked view says so (issue 22 item 9)."""
+and a CCM root without the asked view says so."""
 from __future__ import annotations
 
 import dataclasses

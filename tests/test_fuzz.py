@@ -1,4 +1,4 @@
-"""Hostile inputs (issue 14): every file a dataset brings and every option value, mutated from the bundled samples.
+"""Hostile inputs: every file a dataset brings and every option value, mutated from the bundled samples.
 
 Each case writes one hostile input into a fresh folder (a 3-frame copy of ``data_samples/cup_handover``, a CCM-layout
 copy of it, a replay JSON, a checkpoint, CSVs, ...), runs the command in-process (``massviz.cli.main``) and asserts:

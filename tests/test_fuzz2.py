@@ -1,4 +1,4 @@
-"""Hostile inputs, second round (issue 23): numbers the JSON parser refuses, checkpoints that compute inf/NaN,
+"""Hostile inputs beyond test_fuzz.py's: numbers the JSON parser refuses, checkpoints that compute inf/NaN,
 outputs that are not regular files, a full disk, signals, terminal escapes, compression bombs, scores and tables,
 trace files from elsewhere, arguments.
 
@@ -40,10 +40,10 @@ from forkserver import ForkServer
 from test_fuzz import ANN_HEADER, ANN_ROWS, PRED_HEADER, PRED_ROWS, Base, base, copy_sample, csv_text  # noqa: F401
 
 ROOT = Path(__file__).resolve().parents[1]
-#: peak resident memory a hostile case may reach (python + torch + the pipeline on 3 frames: ~0.5-0.7 GB; the
-#: bombs of issue 23 reached 1.9-2.5 GB).
+#: peak resident memory a hostile case may reach (python + torch + the pipeline on 3 frames: ~0.5-0.7 GB; an
+#: unbounded compression bomb reaches 1.9-2.5 GB).
 MEM_BOUND_MB = 1200
-#: wall time a case may take (a hang was killed after 120 s in issue 23; a case takes 5-25 s on 2 busy cores).
+#: wall time a case may take (a case takes 5-25 s on 2 busy cores; a hang is killed at this bound).
 TIME_BOUND_S = 150
 #: a non-finite number as text: what must never appear in an output or on the terminal.
 NON_FINITE = re.compile(r"(?<![A-Za-z_])(nan|NaN|NAN|-?inf|-?Inf|-?Infinity)(?![A-Za-z_])")
@@ -869,7 +869,7 @@ def live_db3(tmp_path_factory) -> Path:
     need_realsense()
     from test_recording import write_recording
 
-    from massviz.io.realsense import write_realsense
+    from massviz.io.formats.realsense_write import write_realsense
     from massviz.io.recording import open_recording
 
     sample = open_recording(ROOT / "data_samples" / "cup_handover")
@@ -917,7 +917,7 @@ def live_signal_case(sig: int, outputs: str, when: str) -> Callable[[Path, Base,
 
         def complete(case: Case, run: Run) -> None:
             from massviz.io.recording import open_recording
-            from massviz.views.rerun_log import rrd_entities
+            from rrd_reader import rrd_entities
 
             how = "" if sig == signal.SIGINT else f" ({name})"
             assert f"stopped: interrupted{how}\n" in run.stderr, f"{case.name}: not ended by the signal: {run.stderr}"
@@ -1118,7 +1118,8 @@ def _library_calls(work: Path, b: Base):
     """(what, callable) on the same hostile fixtures through the API."""
     import massviz as mv
     from massviz.evaluation.failures import load_exclusions
-    from massviz.evaluation.metrics import parse_class_map, read_annotations, read_predictions
+    from massviz.evaluation.metrics import parse_class_map, read_predictions
+    from massviz.io.ccm_annotations import read_annotations
     from massviz.io.checkpoint import load_checkpoint
     from massviz.io.trace_file import load_trace
 

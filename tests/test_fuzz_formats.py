@@ -1,4 +1,4 @@
-"""Hostile recordings, per format (issue 23 items 6 and 8): images that lie about themselves (EXIF orientation,
+"""Hostile recordings, per format: images that lie about themselves (EXIF orientation,
 header bombs), frame folders with gaps, dangling links or directories among the frames, a sparse 2 TiB depth file,
 100,000 frames, and degenerate RealSense files (extrinsics, intrinsics, URI-like names, names with control
 characters).

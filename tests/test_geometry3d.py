@@ -1,4 +1,5 @@
-"""massviz.core.geometry and the cloud / render / view3d commands: clouds, measured sizes, .ply files, headless render."""
+"""The measure stage (``massviz.measure``: geometry and ``MeasureStage``) and the cloud / render / view3d commands:
+clouds, measured sizes, .ply files, headless render."""
 from __future__ import annotations
 
 import json
@@ -9,13 +10,15 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from massviz.core import geometry as G
+from massviz.measure import geometry as G
+from massviz.measure import stage as S
 from massviz.views import open3d_view as O3
-from massviz.views import rerun_log as RL
+from massviz.views.rerun import entities as RL
+from rrd_reader import rrd_contents
 from massviz.cli import main
 from massviz.errors import MassvizError
 from massviz.io.recording import open_recording
-from massviz.core.trace import Trace
+from massviz.core.trace import Trace, analyse_trace
 from massviz.io.trace_file import load_trace, save_trace
 from massviz.core.types import Detections
 
@@ -23,6 +26,15 @@ CCM_BOX = (672, 262, 776, 408)  # x1, y1, x2, y2 of the held pasta box in frame 
 
 
 # ----------------------------------------------------------------------------------------------------- helpers
+def measure(trace, rec):
+    """The measured size of each chosen detection, from the frames read again."""
+    return S.MeasureStage(rec).measurements(trace)
+
+
+def with_measurements(trace, rec):
+    return S.with_measurements(trace, rec)[0]
+
+
 def gt_detections(rec_dir, frames) -> Detections:
     """One detection per frame: the container's ground-truth instance mask."""
     meta = json.loads((rec_dir / "meta.json").read_text())
@@ -40,11 +52,12 @@ def gt_detections(rec_dir, frames) -> Detections:
 
 
 def make_trace(rec, dets: Detections, k: int) -> Trace:
-    """A trace over ``dets`` choosing the last ``k`` (their d makes the last ones the nearest)."""
+    """A trace over ``dets`` choosing the last ``k`` (their d makes the last ones the nearest), analysed (tracks,
+    flags)."""
     n = len(dets)
-    return Trace(recording=rec.info(), detector={"name": "test"}, detect_threshold=0.4, threshold=0.4, k=k,
-                 stride=1, frames=np.unique(dets.frame), detections=dets, selection=np.arange(n)[::-1][:k],
-                 estimate=10.0)
+    return analyse_trace(Trace(recording=rec.info(), detector={"name": "test"}, detect_threshold=0.4, threshold=0.4,
+                               k=k, stride=1, frames=np.unique(dets.frame), detections=dets,
+                               selection=np.arange(n)[::-1][:k], estimate=10.0))
 
 
 def sample(samples_dir, name):
@@ -119,7 +132,7 @@ def test_measured_box_axes_follow_a_turned_cuboid():
 @pytest.mark.parametrize("name", ["box_handover", "cup_handover", "glass_handover"])
 def test_sample_container_size_from_gt_mask(samples_dir, name):
     """Height and width of the container from its ground-truth mask's cloud, within 10 % of the annotation on the six
-    nearest frames where it is unoccluded (issue 5).
+    nearest frames where it is unoccluded.
 
     The hand holds the container from behind, so in the hand-over phase (the container nearest) no pixel of it is
     hidden. The width is compared with ``ground_truth_size``'s ``width_mm``, the larger of the top and bottom widths:
@@ -134,7 +147,7 @@ def test_sample_container_size_from_gt_mask(samples_dir, name):
     frames = best_frames(rec_dir, 6)
     assert all(meta_frames[f]["container_nearest"] for f in frames)
     trace = make_trace(rec, gt_detections(rec_dir, frames), k=len(frames))
-    ms = G.measure(trace, rec)
+    ms = measure(trace, rec)
     assert [m.rank for m in ms] == list(range(len(frames)))
     for m in ms:
         print(f"{name} frame {m.frame}: height {m.height_mm:.1f} mm (true {gt['height_mm']:.0f}), width "
@@ -148,20 +161,20 @@ def test_measurements_stored_in_trace_and_ply_files(samples_dir, tmp_path):
     rec_dir = sample(samples_dir, "box_handover")
     rec = open_recording(rec_dir)
     frames = best_frames(rec_dir, 2)
-    trace = G.with_measurements(make_trace(rec, gt_detections(rec_dir, frames), k=2), rec)
+    trace = with_measurements(make_trace(rec, gt_detections(rec_dir, frames), k=2), rec)
     assert len(trace.measurements) == 2 and "measure3d" in trace.timings
     assert any("measured chosen patch 0" in e.message and e.kind == "measured" for e in trace.events)
     back = load_trace(save_trace(trace, tmp_path / "t.npz"))
-    assert G.measurements_of(back) == G.measurements_of(trace)
+    assert back.measurements == trace.measurements
 
-    written = O3.write_ply(tmp_path / "ply", trace, rec)
+    written = O3.write_ply(tmp_path / "ply", S.MeasureStage(rec).ply_clouds(trace))
     assert set(written) == ({f"scene_{f:06d}.ply" for f in frames} | {"detection_0.ply", "detection_1.ply",
                                                                       "chosen_0.ply", "chosen_1.ply"})
     for name, n in written.items():
         assert len(o3d.io.read_point_cloud(str(tmp_path / "ply" / name)).points) == n
     depth = rec.read_frame(frames[0]).depth
     assert written[f"scene_{frames[0]:06d}.ply"] == int(((depth > 0) & (depth <= 4000)).sum())
-    m0 = G.measurements_of(trace)[0]
+    m0 = trace.measurements[0]
     assert written[f"chosen_{m0.rank}.ply"] == m0.n_points
     assert not list((tmp_path / "ply").glob(".*"))  # no temporary files left
 
@@ -170,8 +183,9 @@ def test_render_headless_png_not_blank(samples_dir, tmp_path):
     rec_dir = sample(samples_dir, "cup_handover")
     rec = open_recording(rec_dir)
     frames = best_frames(rec_dir, 1)
-    trace = G.with_measurements(make_trace(rec, gt_detections(rec_dir, frames), k=1), rec)
-    info = O3.render_png(trace, rec, tmp_path / "view.png", width=480, height=270)
+    trace, stage = S.with_measurements(make_trace(rec, gt_detections(rec_dir, frames), k=1), rec)
+    info = O3.render_png(trace, rec, stage.clouds_of(trace, trace.selection), tmp_path / "view.png", width=480,
+                         height=270)
     assert info["frame"] == frames[0]
     img = cv2.cvtColor(cv2.imread(str(tmp_path / "view.png")), cv2.COLOR_BGR2RGB)
     assert img.shape == (270, 480, 3)
@@ -203,7 +217,7 @@ def test_ccm_real_held_box_size(ccm_real):
     assert ccm_real.intrinsics.fx == pytest.approx(923.62, abs=0.01)
     frame = ccm_real.read_frame(1)
     dets = ccm_box_detection(frame)
-    ms = G.measure(make_trace(ccm_real, dets, k=1), ccm_real)
+    ms = measure(make_trace(ccm_real, dets, k=1), ccm_real)
     assert len(ms) == 1
     m = ms[0]
     assert m.center[2] == pytest.approx(1.2, abs=0.1)
@@ -219,13 +233,16 @@ def test_no_intrinsics_skips_3d_with_one_line(tmp_path):
     trace = make_trace(rec, dets, k=1)
     reason = G.skip_reason(rec)
     assert reason and "\n" not in reason and "intrinsics" in reason
-    assert G.measure(trace, rec) == []
-    assert O3.write_ply(tmp_path / "out", trace, rec) == {} and not (tmp_path / "out").exists()
-    assert O3.write_ply_or_skip(tmp_path / "out", trace, rec) == reason
-    last = G.with_measurements(trace, rec).events[-1]
+    assert measure(trace, rec) == []
+    stage = S.MeasureStage(rec)
+    assert stage.skip == reason and stage.ply_clouds(trace) is None
+    assert O3.write_ply(tmp_path / "out", stage.ply_clouds(trace)) == {} and not (tmp_path / "out").exists()
+    assert O3.write_ply_or_skip(tmp_path / "out", stage.ply_clouds(trace), recording_id=rec.id,
+                                skip=stage.skip) == reason
+    last = with_measurements(trace, rec).events[-1]
     assert (last.frame, last.message, last.kind, last.level) == (-1, reason, "warning", "warn")
     with pytest.raises(MassvizError, match="intrinsics"):
-        O3.render_png(trace, rec, tmp_path / "v.png")
+        O3.render_png(trace, rec, {}, tmp_path / "v.png")
 
 
 # ----------------------------------------------------------------------------------------------------- commands
@@ -271,7 +288,7 @@ def test_cloud_without_intrinsics_says_so(tmp_path, ccm_replay, capsys):
     (tmp_path / "d.json").write_text(json.dumps({"detections": [{"frame": 0, "box": [22, 14, 42, 34]}]}))
     args = pipeline_args(tmp_path / "d.json")
     args[0] = str(rec)
-    assert main(["cloud", *args, "--out", str(tmp_path / "c")]) == 2  # issue 22: an error, not exit 0
+    assert main(["cloud", *args, "--out", str(tmp_path / "c")]) == 2  # an error, not exit 0
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "no camera intrinsics" in err and "nothing written" in err
     assert not (tmp_path / "c").exists()
@@ -291,16 +308,17 @@ def test_log_clouds_entities(ccm_real, tmp_path):
     from rerun.chunk import RrdReader
 
     trace = make_trace(ccm_real, ccm_box_detection(ccm_real.read_frame(1)), k=1)
-    trace = G.with_measurements(trace, ccm_real)
+    trace = with_measurements(trace, ccm_real)
     stream = rr.RecordingStream("massviz_test_geometry3d")
     stream.save(tmp_path / "t.rrd")
-    assert RL.log_clouds(trace, ccm_real, stream) == 1
+    frames = S.MeasureStage(ccm_real, clouds="active").replay_frames(trace)
+    assert RL.log_clouds(trace, frames, stream) == 1
     stream.flush()
     del stream
     paths = {c.entity_path for c in RrdReader(tmp_path / "t.rrd").stream()}
     assert {"/world/detections/0", "/world/detections/0/box", "/world/detections/0/measurement"} <= paths
     # the measured box's rotation travels as a Transform3D (the measured R), its size as Boxes3D half sizes
-    components = RL.rrd_contents(tmp_path / "t.rrd")["/world/detections/0/box"]
+    components = rrd_contents(tmp_path / "t.rrd")["/world/detections/0/box"]
     assert any("mat3x3" in c.lower() for c in components), components
     assert any("half_size" in c.lower() for c in components), components
 

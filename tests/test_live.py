@@ -141,7 +141,7 @@ def played(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def played_db3(rs, played, tmp_path_factory) -> Path:
     """A .db3 of the played frames, recorded at 10 fps in real time (so real-time playback takes 1.2 s)."""
-    from massviz.io.realsense import write_realsense
+    from massviz.io.formats.realsense_write import write_realsense
 
     return write_realsense(open_recording(played), tmp_path_factory.mktemp("db3") / "played.db3", pace=True)
 
@@ -187,8 +187,8 @@ def summary_line(stderr: str, name: str) -> str:
 @pytest.mark.slow
 def test_live_file_in_real_time(rs, played_db3, played, depth_detector, tmp_path, capsys):
     from massviz.commands.live import run_session
-    from massviz.io.realsense import open_file_stream
-    from massviz.views.rerun_log import rrd_entities
+    from massviz.io.formats.realsense_live import open_file_stream
+    from rrd_reader import rrd_entities
 
     p = pipeline(depth_detector, tmp_path)
     args = session_args(file=str(played_db3), rrd=str(tmp_path / "live.rrd"), save=str(tmp_path / "rec"))
@@ -215,8 +215,8 @@ def test_live_file_in_real_time(rs, played_db3, played, depth_detector, tmp_path
 @pytest.mark.slow
 def test_live_software_camera_stand_in(rs, played, depth_detector, tmp_path, capsys):
     from massviz.commands.live import run_session
-    from massviz.io.realsense import SoftwareCamera, open_device_stream
-    from massviz.views.rerun_log import rrd_entities
+    from massviz.io.formats.realsense_live import SoftwareCamera, open_device_stream
+    from rrd_reader import rrd_entities
 
     rec = open_recording(played)
     cam = SoftwareCamera(list(rec.frames()), rec.intrinsics, fps=10)
@@ -241,9 +241,9 @@ def test_live_software_camera_stand_in(rs, played, depth_detector, tmp_path, cap
 def test_slow_detector_drops_frames_counts_them_and_memory_stays_flat(rs, depth_detector, tmp_path):
     """A 640x480 stand-in camera at 60 fps and a detector taking 0.15 s: most frames are dropped, each counted,
     and resident memory does not grow with the frames that arrived (a queue would hold ~1.5 MB per frame)."""
-    from massviz.io.realsense import SoftwareCamera, open_device_stream
+    from massviz.io.formats.realsense_live import SoftwareCamera, open_device_stream
     from massviz.runners.live import run_live
-    from massviz.views.rerun_live import LiveLogger
+    from massviz.views.rerun.live import LiveLogger
 
     sample = open_recording(SAMPLE)
     i = sample.intrinsics
@@ -258,7 +258,7 @@ def test_slow_detector_drops_frames_counts_them_and_memory_stays_flat(rs, depth_
     stream.start = lambda sink: (started(sink), cam.start())[0]
     info = RecordingInfo(id="slow", kind="live", width=640, height=480, fps=60, intrinsics=big)
     fp = FramePipeline(SlowDetector(depth_detector, 0.15), FastModel(), k=5, recording=info)
-    logger = LiveLogger(name="slow", k=5, threshold=0.4, intrinsics=big, rrd=tmp_path / "slow.rrd")
+    logger = LiveLogger(name="slow", k=5, intrinsics=big, rrd=tmp_path / "slow.rrd")
     result = run_live(stream, fp, logger=logger, duration=4.0)
     s = result.stats
     assert s.dropped > 5 * s.processed > 0, s.summary()
@@ -267,7 +267,7 @@ def test_slow_detector_drops_frames_counts_them_and_memory_stays_flat(rs, depth_
     growth = s.rss_mb[-1] - s.rss_mb[2]
     queued = (s.dropped * 640 * 480 * 5) / 2**20  # what holding the dropped frames would have cost
     assert growth < max(25.0, 0.1 * queued), (growth, queued, s.rss_mb)
-    from massviz.views.rerun_log import rrd_entities
+    from rrd_reader import rrd_entities
 
     assert "/log" in rrd_entities(tmp_path / "slow.rrd")
 
@@ -292,7 +292,7 @@ def test_cli_bad_sources_one_line_exit_2_nothing_written(rs, tmp_path):
 
     sample = open_recording(SAMPLE)
     db3 = tmp_path / "ok.db3"
-    from massviz.io.realsense import write_realsense
+    from massviz.io.formats.realsense_write import write_realsense
 
     write_realsense(sample, db3)
     bad = _bad_files(rs, tmp_path, db3, sample)
@@ -355,9 +355,9 @@ def test_ctrl_c_ends_the_session_cleanly(rs, played, depth_detector, tmp_path):
     import signal
     import threading
 
-    from massviz.io.realsense import SoftwareCamera, open_device_stream
+    from massviz.io.formats.realsense_live import SoftwareCamera, open_device_stream
     from massviz.runners.live import run_live
-    from massviz.views.rerun_live import LiveLogger
+    from massviz.views.rerun.live import LiveLogger
 
     rec = open_recording(played)
     cam = SoftwareCamera(list(rec.frames()), rec.intrinsics, fps=15, loops=100)
@@ -367,7 +367,7 @@ def test_ctrl_c_ends_the_session_cleanly(rs, played, depth_detector, tmp_path):
     info = RecordingInfo(id="ctrl-c", kind="live", width=rec.width, height=rec.height, fps=15,
                          intrinsics=rec.intrinsics)
     fp = FramePipeline(depth_detector, FastModel(), k=5, recording=info)
-    logger = LiveLogger(name="ctrl-c", k=5, threshold=0.4, intrinsics=rec.intrinsics, rrd=tmp_path / "c.rrd")
+    logger = LiveLogger(name="ctrl-c", k=5, intrinsics=rec.intrinsics, rrd=tmp_path / "c.rrd")
     timer = threading.Timer(2.0, os.kill, (os.getpid(), signal.SIGINT))
     timer.start()
     try:
@@ -411,7 +411,7 @@ def test_serve_web_serves_a_viewer_on_localhost_and_ends_with_the_session(rs, pl
     import psutil
 
     from massviz.commands.live import run_session
-    from massviz.io.realsense import open_file_stream
+    from massviz.io.formats.realsense_live import open_file_stream
 
     ports = free_ports(2)
     seen = {}

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from massviz.io.recording import open_recording
-from massviz.views.rerun.rrd_reader import rrd_rows
+from rrd_reader import rrd_rows
 from test_live import depth_detector, played, played_db3, rs, session_args  # noqa: F401 - fixtures
 from test_live import pipeline as live_pipeline
 
@@ -30,7 +30,7 @@ def tile_at(rows: list[dict], time: int) -> dict | None:
 @pytest.mark.slow
 def test_live_tiles_show_the_current_k_nearest(rs, played_db3, depth_detector, tmp_path):
     from massviz.commands.live import run_session
-    from massviz.io.realsense import open_file_stream
+    from massviz.io.formats.realsense_live import open_file_stream
 
     p = live_pipeline(depth_detector, tmp_path)
     args = session_args(file=str(played_db3), rrd=str(tmp_path / "live.rrd"), save=str(tmp_path / "rec"))
@@ -73,7 +73,7 @@ def flagged_session(played_db3, tmp_path) -> Path:
     from test_selection import ListDetector
 
     from massviz.commands.live import run_session
-    from massviz.io.realsense import open_file_stream
+    from massviz.io.formats.realsense_live import open_file_stream
 
     per_frame = {i: [((150, 100, 250, 200), 0.9, None)] for i in range(60)}
     per_frame[0] = [((100, 210, 200, 270), 0.9, None), *per_frame[0]]

@@ -143,19 +143,28 @@ def test_bad_detector_weights_name_the_file(tmp_path):
     assert str(wrong) in str(info.value)
 
 
-def test_auto_falls_back_to_depth_offline(monkeypatch, capsys, tmp_path):
+def test_auto_falls_back_to_depth_offline(monkeypatch, caplog, tmp_path):
     """auto's choice from local files only (tests/test_detector_auto.py has the rest): nothing cached -> depth, said
-    on stderr even with quiet; Mask R-CNN weights cached -> maskrcnn."""
+    (a log record; on stderr from the command line) even with quiet; Mask R-CNN weights cached -> maskrcnn."""
+    import logging
+
+    caplog.set_level(logging.INFO, logger="massviz")
+
+    def said():
+        lines = "\n".join(r.getMessage() for r in caplog.records if r.name.startswith("massviz"))
+        caplog.clear()
+        return lines
+
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
     monkeypatch.setenv("MASSVIZ_CACHE_DIR", str(tmp_path / "cache"))
     det = make_detector("auto", 0.4)
     assert det.name == "depth" and det.threshold == 0.4
-    err = capsys.readouterr().err
+    err = said()
     assert len(err.strip().splitlines()) == 1 and "using depth" in err
     make_detector("auto", 0.4, quiet=True)
-    assert "using depth" in capsys.readouterr().err  # --quiet never hides a fallback
+    assert "using depth" in said()  # --quiet never hides a fallback
     ckpt = tmp_path / "torch" / "hub" / "checkpoints"
     ckpt.mkdir(parents=True)
     (ckpt / "maskrcnn_resnet50_fpn_coco-bf2d0c1e.pth").write_bytes(b"x")
     assert make_detector("auto", 0.5).name == "maskrcnn"
-    assert "using maskrcnn" in capsys.readouterr().err
+    assert "using maskrcnn" in said()

@@ -1,4 +1,4 @@
-"""What a new user hit (issue 22): the figures' colours and labels (item 5) and the command line's messages (item 9).
+"""What a new user meets first: the figures' colours and labels and the command line's messages.
 
 The command-line tests run ``python -m massviz`` as a user would and check the exit code, the one error line and that
 nothing was written.
@@ -180,7 +180,7 @@ def test_live_summary_says_how_many_of_k(samples_dir, shared_dir, tmp_path):
     need_realsense()
     from test_recording import write_recording
 
-    from massviz.io.realsense import write_realsense
+    from massviz.io.formats.realsense_write import write_realsense
     from massviz.io.recording import open_recording
 
     sample = open_recording(samples_dir / "cup_handover")
@@ -287,7 +287,8 @@ def test_no_example_chains_a_command_after_one_that_runs_until_stopped():
     Ctrl-C. No --help text nor the README chains anything after such a command (or after a live session with no end:
     no --duration, no --file)."""
     texts = {**{f"massviz {n} --help": t for n, t in _help_texts().items()},
-             "README.md": (ROOT / "README.md").read_text()}
+             **{p.relative_to(ROOT).as_posix(): p.read_text() for p in [ROOT / "README.md",
+                                                                          *(ROOT / "docs").glob("*.md")]}}
     bad = []
     for where, text in texts.items():
         for line in text.splitlines():

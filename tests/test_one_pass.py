@@ -1,4 +1,4 @@
-"""One pass (issue 19): an uncached ``massviz log`` reads each RGB and depth file of the recording exactly once. The
+"""One pass: an uncached ``massviz log`` reads each RGB and depth file of the recording exactly once. The
 frames are logged as the pipeline processes them (its ``on_frame`` observer), from the bytes the reader read; the
 trace-dependent overlays afterwards read no frame. Opens are counted with an audit hook (``open`` events) in a
 subprocess; frame files are never read with ``cv2.imread`` (which raises no audit event), checked in the source.
@@ -74,7 +74,7 @@ def test_uncached_log_opens_each_frame_file_once(cold_cup, tmp_path, shared_dir)
     # for the frame loop, so they too are opened once
     expected = {f: 1 for f in files}
     assert {f: opened.get(f, 0) for f in files} == expected
-    from massviz.views.rerun.rrd_reader import rrd_contents
+    from rrd_reader import rrd_contents
 
     contents = rrd_contents(tmp_path / "cup.rrd")
     assert "EncodedImage:blob" in contents["/camera/rgb"] and "EncodedDepthImage:blob" in contents["/camera/depth"]
@@ -106,7 +106,7 @@ def _cache_reads(opened: dict) -> list[str]:
 
 @pytest.mark.slow
 def test_cold_cached_log_opens_each_frame_file_once_and_a_rerun_logs_the_cached_trace(cold_cup, tmp_path, weights):
-    from massviz.views.rerun.rrd_reader import rrd_contents
+    from rrd_reader import rrd_contents
 
     frames = _under(tmp_path, frame_files(cold_cup), cold_cup)
     assert len(frames) == 72

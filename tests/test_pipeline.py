@@ -225,8 +225,8 @@ def test_cache_reuses_detections(rec, fast, tmp_path):
 
 def test_an_empty_box_is_kept_skipped_saved_and_served_from_the_cache(rec, fast, tmp_path):
     """A box less than a pixel wide or high, cut to integers (random-weight Mask R-CNN makes them), has no pixel: the
-    trace keeps it, skipped for having no depth, and its file loads back, so the cache serves it (it used to be
-    refused on loading, dropped, and the recording detected again on every run)."""
+    trace keeps it, skipped for having no depth, and its file loads back, so the cache serves it (a trace file refused
+    on loading would be dropped and the recording detected again on every run)."""
     dets = {0: [((7, 12, 7, 30), 0.95, None), ((5, 10, 30, 40), 0.9, None)], 1: [((40, 5, 60, 5), 0.8, None)]}
     cache = TraceCache(tmp_path / "cache")
     det = ListDetector(dets, threshold=0.4)
@@ -400,3 +400,18 @@ def test_builder_makes_the_pipeline_the_cli_uses(weights, tmp_path):
                               replay=None, cache=None, no_cache=True, quiet=True, view=3)
     opts = mv.PipelineOptions.from_args(args)
     assert (opts.threshold, opts.k, opts.stride, opts.weights, opts.no_cache) == (0.6, 2, 3, str(weights), True)
+
+
+def test_a_recording_recognised_but_not_opened_is_served_only_by_the_cache(rec, fast):
+    # the warm path's LocatedRecording (file identities, no frames) is told apart by its type
+    from pathlib import Path
+
+    from massviz.io.identity import LocatedRecording
+
+    located = LocatedRecording(path=Path(rec.path), id=rec.id, kind="folder", config_id=rec.id,
+                               num_frames=rec.num_frames, recording_info=rec.info(), _fingerprint="x")
+    det = ListDetector(DETECTIONS)
+    with pytest.raises(MassvizError, match="could not be read now"):
+        process(located, det, fast, k=3)
+    assert det.calls == 0
+    assert process(rec, det, fast, k=3, prefetch=0).estimate > 0 and det.calls == N

@@ -1,4 +1,4 @@
-"""RealSense recordings (massviz.io.realsense): .db3 files built from the bundled samples with pyrealsense2's
+"""RealSense recordings (massviz.io.formats.realsense_*): .db3 files built from the bundled samples with pyrealsense2's
 ``software_device`` + ``recorder`` read back exactly (frames, depth in mm, intrinsics, frame numbers, timestamps),
 librealsense's align is used when depth is not registered to colour, ``massviz estimate`` on the .db3 equals the
 sample folder's estimate, and every bad file is one clear line (exit 2, nothing written).
@@ -47,7 +47,7 @@ def sample():
 
 @pytest.fixture(scope="module")
 def cup_db3(rs, sample, tmp_path_factory) -> Path:
-    from massviz.io.realsense import write_realsense
+    from massviz.io.formats.realsense_write import write_realsense
 
     return write_realsense(sample, tmp_path_factory.mktemp("rs") / "cup_handover_rs.db3")
 
@@ -59,7 +59,7 @@ def test_a_written_db3_plays_back_like_a_camera(cup_db3, sample):
     import sqlite3
     import time
 
-    from massviz.io.realsense import open_file_stream
+    from massviz.io.formats.realsense_live import open_file_stream
 
     fps, n = float(sample.fps), sample.num_frames
     with sqlite3.connect(cup_db3) as db:
@@ -144,9 +144,10 @@ def test_db3_reads_back_the_sample_exactly(cup_db3, sample):
 
 def test_depth_units_other_than_millimetres(rs, sample, tmp_path):
     """0.1 mm units (as a D405): z16 = 10 x mm in the file, read back in mm through the device's depth scale."""
-    from massviz.io.realsense import _SoftwareRig, open_realsense
+    from massviz.io.formats.realsense_file import open_realsense
+    from massviz.io.formats.realsense_write import SoftwareRig
 
-    rig = _SoftwareRig(rs, sample.intrinsics, 30, depth_units=0.0001)
+    rig = SoftwareRig(rs, sample.intrinsics, 30, depth_units=0.0001)
     path = tmp_path / "units.db3"
     frames = list(sample.frames(indices=[0, 20]))
     with rig.record(path):
@@ -161,11 +162,12 @@ def test_depth_units_other_than_millimetres(rs, sample, tmp_path):
 def test_unregistered_depth_goes_through_librealsense_align(rs, sample, tmp_path):
     """A depth stream at twice the colour resolution: frames come out at the colour size, aligned by
     librealsense (same field of view: the aligned depth matches the sample's where both have depth)."""
-    from massviz.io.realsense import _SoftwareRig, open_realsense
+    from massviz.io.formats.realsense_file import open_realsense
+    from massviz.io.formats.realsense_write import SoftwareRig
 
     i = sample.intrinsics
     di = Intrinsics(2 * i.fx, 2 * i.fy, 2 * i.cx + 0.5, 2 * i.cy + 0.5, 2 * i.width, 2 * i.height)
-    rig = _SoftwareRig(rs, i, 30, depth_intrinsics=di)
+    rig = SoftwareRig(rs, i, 30, depth_intrinsics=di)
     path = tmp_path / "big_depth.db3"
     frames = list(sample.frames(indices=[0, 25]))
     with rig.record(path):
@@ -225,7 +227,7 @@ def test_without_pyrealsense2_one_line_says_what_to_install(monkeypatch, tmp_pat
 def test_write_refuses_bag_and_recordings_without_intrinsics(rs, sample, tmp_path):
     import dataclasses
 
-    from massviz.io.realsense import write_realsense
+    from massviz.io.formats.realsense_write import write_realsense
 
     with pytest.raises(MassvizError, match="only as ROS2 .db3"):
         write_realsense(sample, tmp_path / "x.bag")
@@ -251,7 +253,7 @@ def test_estimate_on_db3_equals_the_sample_folder(weights, cup_db3, tmp_path):
     r = massviz("log", cup_db3, "--detector", "depth", "--weights", weights, "--quiet", "--stride", 3,
                 "--cache", tmp_path / "cache", "--rrd", rrd)
     assert r.returncode == 0, r.stderr
-    from massviz.views.rerun_log import rrd_entities
+    from rrd_reader import rrd_entities
 
     assert {"/camera/rgb", "/camera/depth", "/camera/detections", "/predictions/running_estimate",
             "/latency/detect"} <= rrd_entities(rrd)

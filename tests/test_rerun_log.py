@@ -1,4 +1,5 @@
-"""massviz.views.rerun_log: log traces of tiny synthetic recordings to .rrd files and read the files back.
+"""massviz.views.rerun (through ``massviz.runners.replay.log_trace``, which gives it the measure stage's clouds):
+log traces of tiny synthetic recordings to .rrd files and read the files back.
 
 Recordings are drawn in tmp_path in massviz's folder layout (rgb/*.png or rgb.mp4, depth/*.png uint16 mm,
 intrinsics.json, meta.json); traces come from ``massviz.core.pipeline.run`` with a fake detector (finds the red square)
@@ -19,14 +20,16 @@ import pytest
 import rerun as rr
 import rerun.blueprint as rrb
 
-from massviz.views import rerun_log
+from massviz.views import rerun as RR
+from massviz.views.rerun import entities as E
 from massviz.core.patches import model_view
 from massviz.errors import MassvizError
 from massviz.core.pipeline import run
 from massviz.io.meta import write_intrinsics
 from massviz.io.recording import open_recording
-from massviz.core.geometry import depth_to_points
-from massviz.views.rerun_log import log_trace, rrd_contents, rrd_entities
+from massviz.measure.geometry import depth_to_points
+from massviz.runners.replay import log_trace
+from rrd_reader import rrd_contents, rrd_entities
 from massviz.core.types import COCO_KEEP, Detections, Intrinsics
 
 W, H, N = 64, 48, 4
@@ -222,7 +225,7 @@ def test_no_detections_still_logs_frames_and_says_not_estimated(tmp_path):
             "/log", "/summary"} <= entities
     assert not any(e.startswith(("/patches", "/predictions")) for e in entities)
     assert "not estimated" in text_logs(out)
-    assert "not estimated" in rerun_log.summary_markdown(trace)
+    assert "not estimated" in E.summary_markdown(trace)
 
 
 def test_failure_half_way_leaves_no_file(tmp_path, monkeypatch):
@@ -325,7 +328,7 @@ def test_depth_without_png_file_is_a_depth_image(tmp_path):
     rec = rr.RecordingStream("massviz-test")
     rec.save(tmp_path / "depth.rrd")
     depth = np.full((4, 5), 800, np.uint16)
-    rerun_log.log_depth(rec, depth, None)  # e.g. a recording type whose depth is not a PNG file
+    E.log_depth(rec, depth, None)  # e.g. a recording type whose depth is not a PNG file
     rec.disconnect()
     logged = components(rrd_contents(tmp_path / "depth.rrd"), "/camera/depth")
     assert {"DepthImage:buffer", "DepthImage:format", "DepthImage:meter"} <= logged
@@ -335,18 +338,18 @@ def test_depth_without_png_file_is_a_depth_image(tmp_path):
 def test_3d_view_starts_oblique_looking_into_the_scene():
     depth = np.zeros((10, 10), np.uint16)
     depth[2:8, 2:8] = 1200
-    assert rerun_log.scene_depth_m(depth) == pytest.approx(1.2)
-    assert rerun_log.scene_depth_m(np.zeros((3, 3), np.uint16)) == 1.0
-    bp = rerun_log.default_blueprint(2, look_at_m=1.2)
+    assert E.scene_depth_m(depth) == pytest.approx(1.2)
+    assert E.scene_depth_m(np.zeros((3, 3), np.uint16)) == 1.0
+    bp = RR.default_blueprint(2, look_at_m=1.2)
     views = [v for v in _walk(bp.root_container) if isinstance(v, rrb.Spatial3DView)]
     assert len(views) == 1
     eye = views[0].properties["EyeControls3D"]
-    # oblique like `massviz render` (issue 22 item 7): tests/test_viewer_layout.py checks the angles
+    # oblique like `massviz render`: tests/test_viewer_layout.py checks the angles
     assert eye.position.as_arrow_array().to_pylist()[0][2] < 0 < eye.position.as_arrow_array().to_pylist()[0][0]
     np.testing.assert_allclose(eye.look_target.as_arrow_array().to_pylist(), [[0, 0, 1.2]], rtol=1e-6)
     np.testing.assert_allclose(eye.eye_up.as_arrow_array().to_pylist(), [[0, -1, 0]])
     assert "/camera/depth" in str(views[0].contents) and "/camera/rgb" not in str(views[0].contents)
-    with_points = [v for v in _walk(rerun_log.default_blueprint(2, points=True).root_container)
+    with_points = [v for v in _walk(RR.default_blueprint(2, points=True).root_container)
                    if isinstance(v, rrb.Spatial3DView)][0]
     assert "/camera/depth" not in str(with_points.contents)
 
@@ -374,12 +377,12 @@ def _views(container) -> list:
 
 
 def test_blueprint_lays_out_every_view(tmp_path):
-    views = [(type(v).__name__, str(v.origin)) for v in _views(rerun_log.default_blueprint(2).root_container)]
+    views = [(type(v).__name__, str(v.origin)) for v in _views(RR.default_blueprint(2).root_container)]
     assert views.count(("Spatial2DView", "/camera")) == 2  # RGB + detections + masks, and depth
     assert {("Spatial2DView", "/camera"), ("Spatial3DView", "/"), ("Spatial2DView", "/patches/0"),
             ("Spatial2DView", "/patches/1"), ("TimeSeriesView", "/predictions"), ("TextLogView", "/log"),
             ("TextDocumentView", "/summary"), ("TextDocumentView", "/timings")} <= set(views)
-    no_3d = {type(v).__name__ for v in _views(rerun_log.default_blueprint(0, has_3d=False).root_container)}
+    no_3d = {type(v).__name__ for v in _views(RR.default_blueprint(0, has_3d=False).root_container)}
     assert "Spatial3DView" not in no_3d
 
     # ... and it travels in the .rrd with the recording
@@ -409,7 +412,7 @@ def test_real_ccm_frames(shared_dir, tmp_path):
     trace = run(recording, BoxDetector(), FakeModel(), k=1)
     out = tmp_path / "ccm.rrd"
     stats = log_trace(trace, recording, rrd=out)
-    assert stats["rgb"] == "images" and stats["points"] <= 2 * rerun_log.MAX_POINTS
+    assert stats["rgb"] == "images" and stats["points"] <= 2 * E.MAX_POINTS
     contents = rrd_contents(out)
     assert CONTRACT <= set(contents)
     assert "Pinhole:image_from_camera" in components(contents, "/camera")
@@ -418,7 +421,7 @@ def test_real_ccm_frames(shared_dir, tmp_path):
 def test_inline_viewer_serves_its_code_locally_unless_the_user_chose(monkeypatch):
     monkeypatch.delitem(sys.modules, "rerun_notebook", raising=False)
     monkeypatch.delenv("RERUN_NOTEBOOK_ASSET", raising=False)
-    assert rerun_log.use_local_notebook_assets() == "serve-local"
+    assert RR.use_local_notebook_assets() == "serve-local"
     assert os.environ["RERUN_NOTEBOOK_ASSET"] == "serve-local"
     monkeypatch.setenv("RERUN_NOTEBOOK_ASSET", "inline")
-    assert rerun_log.use_local_notebook_assets() == "inline"
+    assert RR.use_local_notebook_assets() == "inline"

@@ -56,7 +56,7 @@ def test_meta_schema(rec):
         assert f["container_occluded"] == (f["container_visible_fraction"] < 1)
     nearest = [f["container_nearest"] for f in frames]
     assert any(nearest) and not all(nearest), "the pitcher must be nearer than the container in some frames"
-    # the hand holds the container from behind: fully visible while it is handed over (issue 5)
+    # the hand holds the container from behind: fully visible while it is handed over
     assert sum(f["container_nearest"] and not f["container_occluded"] for f in frames) >= 6
 
 

@@ -1,4 +1,4 @@
-"""Dataset scale (issue 24): the selection index, recognition from file identities, the vectorised sweep, and the
+"""Dataset scale: the selection index, recognition from file identities, the vectorised sweep, and the
 warm commands (no frame file opened, no torch imported).
 
 The dataset: the three samples and CCM recording 618 (../shared/ccm_real/618, as tests/test_dataset_catalog.py

@@ -154,8 +154,8 @@ def test_batch_4_equals_batch_1_at_100_detections_a_frame(samples_dir, model):
     from massviz.io.recording import open_recording
 
     rec = open_recording(samples_dir / "box_handover")
-    one = run(rec, CrowdDetector(), model, k=5, stride=4, batch=1, prefetch=0, measure=False)
-    four = run(rec, CrowdDetector(), model, k=5, stride=4, batch=4, prefetch=0, measure=False)
+    one = run(rec, CrowdDetector(), model, k=5, stride=4, batch=1, prefetch=0)
+    four = run(rec, CrowdDetector(), model, k=5, stride=4, batch=4, prefetch=0)
     assert len(one.frames) >= 8 and len(one.detections) >= 90 * len(one.frames)
     for name in ("xyxy", "d", "pred"):
         assert np.array_equal(getattr(one.detections, name), getattr(four.detections, name), equal_nan=True), name

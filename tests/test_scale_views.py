@@ -1,4 +1,4 @@
-"""Dataset scale in the views (issue 24): the failure panel over selection indexes reads the full trace of the
+"""Dataset scale in the views: the failure panel over selection indexes reads the full trace of the
 recording on screen only, and shows what it shows over full traces.
 
 The dataset: the bundled samples from the session's trace cache (``sample_cache``), as full traces

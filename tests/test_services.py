@@ -97,7 +97,7 @@ def test_live_connect_where_no_viewer_listens(closed_port, weights, tmp_path):
     from test_realsense import need_realsense
 
     need_realsense()
-    from massviz.io.realsense import write_realsense
+    from massviz.io.formats.realsense_write import write_realsense
     from massviz.io.recording import open_recording
 
     sample = open_recording(SAMPLES / "cup_handover")
@@ -121,7 +121,7 @@ def test_a_silent_camera_is_one_line_naming_the_option(monkeypatch, weights, tmp
     need_realsense()
     from massviz.cli import main
     from massviz.core.types import Intrinsics
-    from massviz.io import realsense
+    from massviz.io.formats import realsense_live as realsense
 
     cam = realsense.SoftwareCamera([], Intrinsics(300.0, 300.0, 80.0, 60.0, 160, 120), fps=10, serial="4242")
 

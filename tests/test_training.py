@@ -184,7 +184,7 @@ def test_missing_image_and_non_empty_run_folder(patch_set, tmp_path):
 
 
 def test_annotation_mismatch_names_the_csv(shared_dir):
-    from massviz.evaluation.metrics import read_annotations
+    from massviz.io.ccm_annotations import read_annotations
     from massviz.io.recording import open_recording
 
     ann = shared_dir / "ccm" / "annotations" / "Val_annotations.csv"

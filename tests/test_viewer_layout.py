@@ -1,4 +1,4 @@
-"""Issue 22 item 7 / issue 20 (the viewer's layout), read back from the .rrd ``massviz log`` writes: the 2D views fit
+"""The viewer's layout, read back from the .rrd ``massviz log`` writes: the 2D views fit
 the whole image, the predictions legend is not drawn over the plot, tiles are titled "★rank" (and "⚑ flagged"), the
 3D view starts oblique (yaw 25°, pitch 15°) with the camera's frustum in view, and scrubbing back shows in each tile
 the patch holding that rank at that frame (never "No data available" once the rank is held). The browser test
@@ -15,7 +15,7 @@ from massviz.core.pipeline import run
 from massviz.detect import make_detector
 from massviz.io.recording import open_recording
 from massviz.views.rerun import log_trace
-from massviz.views.rerun.rrd_reader import rrd_rows
+from rrd_reader import rrd_rows
 from test_selection import DistanceModel
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -12,11 +12,13 @@ def add_3d_args(p) -> None:
 
 
 def measured_trace(args, needs_intrinsics: str | None = None):
-    """(recording, trace with measurements) for ``args.recording``; a recording without intrinsics gets one line on
-    stderr and a trace without measurements, or, for a command that cannot work without them
-    (``needs_intrinsics``: its name), one error line before the pipeline runs."""
+    """(recording, trace with measurements, the ``MeasureStage`` that measured it and holds the chosen frames'
+    clouds) for ``args.recording``; a recording without intrinsics gets one line on stderr and a trace without
+    measurements, or, for a command that cannot work without them (``needs_intrinsics``: its name), one error line
+    before the pipeline runs."""
     from massviz.commands._common import build
-    from massviz.core.geometry import skip_reason, with_measurements
+    from massviz.measure.settings import skip_reason
+    from massviz.measure.stage import with_measurements
     from massviz.io.recording import open_recording
 
     from massviz.errors import MassvizError
@@ -32,4 +34,5 @@ def measured_trace(args, needs_intrinsics: str | None = None):
     reason = skip_reason(rec)
     if reason:
         print(reason, file=sys.stderr)
-    return rec, with_measurements(trace, rec)
+    trace, stage = with_measurements(trace, rec)
+    return rec, trace, stage

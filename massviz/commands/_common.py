@@ -43,7 +43,7 @@ def add_pipeline_args(p: argparse.ArgumentParser, selection: bool = True) -> Non
     if selection:
         g.add_argument("--threshold", type=float, default=None, metavar="T",
                        help="keep detections with score > T (default: the detector's own cut: 0.4 for maskrcnn, the "
-                       "paper's; 0.3 for nanodet; 0.4 for depth; a replayed trace's own; README 'Detectors')")
+                       "paper's; 0.3 for nanodet; 0.4 for depth; a replayed trace's own; docs/detectors.md)")
         g.add_argument("--k", type=int, default=5, metavar="K",
                        help="average the predictions of the K nearest detections (default: 5, the paper's)")
     g.add_argument("--stride", type=int, default=1, metavar="N", help="process every N-th frame (default: 1)")
@@ -60,7 +60,7 @@ def add_pipeline_args(p: argparse.ArgumentParser, selection: bool = True) -> Non
     g.add_argument("--batch", type=int, metavar="N",
                    help="frames per detector forward (Mask R-CNN, NanoDet), their patches predicted by the mass CNN "
                    "together. Default: 1, except 8 for Mask R-CNN in bf16/fp16 on CUDA. A batch of N frames may "
-                   "round differently from N batches of 1 (float rounding; README, 'GPU')")
+                   "round differently from N batches of 1 (float rounding; docs/gpu.md)")
     g.add_argument("--precision", choices=PRECISIONS, default="fp32",
                    help="Mask R-CNN arithmetic: fp32 (default, the paper's: IEEE fp32, no TF32, deterministic "
                    "kernels on CUDA), bf16 (CPUs with bfloat16 support, CUDA; the mass CNN runs in bf16 too) or "
@@ -91,9 +91,9 @@ def flag_warning(command: str, trace) -> str | None:
     border-cut / implausibly sized objects: ..."); None when nothing is flagged and it was estimated."""
     line = trace.flags.warning()
     if line is None and trace.estimate < 0:  # not estimated: say why (e.g. only border-cut objects were seen)
-        line = next((e.message for e in trace.events if e.kind == "not_estimated"), None)
-        line = (f"not estimated: {line.replace(': mass not estimated (-1)', '')}"
-                if line is not None and line.startswith("only border-cut") else None)
+        from massviz.core.selection import why_not_estimated
+
+        line = why_not_estimated(trace.detections, trace.events).warning()
     return None if line is None else f"massviz {command}: warning: {trace.recording.id}: {line}"
 
 

@@ -18,13 +18,14 @@ OWN_DIRS = ("patches",)
 def collect_rrd(trace, recording, truth, *, out_dir: str, full: bool, view: int | None, video: str) -> dict:
     """What a worker does with one trace: write its .rrd (and patch thumbnails) and return the index row."""
     from massviz.commands._common import flag_warning
+    from massviz.measure.stage import measured_replay
     from massviz.views.rerun_dataset import write_recording
 
     if truth is not None:  # --annotations: the CCM ground truth goes into the trace's meta, read by its properties
         meta = dict(trace.recording.meta)
         meta["container"] = {**meta.get("container", {}), **truth}
         trace.recording.meta = meta
-    result = write_recording(trace, recording, out_dir, full=full, view=view, video=video)
+    result = write_recording(trace, recording, out_dir, full=full, view=view, video=video, replay=measured_replay)
     result["warning"] = flag_warning("log", trace)
     return result
 
@@ -78,7 +79,8 @@ def run_rrd_dir(args) -> int:
                                "is one segment, named by its id", rec.path)
     truths = {}
     if args.annotations:
-        from massviz.evaluation.metrics import default_class_of, read_annotations
+        from massviz.evaluation.metrics import default_class_of
+        from massviz.io.ccm_annotations import read_annotations
         from massviz.io.patch_set import annotation_for
 
         table = read_annotations(args.annotations)

@@ -42,7 +42,7 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from massviz.evaluation.baselines import RANDOM_RANGE_G, average_mass, random_baseline
-    from massviz.evaluation.metrics import ANN_ID, read_annotations
+    from massviz.io.ccm_annotations import ANN_ID, read_annotations
     from massviz.io.challenge_csv import write_challenge_csv
 
     from massviz.io.atomic import check_output_file

@@ -33,10 +33,10 @@ def register(sub) -> None:
 
 def measurement_rows(trace, gt: dict | None) -> list[dict]:
     """One flat row per measurement, with the annotated size and relative errors when known."""
-    from massviz.core.geometry import compare, measurements_of
+    from massviz.measure.geometry import compare
 
     rows = []
-    for m in measurements_of(trace):
+    for m in trace.measurements:
         row = {"rank": m.rank, "detection": m.detection, "frame": m.frame, "height_mm": m.height_mm,
                "width_mm": m.width_mm, "depth_mm": m.depth_mm, "n_points": m.n_points,
                "center_x_m": m.center[0], "center_y_m": m.center[1], "center_z_m": m.center[2]}
@@ -54,13 +54,13 @@ def run(args) -> int:
 
     from massviz.io.atomic import atomic_path, staged_files
     from massviz.commands._3d import measured_trace
-    from massviz.core.geometry import annotation_size, ground_truth_size, measurements_of
+    from massviz.measure.geometry import annotation_size, ground_truth_size
     from massviz.views.open3d_view import write_ply
 
     from massviz.io.atomic import check_output_dir
     from massviz.io.untrusted import json_safe, write_csv
 
-    from massviz.core.geometry import skip_reason
+    from massviz.measure.settings import skip_reason
     from massviz.errors import MassvizError
     from massviz.io.recording import open_recording
 
@@ -71,25 +71,25 @@ def run(args) -> int:
     if reason:
         what = reason.split(": ", 1)[-1].split(", so no 3D")[0]  # "no camera intrinsics (where they would be)"
         raise MassvizError(f"{what}: massviz cloud needs them, nothing written", args.recording)
-    rec, trace = measured_trace(args)
+    rec, trace, measure = measured_trace(args)
     est = "not estimated" if trace.estimate < 0 else f"{trace.estimate:.1f} g"
     gt = ground_truth_size(rec.meta)
     if args.annotations:
-        from massviz.evaluation.metrics import read_annotations
+        from massviz.io.ccm_annotations import read_annotations
 
         gt = annotation_size(read_annotations(args.annotations), rec.config_id) or gt
     frames = [int(f) for f in trace.frames] if args.all_frames else None
     # every file goes to a hidden folder inside OUT first and is moved in at the end: a full disk or a signal
     # leaves OUT as it was (and no OUT at all when this run created it)
     with staged_files(out) as stage:
-        written = write_ply(stage, trace, rec, frames=frames)
+        written = write_ply(stage, measure.ply_clouds(trace, frames=frames))
         rows = measurement_rows(trace, gt)
         columns = list(rows[0]) if rows else ["rank", "detection", "frame", "height_mm", "width_mm", "depth_mm"]
         with atomic_path(stage / "measurements.csv") as tmp:
             write_csv(pd.DataFrame(rows, columns=columns), tmp)
         payload = {"recording": rec.id, "estimate_g": trace.estimate, "ground_truth": gt,
                    "axes": "camera frame, metres: x right, y down, z forward (OpenCV/RDF)",
-                   "measurements": [{**m.to_dict(), **row} for m, row in zip(measurements_of(trace), rows)],
+                   "measurements": [{**m.to_dict(), **row} for m, row in zip(trace.measurements, rows)],
                    "files": written, "not_written": {n: "no depth points" for n in written.empty}}
         with atomic_path(stage / "measurements.json") as tmp:
             tmp.write_text(json.dumps(json_safe(payload), indent=1, allow_nan=False) + "\n")

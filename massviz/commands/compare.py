@@ -112,10 +112,12 @@ def run(args) -> int:
             tmp.write_text(json.dumps(result.summary(), indent=1, default=str) + "\n")
         print(f"wrote {args.json}", file=sys.stderr)
     if args.rrd:
+        from massviz.measure.stage import measured_replay
         from massviz.views.rerun_compare import log_two_traces
 
         sides = [(f"A: {label_a}", trace_a, _recording_of(trace_a, rec_a, "A")),
                  (f"B: {label_b}", trace_b, _recording_of(trace_b, rec_b, "B"))]
-        log_two_traces(sides, args.rrd, markdown=result.markdown(), progress=not args.quiet, video=args.video)
+        log_two_traces(sides, args.rrd, markdown=result.markdown(), progress=not args.quiet, video=args.video,
+                       replay=measured_replay)
         print(f"wrote {args.rrd} (two recordings: A and B)", file=sys.stderr)
     return 0

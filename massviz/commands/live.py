@@ -14,7 +14,7 @@ EPILOG = """examples:
   massviz log rec/ --rrd replay.rrd                              replay a saved session (same trace, from cache)
 
 Per processed frame: detect, features, predict, update the K nearest so far, and log the frame's stages at once
-(/camera/*, /patches/<rank>, /predictions/running_estimate, /latency/<stage> in ms; entity tree in the README).
+(/camera/*, /patches/<rank>, /predictions/running_estimate, /latency/<stage> in ms; entity tree in docs/entity-tree.md).
 When the detector is slower than the camera, massviz takes the newest frame and drops the others: the drops are
 counted in /log and in the summary; nothing queues. Ctrl-C (or SIGTERM/SIGHUP), --duration or the end of a --file
 ends the session: the trace goes to the trace cache, --save writes the processed frames as a massviz recording
@@ -115,7 +115,7 @@ def run(args) -> int:
 
     from massviz.commands._common import build
     from massviz.errors import MassvizError
-    from massviz.io import realsense
+    from massviz.io.formats import realsense_decode, realsense_live
 
     if args.stride != 1:
         raise MassvizError("--stride does not apply to live mode (it processes the newest frame each time)")
@@ -135,13 +135,13 @@ def run(args) -> int:
         host, port = host_port(args.connect, "--connect")
         reach_grpc("--connect", args.connect, host, port, hint="start a viewer first (`rerun` listens on "
                    "rerun+http://127.0.0.1:9876/proxy), or use --serve-web or --rrd")
-    realsense.import_rs()
+    realsense_decode.import_rs()
     if args.file:
-        stream = realsense.open_file_stream(args.file)
+        stream = realsense_live.open_file_stream(args.file)
         name = Path(args.file).stem
         stream.option = f"--file {args.file}"
     else:
-        stream = realsense.open_camera(args.camera or None, args.width, args.height, args.fps)
+        stream = realsense_live.open_camera(args.camera or None, args.width, args.height, args.fps)
         serial = stream.info.device.get('serial', 'realsense')
         name = f"camera-{serial}"
         stream.option = f"--camera {args.camera or serial}"
@@ -174,9 +174,9 @@ def run_session(args, pipeline, stream, name: str) -> int:
                 connect = connect or web.grpc
                 print(f"massviz live: web viewer at {web.url}", file=sys.stderr)
             if args.rrd or args.spawn or connect:
-                from massviz.views.rerun_live import LiveLogger
+                from massviz.views.rerun.live import LiveLogger
 
-                logger = LiveLogger(name=name, k=fp.selection.k, threshold=fp.selection.threshold,
+                logger = LiveLogger(name=name, k=fp.selection.k,
                                     intrinsics=info.intrinsics, rrd=args.rrd, spawn=args.spawn, connect=connect)
             print(f"massviz live: {stream.description}; Ctrl-C ends the session", file=sys.stderr)
             result = run_live(stream, fp, logger=logger, duration=args.duration, save=args.save,
@@ -228,7 +228,9 @@ def _cache(pipeline, trace, result, args, stream):
         rec = stream.recording if stream.recording is not None else open_recording(args.file)
         numbers = rec.meta.get("realsense", {}).get("frame_numbers")
         if result.stats.dropped == 0 and numbers == result.stats.frame_numbers:
-            return pipeline.cache.save(dataclasses.replace(trace, recording=rec.info()), rec, info)
+            from massviz.core.trace import analyse_trace
+
+            return pipeline.cache.save(analyse_trace(dataclasses.replace(trace, recording=rec.info())), rec, info)
     from massviz.io.trace_file import save_trace
 
     safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", trace.recording.id)

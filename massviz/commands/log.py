@@ -15,7 +15,7 @@ def register(sub) -> None:
         description="Run the pipeline on one recording (a massviz folder, a CCM .mp4 or a RealSense .db3/.bag) and "
         "log the trace to "
         "Rerun: frames, depth, detections, masks, point cloud, the chosen patches as the model saw them, "
-        "per-patch predictions, the estimate, the decisions and the stage timings (entity tree in the README). "
+        "per-patch predictions, the estimate, the decisions and the stage timings (entity tree in docs/entity-tree.md). "
         "A recording without depth (no depth/ folder) is logged RGB only: what the detector finds and its tracks, "
         "no mass (give --detector nanodet or maskrcnn; the depth detector needs depth).",
         epilog="examples:\n  massviz log data_samples/cup_handover --rrd cup.rrd && massviz view cup.rrd\n"
@@ -63,7 +63,8 @@ def run(args) -> int:
     from massviz.commands._common import build, flag_warning
     from massviz.errors import MassvizError
     from massviz.io.recording import open_recording
-    from massviz.views.rerun.replay import log_run
+    from massviz.measure.stage import MeasureStage
+    from massviz.runners.logged import log_run
 
     if args.rrd_dir:
         from massviz.commands._dataset_log import run_rrd_dir
@@ -85,20 +86,22 @@ def run(args) -> int:
                            "--detector nanodet (or maskrcnn) logs what it finds and its tracks, without mass",
                            rec.path)
     ply_line = []
+    # the measure stage makes every cloud once: those the Rerun recording shows (each detection above the threshold,
+    # as its frame is processed), the measured sizes and the --ply files are the same clouds
+    measure = MeasureStage(rec, clouds="active", threshold=pipeline.selection.threshold)
 
     def write_clouds(trace, stage):
         from massviz.views.open3d_view import write_ply_or_skip
 
-        ply_line.append(write_ply_or_skip(stage, trace, rec).replace(str(stage), str(args.ply)))
+        ply_line.append(write_ply_or_skip(stage, measure.ply_clouds(trace), recording_id=rec.id, skip=measure.skip)
+                        .replace(str(stage), str(args.ply)))
 
     # the .ply files go to a hidden folder moved into --ply at the end, and are written before the .rrd is renamed
     # into place: a failure in either leaves neither (and no --ply folder this run created)
     with staged_files(args.ply) if args.ply else contextlib.nullcontext() as stage:
         # one pass: each frame is logged as the pipeline processes it (a trace from the cache is replayed once)
-        trace, stats = log_run(rec, lambda on_frame: pipeline.process(rec, on_frame=on_frame),
-                               rrd=Path(args.rrd) if args.rrd else None, spawn=args.spawn, progress=not args.quiet,
-                               video=args.video, points=args.points, threshold=pipeline.threshold,
-                               k=pipeline.options.selection.k,
+        trace, stats = log_run(pipeline, rec, rrd=Path(args.rrd) if args.rrd else None, spawn=args.spawn,
+                               progress=not args.quiet, video=args.video, points=args.points, measure=measure,
                                before_close=(lambda trace: write_clouds(trace, stage)) if args.ply else None)
     if ply_line:
         print(ply_line[0], file=sys.stderr)

@@ -60,8 +60,8 @@ def run(args) -> int:
     if not (math.isfinite(args.pitch) and -90 < args.pitch < 90):
         raise MassvizError(f"--pitch must be a finite number of degrees > -90 and < 90, got {args.pitch}")
     check_output_file(out, "--out")
-    rec, trace = measured_trace(args, needs_intrinsics="render")
-    info = render_png(trace, rec, out, frame_index=args.frame, width=width, height=height, yaw_deg=args.yaw,
+    rec, trace, stage = measured_trace(args, needs_intrinsics="render")
+    info = render_png(trace, rec, stage.clouds_of(trace, trace.selection), out, frame_index=args.frame, width=width, height=height, yaw_deg=args.yaw,
                       pitch_deg=args.pitch)
     print(f"{rec.id}: wrote {out} (frame {info['frame']}, rendered in {info['seconds']:.1f} s)", file=sys.stderr)
     for flag in info["flagged"]:

@@ -12,7 +12,8 @@ def register(sub) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Start Rerun's catalog server on 127.0.0.1 with OUT as one dataset (one segment per .rrd; the "
         "recording properties massviz wrote are the segment table's columns), register massviz's layouts as the "
-        "dataset's defaults (the recording layout, and the segment table sorted by relative error), start a web "
+        "dataset's defaults (the recording layout, and the segment table sorted by relative error whose first "
+        "column, 'recording', is a button that opens the recording at its best frame), start a web "
         "viewer on 127.0.0.1 and print how to open it. Runs until Ctrl-C (or SIGTERM); then the server and the web "
         "viewer stop and nothing is left running.",
         epilog="examples:\n  massviz log data_samples --detector depth --rrd-dir out/samples\n"

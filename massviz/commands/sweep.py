@@ -18,7 +18,7 @@ def register(sub) -> None:
         "lowest threshold) first, unless --cached-only; --engine says where (when every recording is cached, the cache "
         "is read in this process whatever the engine). A dataset whose recordings are unchanged since they were last "
         "opened and all cached is swept from the cache's selection indexes alone: no recording opened, no model "
-        "loaded (README: Speed at dataset scale).",
+        "loaded (docs/datasets.md: Speed at dataset scale).",
         epilog="examples:\n"
         "  massviz sweep data_samples --detector depth --threshold 0.3:0.9:0.05 --k 1:10 --plot heatmap.png\n"
         "  massviz sweep /data/CCM/train --annotations Val_annotations.csv --csv sweep.csv\n"
@@ -57,7 +57,8 @@ def run(args) -> int:
     from massviz.commands._runner import open_dataset, run_tasks
     from massviz.commands._warm import build_remembering
     from massviz.errors import MassvizError
-    from massviz.evaluation.metrics import default_class_of, parse_class_map, read_annotations
+    from massviz.evaluation.metrics import default_class_of, parse_class_map
+    from massviz.io.ccm_annotations import read_annotations
     from massviz.evaluation.sweep import MAX_SWEEP_PAIRS, parse_range
 
     thresholds = parse_range(args.threshold, float, "--threshold")

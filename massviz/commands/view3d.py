@@ -25,6 +25,6 @@ def run(args) -> int:
     from massviz.views.open3d_view import require_display, show
 
     require_display()  # say so before running anything
-    rec, trace = measured_trace(args, needs_intrinsics="view3d")
-    show(trace, rec, frame_index=args.frame)
+    rec, trace, stage = measured_trace(args, needs_intrinsics="view3d")
+    show(trace, rec, stage.clouds_of(trace, trace.selection), frame_index=args.frame)
     return 0

@@ -1,9 +1,9 @@
 """Flags: which chosen patches are probably *not* the container, and why — the analysis stage run after selection.
 
-``analyse(trace)`` returns a :class:`Flags` (one :class:`PatchFlag` per chosen patch, nearest first) and is part of
-every trace: the pipeline runs it after selecting, ``Trace.reselect`` re-runs it for the new selection, the trace
-file saves it, and every consumer (``massviz log`` / ``estimate``, the Rerun logger, ``massviz render``, the
-notebooks) reads ``trace.flags``. It needs the detections' track ids (``massviz.core.tracks``).
+``analyse(trace)`` returns a :class:`Flags` (one :class:`PatchFlag` per chosen patch, nearest first), stored in
+``trace.flags`` by the stages that make or change a selection (``massviz.core.trace``: the pipeline's finish,
+``Trace.reselect``, ``analyse_trace``), never by constructing or replacing a trace; the trace file saves it, and every
+consumer (``massviz log`` / ``estimate``, the Rerun logger, ``massviz render``, the notebooks) reads ``trace.flags``. It needs the detections' track ids (``massviz.core.tracks``).
 
 **Cues** (need no ground truth; ``PatchFlag.cues``). The paper assumes the container is the nearest object; in a
 hand-over the recording *ends* with the container held out to the camera. So the **container's track** is the track
@@ -166,7 +166,8 @@ class Flags:
     container_track: int = -1
     estimate_without: float = -1.0
     estimate: float = -1.0
-    #: what the analysis was made of (``selection_key``): a trace recomputes flags whose key is not its own.
+    #: what the analysis was made of (``selection_key``): ``analyse_trace`` recomputes flags whose key is not the
+    #: trace's own.
     key: str = ""
 
     @property

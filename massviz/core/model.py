@@ -155,9 +155,10 @@ def preprocess_patches(patches: Sequence[np.ndarray]) -> torch.Tensor:
 #: patch's prediction then never depends on how many patches share its call.
 DEVICE_CALL_ROWS = 128
 
-#: torch intra-op threads for :meth:`MassNet.predict` (0: leave torch's setting). One thread: measured 5-7x faster
-#: than two for 6-16 patches on this project's shared 2-core machine under load (``benchmarks/model_threads.py``);
-#: predictions move by < 2e-5 g. Environment ``MASSVIZ_MODEL_THREADS`` overrides it.
+#: torch intra-op threads for :meth:`MassNet.predict` (0: leave torch's setting). One thread: a call of 6-16 patches
+#: is too small to share between threads, and a second thread competes with the detector and the reader for the
+#: cores (``benchmarks/model_threads.py`` compares 1 and 2 on a machine); predictions move by < 2e-5 g. Environment
+#: ``MASSVIZ_MODEL_THREADS`` overrides it.
 MODEL_THREADS = 1
 
 
@@ -293,8 +294,8 @@ class MassNet(nn.Module):
         with the convolutions of every group's patches run together, ``batch_size`` rows a call.
 
         Bit for bit because a row of the convolution blocks does not depend on the other rows of its call as long as
-        the call has two rows or more (measured on this CPU's oneDNN kernels, fp32 and bf16, 1 and 2 threads: rows
-        computed with 2 ... 96 others are equal; a call of ONE row takes another kernel and differs by ~2e-6). So a
+        the call has two rows or more (oneDNN's CPU kernels, fp32 and bf16, 1 and 2 threads: rows computed with
+        2 ... 96 others are equal; a call of ONE row takes another kernel and differs by ~2e-6). So a
         patch ``predict`` would send alone (a group's last call of one row) is sent alone here too; the others go in
         calls of ``batch_size`` (never leaving one row alone); the head (linear layers, whose rows do depend on the
         call's size) then runs on each group's own calls of ``batch_size``, exactly as ``predict`` calls it."""

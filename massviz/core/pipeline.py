@@ -32,18 +32,17 @@ import math
 import sys
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field
 
 import numpy as np
 from tqdm.auto import tqdm
 
 from massviz.core.detector import Detector
 from massviz.core.prefetch import Prefetcher
-from massviz.core.selection import Selection, estimate_mass, select_k_nearest
+from massviz.core.selection import REJECTED_PREFIX, Selection, estimate_mass, select_k_nearest
 from massviz.core.stage import FramePatches, FrameStage, StagedFrame, predictable
-from massviz.core.trace import Event, Trace, describe_detection, describe_selection, ranked_measurements
+from massviz.core.trace import Event, FrameResult, Trace, analyse_trace, describe_detection, describe_selection
 from massviz.core.tracks import Tracker
-from massviz.core.types import Detections, Frame, RecordingInfo
+from massviz.core.types import Detections, Frame, RecordingInfo, Rejection
 
 #: how many of the nearest detections keep their RGB patch in the trace (>= any K you will reselect with).
 KEEP_PATCHES = 32
@@ -81,27 +80,6 @@ class _NearestPatches:
             self.patches.pop(-neg, None)
 
 
-@dataclass
-class FrameResult:
-    """What one ``FramePipeline.step`` computed.
-
-    - ``frame``: the frame; ``detections``: its detections with d, a, b and ``pred`` (their indices in the trace are
-      ``offset + i``); ``patches``: their RGB crops (``FramePatches``, cut when read).
-    - ``selection``: the K nearest detections *so far* (indices into the trace's detections, nearest first) and
-      ``running_estimate`` the mean of their predictions (-1 while nothing is selected).
-    - ``timings``: this frame's seconds per stage (read, detect, features, predict, select); ``events`` its decisions.
-    """
-
-    frame: Frame
-    detections: Detections
-    patches: list
-    offset: int
-    selection: np.ndarray
-    running_estimate: float
-    timings: dict = field(default_factory=dict)
-    events: list = field(default_factory=list)
-
-
 def resolve_selection(selection: Selection | None, k: int | None, stride: int | None) -> Selection:
     """``selection``, or one made of the shorthand ``k``/``stride`` (not both)."""
     if selection is None:
@@ -118,25 +96,15 @@ class FramePipeline:
     shorthand for ``Selection(k, stride=stride)``). A selection without a threshold selects at the detector's own
     score cut; one below it is refused (those detections were never kept).
 
-    ``measure`` (recordings with intrinsics; off by default here, where live sessions step, on in ``run``): the
-    measure stage. As a detection enters the running K nearest, the RGB, depth and mask inside its box are kept
-    (``massviz.core.geometry.Crop``; dropped when it leaves the K nearest, so at most K are held); ``finish`` measures
-    the ones chosen at the end (``measure_crop``), so the trace's ``measurements`` hold the measured size of every
-    chosen detection without reading a frame again, and a detection that was overtaken is never measured (stage time
-    ``measure3d``, charged once, in ``finish``).
+    Measured sizes (point clouds, Open3D) are not a step of this pipeline: the optional measure stage
+    (``massviz.measure.stage.MeasureStage``) observes the steps' results and fills ``Trace.measurements``.
     """
 
     def __init__(self, detector: Detector, model, *, selection: Selection | None = None, k: int | None = None,
                  stride: int | None = None, recording: RecordingInfo | None = None,
-                 keep_patches: int = KEEP_PATCHES, measure: bool = False, stage: FrameStage | None = None):
-        selection = resolve_selection(selection, k, stride)
+                 keep_patches: int = KEEP_PATCHES, stage: FrameStage | None = None):
         self.detect_threshold = float(detector.threshold)  # the detector's own cut, recorded in the trace
-        if selection.threshold is None:
-            selection = selection.replace(threshold=self.detect_threshold)
-        elif selection.threshold < self.detect_threshold - 1e-9:
-            raise ValueError(f"selection threshold {selection.threshold} is below the detector's score cut "
-                             f"{self.detect_threshold} (lower-scored detections are never kept)")
-        self.selection = selection
+        self.selection = selection = resolve_selection(selection, k, stride).at_cut(self.detect_threshold)
         self.detector, self.model = detector, model
         self.stage = stage if stage is not None else FrameStage(detector, model)
         self.k, self.stride = selection.k, selection.stride
@@ -157,15 +125,6 @@ class FramePipeline:
         self._sel_pred = np.zeros(0)
         self._start = time.perf_counter()
         self._tracker = Tracker(recording.fps if recording is not None else None)
-        self._intrinsics = recording.intrinsics if (measure and recording is not None) else None
-        if self._intrinsics is not None:
-            try:  # the measure stage needs Open3D; a machine without it (e.g. a CUDA image) estimates without sizes
-                import massviz.core.geometry  # noqa: F401
-            except ImportError as err:
-                self._intrinsics = None
-                self.events.append(Event(-1, f"3D measurement skipped: Open3D cannot be imported ({err})",
-                                         "warning", "warn"))
-        self._crops: dict = {}  # global detection index -> geometry.Crop of a detection in the running K nearest
 
     @property
     def frames_done(self) -> int:
@@ -182,7 +141,8 @@ class FramePipeline:
         dets.track = self._tracker.update(frame.index, dets)
         t_track = time.perf_counter() - t3
         patches = staged.patches
-        events = [Event(frame.index, f"not a container candidate: {note}", "skipped", "info")
+        events = [Event(frame.index, f"{REJECTED_PREFIX}{note}", "skipped", "info",
+                        reason=note.reason if isinstance(note, Rejection) else str(note))
                   for note in staged.notes]
         offset = self._offset
         for i in np.flatnonzero(~np.isfinite(dets.d)):
@@ -199,38 +159,14 @@ class FramePipeline:
         timings = {"read": staged.timings.get("read", read_seconds), "detect": staged.timings.get("detect", 0.0),
                    "features": staged.timings.get("features", 0.0) + t_track,
                    "predict": staged.timings.get("predict", 0.0), "select": t5 - t4}
-        if self._intrinsics is not None:
-            self._keep_crops(frame, dets, offset, selection)
         for name, seconds in timings.items():
             self._frame_timings[name].append(seconds)
             if name != "select":  # the whole recording's selection is timed in finish()
                 self.timings[name] += seconds
         self.events.extend(events)
         return FrameResult(frame=frame, detections=dets, patches=patches, offset=offset, selection=selection,
-                           running_estimate=running, timings=timings, events=events)
-
-    def _keep_crops(self, frame: Frame, dets: Detections, offset: int, selection: np.ndarray) -> None:
-        """The measure stage's part in a step: keep the crops of this frame's detections that entered the running K
-        nearest, drop those of detections that left it."""
-        from massviz.core.geometry import Crop
-
-        chosen = {int(g) for g in selection}
-        for g in [g for g in self._crops if g not in chosen]:
-            del self._crops[g]
-        for g in selection[selection >= offset]:
-            self._crops[int(g)] = Crop.of_detection(frame, dets, int(g) - offset)
-
-    def _measure(self, selection: np.ndarray) -> list[dict]:
-        """The measure stage's end: the measured size of each chosen detection whose crop was kept."""
-        from massviz.core.geometry import measure_crop  # Open3D: imported on the first measurement
-
-        out = []
-        for g in selection:
-            crop = self._crops.get(int(g))
-            m = None if crop is None else measure_crop(crop, self._intrinsics, detection=int(g))
-            if m is not None:
-                out.append(m.to_dict())
-        return out
+                           running_estimate=running, timings=timings, events=events,
+                           active=np.flatnonzero(dets.score > self.selection.threshold))
 
     def _update_selection(self, dets: Detections, offset: int) -> tuple[np.ndarray, float]:
         local = self._exclude[(self._exclude >= offset) & (self._exclude < offset + len(dets))] - offset
@@ -242,8 +178,11 @@ class FramePipeline:
         self._sel, self._sel_d, self._sel_pred = idx[keep], d[keep], pred[keep]
         return self._sel.copy(), estimate_mass(self._sel_pred, np.arange(len(keep)))
 
-    def finish(self) -> Trace:
-        """The recording's ``Trace``: every detection, the K nearest, the estimate, the decisions and stage times."""
+    def finish(self, analyse: bool = True) -> Trace:
+        """The recording's ``Trace``: every detection (tracked as the frames were processed), the K nearest, the
+        estimate, the decisions, stage times and, with ``analyse``, the flags of the selection
+        (``massviz.core.trace.analyse_trace``; off for a caller that adds the ground truth's overlaps first and then
+        analyses once)."""
         detections = Detections.concat(self._parts)
         for i, patch in self._nearest.patches.items():
             detections.patches[i] = patch
@@ -253,28 +192,24 @@ class FramePipeline:
         estimate = estimate_mass(detections.pred, selection)
         timings = dict(self.timings)
         timings["select"] = time.perf_counter() - t5
-        measurements = []
-        if self._intrinsics is not None:
-            t6 = time.perf_counter()
-            measurements = ranked_measurements(self._measure(selection), selection)
-            timings["measure3d"] = time.perf_counter() - t6
         timings["total"] = time.perf_counter() - self._start
         events = [*self.events, *describe_selection(detections, selection, estimate, self.k, self.events,
                                                     threshold=self.selection.threshold, detector=self.detector.name)]
         info = self.recording if self.recording is not None else RecordingInfo(id="live")
-        return Trace(recording=info, detector={"name": self.detector.name, **self.detector.settings()},
+        trace = Trace(recording=info, detector={"name": self.detector.name, **self.detector.settings()},
                      detect_threshold=self.detect_threshold, threshold=self.selection.threshold,
                      k=self.k, stride=self.stride, frames=np.asarray(self._frames, dtype=np.int32),
                      detections=detections, selection=selection, estimate=estimate, excluded=excluded,
                      weights_id=getattr(self.model, "weights_id", ""), timings=timings, events=events,
                      frame_timings={n: np.asarray(v) for n, v in self._frame_timings.items()},
-                     measurements=measurements, compute=self.stage.describe())
+                     compute=self.stage.describe())
+        return analyse_trace(trace) if analyse else trace
 
 
 def run(recording, detector: Detector, model, *, selection: Selection | None = None, k: int | None = None,
         stride: int | None = None, keep_patches: int = KEEP_PATCHES, progress: bool = False, batch: int = 1,
-        prefetch: int = 2, on_frame=None, measure: bool = True, kernels: str = "auto",
-        overlap: bool | None = None) -> Trace:
+        prefetch: int = 2, on_frame=None, kernels: str = "auto",
+        overlap: bool | None = None, analyse: bool = True) -> Trace:
     """Run the pipeline over ``recording`` (a loop over ``FramePipeline.step``) and select as ``selection`` says
     (``k=``/``stride=``: shorthand, see ``FramePipeline``).
 
@@ -288,11 +223,12 @@ def run(recording, detector: Detector, model, *, selection: Selection | None = N
     ``on_frame(frame, result)``: a read-only observer called after each frame's step with the ``Frame`` (its arrays
     and, when the format has them, the bytes the reader read) and the ``FrameResult``, e.g. a sink logging each frame
     as it is processed so that no frame is read twice (``massviz log``). It must not change either; its time is not
-    charged to any stage. ``measure``: the measure stage (``FramePipeline``).
+    charged to any stage (the measure stage, ``massviz.measure.stage.MeasureStage``, is such an observer).
+    ``analyse``: the flags (``FramePipeline.finish``).
     """
     stage = FrameStage(detector, model, batch=batch, kernels=kernels, overlap=overlap)
     fp = FramePipeline(detector, model, selection=resolve_selection(selection, k, stride), recording=recording.info(),
-                       keep_patches=keep_patches, measure=measure, stage=stage)
+                       keep_patches=keep_patches, stage=stage)
     stride = fp.stride
     total = math.ceil(recording.num_frames / stride)
     bar = tqdm(total=total, desc=f"{recording.id}", unit="frame", file=sys.stderr, disable=not progress,
@@ -316,16 +252,14 @@ def run(recording, detector: Detector, model, *, selection: Selection | None = N
             if isinstance(it, Prefetcher):
                 it.close()
     fp.events.extend(Event(-1, note, "warning", "warn") for note in getattr(recording, "notes", ()))
-    return fp.finish()
+    return fp.finish(analyse=analyse)
 
 
 def repredict(trace: Trace, recording, model, progress: bool = False) -> Trace:
     """Recompute every detection's prediction with another model (re-reads the frames that have detections)."""
     dets = trace.detections
     pred = np.full(len(dets), np.nan, dtype=np.float32)
-    by_frame = defaultdict(list)
-    for i, f in enumerate(dets.frame):
-        by_frame[int(f)].append(i)
+    by_frame = dets.indices_by_frame()
     for frame in tqdm(recording.frames(indices=list(by_frame)), total=len(by_frame), disable=not progress,
                       file=sys.stderr, desc=f"{recording.id} re-predict", leave=False):
         idx = by_frame[frame.index]

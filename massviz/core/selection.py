@@ -57,6 +57,18 @@ class Selection:
     def replace(self, **changes) -> "Selection":
         return dataclasses.replace(self, **changes)
 
+    def at_cut(self, detect_threshold: float) -> "Selection":
+        """This selection with its threshold resolved for a detector whose score cut is ``detect_threshold``: the
+        cut itself when it names none; ``ValueError`` when it names one below the cut (those detections were never
+        kept). What the edge (``massviz.app.Pipeline``, ``massviz.app.process``, ``FramePipeline``'s shorthand)
+        resolves once; every stage and sink after it reads the trace's (or the ``FrameResult``'s) values."""
+        if self.threshold is None:
+            return self.replace(threshold=float(detect_threshold))
+        if self.threshold < float(detect_threshold) - 1e-9:
+            raise ValueError(f"selection threshold {self.threshold} is below the detector's score cut "
+                             f"{float(detect_threshold)} (lower-scored detections are never kept)")
+        return self
+
 
 def box_ratios(xyxy: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     """a = box width / image width, b = box height / image height, each rounded to 2 decimals."""
@@ -123,28 +135,55 @@ def select_k_nearest(d: np.ndarray, score: np.ndarray, k: int, threshold: float,
 REJECTED_PREFIX = "not a container candidate: "
 
 
-def not_estimated_reason(dets: Detections, events=()) -> str:
-    """Why nothing was selected, in one line: "only border-cut / implausibly sized objects: 14 border-cut objects
-    (frames 0–7), ...: mass not estimated (-1)" when the detector rejected objects (``events`` of kind ``skipped``
-    starting with :data:`REJECTED_PREFIX`) and kept no usable one; else "no detection with depth ..."."""
-    import re
-    from collections import defaultdict
+@dataclass(frozen=True)
+class NotEstimated:
+    """Why nothing was selected: ``rejected`` the objects the detector did not take as container candidates, as
+    (reason, frames) in order of first appearance (a frame once per object: ``Event.reason`` of the ``skipped``
+    events), and ``usable`` how many detections have depth (none of them chosen: score <= threshold or excluded)."""
 
-    rejected = defaultdict(list)
+    rejected: tuple = ()
+    usable: int = 0
+
+    def _summary(self) -> str:
+        parts = []
+        for what, frames in self.rejected:
+            fr = sorted(set(frames))
+            span = f"frame {fr[0]}" if len(fr) == 1 else f"frames {fr[0]}–{fr[-1]}"
+            parts.append(f"{len(frames)} × {what} ({span})")
+        rest = (f"; {self.usable} other detection(s) with depth not chosen (score <= threshold or excluded)"
+                if self.usable else "")
+        return f"only border-cut / implausibly sized objects: {', '.join(parts)}{rest}"
+
+    def message(self) -> str:
+        """The ``not_estimated`` event's line: "only border-cut / implausibly sized objects: 14 × border-cut object
+        (frames 0–7), ...: mass not estimated (-1)" when the detector rejected objects, else "no detection with
+        depth: mass not estimated (-1)"."""
+        if not self.rejected:
+            return "no detection with depth: mass not estimated (-1)"
+        return f"{self._summary()}: mass not estimated (-1)"
+
+    def warning(self) -> str | None:
+        """The line a command warns with ("not estimated: only border-cut / implausibly sized objects: ..."); None
+        when the detector rejected nothing (nothing more to say than the estimate of -1)."""
+        return f"not estimated: {self._summary()}" if self.rejected else None
+
+
+def why_not_estimated(dets: Detections, events=()) -> NotEstimated:
+    """The ``NotEstimated`` of a recording whose selection is empty, from its ``skipped`` events' reasons
+    (``Event.reason``: objects the detector rejected) and its detections."""
+    rejected: dict[str, list[int]] = {}
     for e in events:
-        if e.kind == "skipped" and e.message.startswith(REJECTED_PREFIX):
-            what = re.sub(r"[,(].*", "", e.message[len(REJECTED_PREFIX):]).strip()
-            rejected[what].append(int(e.frame))
+        if e.kind == "skipped" and e.reason:
+            rejected.setdefault(e.reason, []).append(int(e.frame))
     if not rejected:
-        return "no detection with depth: mass not estimated (-1)"
-    parts = []
-    for what, frames in rejected.items():
-        fr = sorted(set(frames))
-        span = f"frame {fr[0]}" if len(fr) == 1 else f"frames {fr[0]}–{fr[-1]}"
-        parts.append(f"{len(frames)} × {what} ({span})")
+        return NotEstimated()
     usable = int(np.isfinite(np.asarray(dets.d, dtype=np.float64)).sum()) if len(dets) else 0
-    rest = f"; {usable} other detection(s) with depth not chosen (score <= threshold or excluded)" if usable else ""
-    return f"only border-cut / implausibly sized objects: {', '.join(parts)}{rest}: mass not estimated (-1)"
+    return NotEstimated(rejected=tuple((what, tuple(frames)) for what, frames in rejected.items()), usable=usable)
+
+
+def not_estimated_reason(dets: Detections, events=()) -> str:
+    """Why nothing was selected, in one line (``why_not_estimated(dets, events).message()``)."""
+    return why_not_estimated(dets, events).message()
 
 
 def estimate_mass(pred: np.ndarray, selection: np.ndarray) -> float:

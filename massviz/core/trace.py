@@ -7,13 +7,15 @@ without running the detector or the model again (every detection already carries
 A trace saves to a single ``.npz`` (no pickle; ``massviz.io.trace_file.save_trace`` / ``load_trace``): JSON header +
 parallel arrays + packed masks + PNG-encoded patches. This module reads and writes no file.
 
-Every trace carries its **tracks** (``detections.track``, ``massviz.core.tracks``) and the **flags** of its selection
-(``flags``, ``massviz.core.flags.analyse``: which chosen patches are probably not the container, and the estimate
-without them). Both are made when a trace is made (untracked detections are tracked, flags of another selection are
-recomputed: ``reselect`` and ``dataclasses.replace`` get fresh flags), saved with it (array ``det_track``, header
-``flags``) and, when a file of format 2 written before them lacks them, computed on load. Making them is pure
-computation: constructing, replacing or re-selecting a trace opens no file (the ground truth's masks are read by io,
-``massviz.io.ground_truth.with_ground_truth``, into per-detection overlaps the flags read).
+A ``Trace`` is plain data: constructing it or ``dataclasses.replace`` computes nothing. Its **tracks**
+(``detections.track``, ``massviz.core.tracks``) and the **flags** of its selection (``flags``,
+``massviz.core.flags.analyse``: which chosen patches are probably not the container, and the estimate without them) are
+computed by explicit stages: the pipeline's ``FramePipeline.finish`` (tracks as frames are processed, flags once at the
+end), ``Trace.reselect`` (flags of the new selection) and ``analyse_trace`` (for a trace whose recording, detections or
+ground-truth overlaps were replaced, or a file written before tracks and flags were saved: what is missing or no longer
+describes the trace). They are saved with the trace (array ``det_track``, header ``flags``). Computing them opens no
+file (the ground truth's masks are read by io, ``massviz.io.ground_truth.with_ground_truth``, into per-detection
+overlaps the flags read).
 """
 from __future__ import annotations
 
@@ -26,9 +28,36 @@ import numpy as np
 from massviz.errors import MassvizError
 from massviz.core.detector import describe_cut
 from massviz.core.flags import Flags, analyse
+from massviz.core.measurement import Measurement, ranked_measurements
 from massviz.core.selection import NearestOrder, Selection, estimate_mass, not_estimated_reason, select_k_nearest
 from massviz.core.tracks import assign_tracks
-from massviz.core.types import Detections, GroundTruth, RecordingInfo, class_name
+from massviz.core.stage import FramePatches
+from massviz.core.types import Detections, Frame, GroundTruth, RecordingInfo, class_name
+
+
+@dataclass
+class FrameResult:
+    """What the pipeline computed for one frame (``massviz.core.pipeline.FramePipeline.step``), or what a finished
+    trace holds of it (``frame_results``): what a sink is given for each frame.
+
+    - ``frame``: the frame; ``detections``: its detections with d, a, b and ``pred`` (their indices in the trace are
+      ``offset + i``); ``patches``: their RGB crops (``massviz.core.stage.FramePatches``, cut when read).
+    - ``selection``: the K nearest detections *so far* (indices into the trace's detections, nearest first) and
+      ``running_estimate`` the mean of their predictions (-1 while nothing is selected).
+    - ``active``: indices into ``detections`` of those above the selection's score threshold.
+    - ``timings``: this frame's seconds per stage (read, detect, features, predict, select); ``events`` its decisions
+      (both empty for a frame of a finished trace).
+    """
+
+    frame: Frame
+    detections: Detections
+    patches: list
+    offset: int
+    selection: np.ndarray
+    running_estimate: float
+    timings: dict = field(default_factory=dict)
+    events: list = field(default_factory=list)
+    active: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
 
 class Event(NamedTuple):
@@ -38,7 +67,9 @@ class Event(NamedTuple):
     ``not_estimated``, ``skipped`` (a detection that cannot be used, e.g. its mask has no depth), ``cache`` (detections
     reused from the trace cache), ``measured`` (the 3D stage's size of a chosen patch), ``warning`` and ``info``.
     ``level`` is ``debug``, ``info`` or ``warn`` (the Rerun ``/log`` level). ``detection`` is the index into the
-    trace's detections the event is about (-1: none).
+    trace's detections the event is about (-1: none). ``reason``: what a ``skipped`` event of an object the detector
+    did not take as a container rejected it for (``massviz.core.types.Rejection.reason``, e.g. ``border-cut object``;
+    "" for every other event): what ``massviz.core.selection.why_not_estimated`` counts, never the message.
     """
 
     frame: int
@@ -46,6 +77,7 @@ class Event(NamedTuple):
     kind: str = "info"
     level: str = "info"
     detection: int = -1
+    reason: str = ""
 
     @property
     def is_selection(self) -> bool:
@@ -53,7 +85,8 @@ class Event(NamedTuple):
         return self.kind in SELECTION_KINDS
 
     def to_list(self) -> list:
-        return [int(self.frame), str(self.message), self.kind, self.level, int(self.detection)]
+        out = [int(self.frame), str(self.message), self.kind, self.level, int(self.detection)]
+        return [*out, str(self.reason)] if self.reason else out
 
 
 EVENT_KINDS = ("chosen", "estimate", "not_estimated", "skipped", "cache", "measured", "warning", "info")
@@ -75,13 +108,13 @@ class Trace:
     - ``estimate``: mean of the chosen predictions in grams; -1 when nothing was selected (not estimated).
     - ``excluded``: detection indices the user excluded (never selected).
     - ``timings``: wall time per stage in seconds; ``events``: typed ``Event`` decisions worth reading.
-    - ``measurements``: the measure stage's size of each chosen detection (``massviz.core.geometry.Measurement``
-      as dicts, read them with ``massviz.core.geometry.measurements_of``), measured by the pipeline as detections
-      enter the running K nearest (recordings with intrinsics); views only read them. ``reselect`` keeps those of
-      the detections still chosen, re-ranked.
+    - ``measurements``: the measured size of each chosen detection (``massviz.core.measurement.Measurement``),
+      filled by the measure stage (``massviz.measure``, recordings with intrinsics; empty when it did not run);
+      views only read them. ``reselect`` keeps those of the detections still chosen, re-ranked.
     - ``frame_timings``: seconds per stage for each processed frame (stage -> array aligned with ``frames``; empty
       for traces made before massviz recorded them).
-    - ``flags``: ``massviz.core.flags.Flags`` of the selection (made when the trace is; see the module docstring).
+    - ``flags``: ``massviz.core.flags.Flags`` of the selection, made by the stages that make or change the selection
+      (module docstring); None on a trace no stage has analysed yet (``analyse_trace``).
     - ``compute``: where and how the detections and predictions were computed (``FrameStage.describe``: device,
       kernels, precision, batch, mode ``faithful``/``fast``); empty for traces made before massviz recorded it.
     - ``ground_truth_source``: what the detections' ground-truth overlaps (``Detections.gt_iou`` ...) were computed
@@ -103,23 +136,19 @@ class Trace:
     timings: dict = field(default_factory=dict)
     events: list = field(default_factory=list)
     excluded: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    measurements: list = field(default_factory=list)
+    measurements: list[Measurement] = field(default_factory=list)
     frame_timings: dict = field(default_factory=dict)
     flags: Flags | None = None
     ground_truth_source: str = ""
     compute: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        # only the plain forms of the typed fields are converted (a dict, a list); nothing is computed
         if isinstance(self.recording, dict):
             self.recording = RecordingInfo.from_dict(self.recording)
         self.events = [e if isinstance(e, Event) else Event(*e) for e in self.events]
-        dets = self.detections
-        if len(dets) and (dets.track <= 0).any():
-            dets.track = assign_tracks(dets, self.recording.fps)
         if isinstance(self.flags, dict):
             self.flags = Flags.from_dict(self.flags)
-        if self.flags is None or not self.flags.describes(self):
-            self.flags = analyse(self)
 
     # -- views -----------------------------------------------------------------------------------------------------
     @property
@@ -196,10 +225,7 @@ class Trace:
         """
         k = self.k if k is None else int(k)
         threshold = self.threshold if threshold is None else float(threshold)
-        if threshold < self.detect_threshold - 1e-9:
-            raise MassvizError(f"threshold {threshold} is below the detection threshold {self.detect_threshold} "
-                               "this trace was made with; run the detector again with --threshold "
-                               f"{threshold} (detections at threshold t serve any threshold >= t)")
+        check_reselectable(threshold, self.detect_threshold)
         if exclude is None:
             excluded = self.excluded
         else:
@@ -210,16 +236,57 @@ class Trace:
         events = [e for e in self.events if not e.is_selection]
         events.extend(describe_selection(self.detections, selection, estimate, k, events, threshold=threshold,
                                          detector=str(self.detector.get("name", ""))))
-        return dataclasses.replace(self, k=k, threshold=threshold, selection=selection, estimate=estimate,
-                                   excluded=excluded, events=events,
-                                   measurements=ranked_measurements(self.measurements, selection))
+        out = dataclasses.replace(self, k=k, threshold=threshold, selection=selection, estimate=estimate,
+                                  excluded=excluded, events=events,
+                                  measurements=ranked_measurements(self.measurements, selection), flags=None)
+        return analyse_trace(out)
 
 
-def ranked_measurements(measurements: list, selection) -> list[dict]:
-    """The measurements (``Measurement.to_dict()`` dicts) of the detections in ``selection``, in its order, with
-    ``rank`` their rank in it: what a re-selected trace keeps (a newly chosen detection has none until measured)."""
-    by_detection = {int(m["detection"]): m for m in measurements}
-    return [{**by_detection[int(i)], "rank": r} for r, i in enumerate(selection) if int(i) in by_detection]
+def check_reselectable(threshold: float, detect_threshold: float) -> None:
+    """``MassvizError`` when a selection at ``threshold`` is asked of detections kept above ``detect_threshold``
+    (lower-scored boxes were never kept)."""
+    if threshold < detect_threshold - 1e-9:
+        raise MassvizError(f"threshold {threshold} is below the detection threshold {detect_threshold} "
+                           "this trace was made with; run the detector again with --threshold "
+                           f"{threshold} (detections at threshold t serve any threshold >= t)")
+
+
+def analyse_trace(trace: Trace) -> Trace:
+    """The analysis stages of ``trace``: track ids for detections that have none (``massviz.core.tracks``), then the
+    flags of its selection (``massviz.core.flags.analyse``) unless its ``flags`` already describe it
+    (``Flags.describes``: the same selection, detections, tracks, threshold, estimate and ground truth). ``trace``
+    itself when nothing is missing; else a new trace (``trace`` is not changed)."""
+    dets = trace.detections
+    if len(dets) and (dets.track <= 0).any():
+        dets = dataclasses.replace(dets, track=assign_tracks(dets, trace.recording.fps))
+        trace = dataclasses.replace(trace, detections=dets, flags=None)
+    if trace.flags is not None and trace.flags.describes(trace):
+        return trace
+    return dataclasses.replace(trace, flags=analyse(trace))
+
+
+def frame_results(trace: Trace, frames):
+    """The ``FrameResult`` of each of ``frames`` (the trace's processed frames, in order, as a reader yields them),
+    made from what ``trace`` holds: its detections of the frame, their patches cut from the frame, the running
+    selection and estimate after it and the detections above its threshold. Yields (frame, result): what a sink
+    is given for a trace that did not come from a run it observed (a trace from the cache)."""
+    dets = trace.detections
+    groups = dets.indices_by_frame()
+    selections = trace.running_selections()
+    estimates = trace.running_estimate()
+    position = {int(f): j for j, f in enumerate(trace.frames)}
+    active = trace.active()
+    for frame in frames:
+        j = position[int(frame.index)]
+        idx = groups.get(int(frame.index), np.zeros(0, dtype=np.int64))
+        offset = int(idx[0]) if len(idx) else int(np.searchsorted(dets.frame, frame.index))
+        if len(idx) and not np.array_equal(idx, np.arange(offset, offset + len(idx))):
+            raise ValueError("frame_results needs a trace whose detections are in frame order (as the pipeline "
+                             "makes them)")
+        local = dets[idx]
+        yield frame, FrameResult(frame=frame, detections=local, patches=FramePatches(frame.rgb, local.xyxy),
+                                 offset=offset, selection=selections[j], running_estimate=float(estimates[j]),
+                                 active=np.flatnonzero(active[idx]))
 
 
 def describe_detection(dets: Detections, i: int) -> str:

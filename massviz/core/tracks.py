@@ -162,9 +162,8 @@ def assign_tracks(dets: Detections, fps: float | None = None) -> np.ndarray:
     """Track ids of all ``dets`` of a recording (any order; frames taken in increasing order)."""
     ids = np.zeros(len(dets), dtype=np.int64)
     tracker = Tracker(fps)
-    for frame in np.unique(dets.frame):
-        idx = np.flatnonzero(dets.frame == frame)
-        ids[idx] = tracker.update(int(frame), dets[idx])
+    for frame, idx in dets.indices_by_frame().items():
+        ids[idx] = tracker.update(frame, dets[idx])
     return ids
 
 

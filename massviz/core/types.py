@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, fields
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import numpy as np
 
@@ -99,6 +99,18 @@ class PackedMask:
         return int(np.unpackbits(self.bits, count=int(np.prod(self.shape))).sum())
 
 
+class Rejection(NamedTuple):
+    """An object a detector saw and did not take as a container candidate: ``reason`` names the kind of object
+    (``border-cut object``, ``part of a border-cut object``, ``implausibly sized object``), ``text`` says it in full
+    (e.g. "border-cut object (box [0, 10, 80, 200] at 612 mm)")."""
+
+    reason: str
+    text: str
+
+    def __str__(self) -> str:
+        return self.text
+
+
 def _empty(dtype, shape=(0,)):
     return np.zeros(shape, dtype=dtype)
 
@@ -186,6 +198,12 @@ class Detections:
         kw = {name: np.concatenate([getattr(p, name) for p in parts]) for name in cls._ARRAYS}
         kw.update({name: [x for p in parts for x in getattr(p, name)] for name in cls._LISTS})
         return cls(**kw)
+
+    def indices_by_frame(self) -> dict[int, np.ndarray]:
+        """Frame index -> the indices of its detections (ascending), for the frames that have any, in frame order."""
+        order = np.lexsort((np.arange(len(self)), self.frame))  # by frame, then index
+        frames, starts = np.unique(self.frame[order], return_index=True)
+        return {int(f): order[s:e] for f, s, e in zip(frames, starts, [*starts[1:], len(order)])}
 
     def class_names(self) -> list[str]:
         return [class_name(c) for c in self.class_id]
@@ -310,4 +328,5 @@ class RecordingInfo:
 
 
 __all__ = [
-    "COCO_KEEP", "OBJECT_CLASS_ID", "class_name", "Intrinsics", "Frame", "Detections", "PackedMask", "GroundTruth", "RecordingInfo"]
+    "COCO_KEEP", "OBJECT_CLASS_ID", "class_name", "Intrinsics", "Frame", "Detections", "PackedMask", "GroundTruth", "RecordingInfo",
+    "Rejection"]

@@ -11,16 +11,18 @@
 """
 from __future__ import annotations
 
+import logging
 import os
-import sys
 from pathlib import Path
 
-from massviz.detect.base import Detector
+from massviz.core.detector import Detector
 from massviz.errors import MassvizError
 
 DETECTORS = ("auto", "maskrcnn", "nanodet", "depth", "replay")
 #: the file name torchvision caches the COCO Mask R-CNN checkpoint under (MaskRCNN_ResNet50_FPN_Weights.COCO_V1.url).
 MASKRCNN_COCO_FILE = "maskrcnn_resnet50_fpn_coco-bf2d0c1e.pth"
+
+_LOG = logging.getLogger(__name__)
 
 
 def maskrcnn_weights_cached() -> Path | None:
@@ -54,9 +56,9 @@ def choose_auto(detector_weights: str | Path | None = None) -> tuple[str, str]:
 
 
 def announce_auto(name: str, why: str) -> None:
-    """The line ``--detector auto`` always prints (stderr), ``--quiet`` or not, whether its detector is built or its
-    traces are served from the cache."""
-    print(f"massviz: --detector auto: using {name}: {why}", file=sys.stderr)
+    """The line ``--detector auto`` always says (an INFO record of the ``massviz`` logger: on stderr from the command
+    line), ``--quiet`` or not, whether its detector is built or its traces are served from the cache."""
+    _LOG.info("massviz: --detector auto: using %s: %s", name, why)
 
 
 def make_detector(name: str = "auto", threshold: float | None = None, *, detector_weights: str | Path | None = None,

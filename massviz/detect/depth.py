@@ -40,7 +40,7 @@ The blobs themselves do not depend on the threshold, which only filters them.
 An object held in the air scores about 1; one standing on a table, a little less (its base touches the table); a
 patch of a larger surface or something partly hidden by a nearer object scores low. The default threshold 0.4 keeps
 blobs that are free along at least 40 % of their outline (measured: every cut from 0.2 to 0.5 chooses the same
-patches on CCM 618, view1 and the samples; README, "Default score cuts").
+patches on CCM 618, view1 and the samples; docs/detectors.md, "Default score cuts").
 """
 from __future__ import annotations
 
@@ -50,7 +50,7 @@ import cv2
 import numpy as np
 
 from massviz.core.detector import DEFAULT_THRESHOLDS
-from massviz.core.types import OBJECT_CLASS_ID, Detections, Frame
+from massviz.core.types import OBJECT_CLASS_ID, Detections, Frame, Rejection
 
 
 @dataclass
@@ -87,7 +87,7 @@ class DepthDetector:
 
     def __post_init__(self) -> None:
         #: frame index -> why blobs of that frame were not candidates (``pop_notes``); not a setting.
-        self._notes: dict[int, list[str]] = {}
+        self._notes: dict[int, list[Rejection]] = {}
 
     def settings(self) -> dict:
         """Every setting that changes the output except ``threshold`` (it keys the detection cache)."""
@@ -96,8 +96,8 @@ class DepthDetector:
         out.pop("_notes", None)
         return out
 
-    def pop_notes(self, index: int) -> list[str]:
-        """Why blobs of frame ``index`` were not container candidates (one line each), once."""
+    def pop_notes(self, index: int) -> list[Rejection]:
+        """Why blobs of frame ``index`` were not container candidates (``Rejection``: the reason and a line), once."""
         return self._notes.pop(int(index), [])
 
     def detect(self, frame: Frame) -> Detections:
@@ -130,17 +130,18 @@ class DepthDetector:
             size = (np.ptp(xs) + 1) * zb / fx, (np.ptp(ys) + 1) * zb / fx
             if (blob & edge).any():
                 cut |= blob
-                notes.append(f"border-cut object ({where})")
+                notes.append(Rejection("border-cut object", f"border-cut object ({where})"))
                 continue
             touching = cv2.dilate(blob.astype(np.uint8), near_kernel) > 0
             attached = touching & cut
             if attached.any() and abs(float(np.median(z[attached & (depth > 0)])) - zb) <= self.slab_mm \
                     if (attached & (depth > 0)).any() else False:
                 cut |= blob
-                notes.append(f"part of a border-cut object ({where})")
+                notes.append(Rejection("part of a border-cut object", f"part of a border-cut object ({where})"))
                 continue
             if max(size) > self.max_size_mm:
-                notes.append(f"implausibly sized object, {size[0]:.0f}×{size[1]:.0f} mm ({where})")
+                notes.append(Rejection("implausibly sized object",
+                                       f"implausibly sized object, {size[0]:.0f}×{size[1]:.0f} mm ({where})"))
                 continue
             found.append((blob, separation(blob, z, depth == 0, self.jump_mm)))
         if notes:

@@ -31,7 +31,7 @@ Reduced precision (``precision="bf16"`` on CPUs with bf16 support or CUDA, ``"fp
 and MLP stages (backbone + FPN, RPN head, box head, mask head and predictor) run under ``torch.autocast`` and hand
 float32 on; box regression, box decoding, NMS, RoIAlign and mask pasting stay float32 (under a whole-model autocast
 the proposals are decoded in bf16, whose 8-bit mantissa puts a 1000-pixel coordinate on a 4–8 pixel grid). Results
-*differ*: measure how much on your data with ``massviz compare`` (README, "Speed").
+*differ*: measure how much on your data with ``massviz compare`` (docs/speed.md).
 """
 from __future__ import annotations
 
@@ -51,15 +51,6 @@ from massviz.errors import MassvizError, WeightsError
 
 MASK_THRESHOLD = 0.5
 _DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
-
-
-def torchvision_weights_cached() -> Path | None:
-    """Path of torchvision's cached COCO Mask R-CNN checkpoint, if it was downloaded before."""
-    from torchvision.models.detection import MaskRCNN_ResNet50_FPN_Weights
-
-    url = MaskRCNN_ResNet50_FPN_Weights.COCO_V1.url
-    path = Path(torch.hub.get_dir()) / "checkpoints" / Path(url).name
-    return path if path.is_file() else None
 
 
 def _construct(threshold: float, skip_init: bool) -> torch.nn.Module:

@@ -40,7 +40,7 @@ box, not whatever is nearest in it (the table in front of a cup seen from above 
 
 A box with too little depth (fewer than ``min_depth_fraction`` of its pixels) gets an empty mask: its d is NaN and
 the detection is never chosen (reported as skipped), rather than a guess. Measured on CCM 618 and on ray-cast mugs
-and boxes seen from 20-65° above (README, "Detectors").
+and boxes seen from 20-65° above (docs/detectors.md).
 
 **How d differs from the paper's.** The paper's d is the mean depth over Mask R-CNN's instance mask: the object's
 silhouette as the network sees it, including whatever the depth sensor measured through or beside it (the wall
@@ -50,7 +50,7 @@ with it does (a hand holding it, a cup's rim and the inside seen over it), and a
 missing or seen-through yields the depth of what is behind it at the box's centre (often the hand, or nothing: NaN). On an opaque container d
 is the mean of its visible surface, typically a little nearer than the paper's d. a and b (box ratios) depend on
 NanoDet's boxes, which are not Mask R-CNN's: the mass CNN was trained on Mask R-CNN crops, so estimates differ from
-the paper's even on the same frames (README, "Detectors").
+the paper's even on the same frames (docs/detectors.md).
 """
 from __future__ import annotations
 

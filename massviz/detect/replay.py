@@ -22,7 +22,6 @@ is allocated. Anything else is one ``DataError`` naming the file and the detecti
 """
 from __future__ import annotations
 
-from collections import defaultdict
 from pathlib import Path
 
 import cv2
@@ -101,11 +100,6 @@ def _load_json(path: Path) -> tuple[Detections, list[Path], dict[int, tuple[int,
     return Detections(frame=frames, xyxy=boxes, score=scores, class_id=classes, masks=masks), files, frame_sized
 
 
-def load_detections(path: str | Path) -> Detections:
-    """All detections of a replay source (trace .npz or JSON). Full-box masks of a JSON source are None."""
-    return _load(Path(path))[0]
-
-
 def _load(path: Path) -> tuple[Detections, list[Path], float, dict[int, tuple[int, int]]]:
     """The detections, the mask files they name, the default score cut (a trace's own selection cut: what the run
     it replays chose with; a JSON file's: the paper's) and the sizes of full-frame masks (see ``_load_json``)."""
@@ -128,9 +122,7 @@ class ReplayDetector:
         self.source = Path(source)
         dets, self._files, self.default_threshold, self._frame_sized = _load(self.source)
         self.threshold = self.default_threshold if threshold is None else float(threshold)
-        self._by_frame = defaultdict(list)
-        for i, f in enumerate(dets.frame):
-            self._by_frame[int(f)].append(i)
+        self._by_frame = dets.indices_by_frame()
         self._dets = dets
 
     def settings(self) -> dict:
@@ -141,8 +133,8 @@ class ReplayDetector:
                 "masks": [file_digest(p) for p in self._files]}
 
     def detect(self, frame: Frame) -> Detections:
-        idx = self._by_frame.get(frame.index, [])
-        for i in idx:
+        idx = self._by_frame.get(frame.index, np.zeros(0, dtype=np.int64))
+        for i in idx.tolist():
             if (size := self._frame_sized.get(i)) is not None and size != (frame.width, frame.height):
                 raise DataError(f"detection {i}: its mask is a {size[0]}x{size[1]} image, neither its box nor a "
                                 f"{frame.width}x{frame.height} frame (is this replay file for this recording?)",

@@ -7,7 +7,7 @@ from collections.abc import Iterable
 
 import pandas as pd
 
-from massviz.evaluation.metrics import ANN_MASS
+from massviz.io.ccm_annotations import ANN_MASS
 
 #: M4's interval in grams.
 RANDOM_RANGE_G = (1.0, 351.0)

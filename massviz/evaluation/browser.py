@@ -78,11 +78,15 @@ def recording_properties(trace: Trace, *, source: str = "", view: int = 0, n_inp
     return props
 
 
+#: the decimals a property keeps in the catalog (``rounded_properties``): grams to 0.01 g, ratios to 4 decimals
+SHOWN_DIGITS = {"estimate_g": 2, "gt_mass_g": 2, "score": 4, "rel_error": 4, "threshold": 4}
+
+
 def rounded_properties(props: dict) -> dict:
     """``props`` rounded as a table shows them (15-digit numbers are unreadable): grams to 0.01 g, ratios and the
     threshold to 4 decimals. For what is displayed (the catalog's properties); the tables keep full precision."""
     out = dict(props)
-    for key, digits in (("estimate_g", 2), ("gt_mass_g", 2), ("score", 4), ("rel_error", 4), ("threshold", 4)):
+    for key, digits in SHOWN_DIGITS.items():
         if isinstance(out.get(key), float):
             out[key] = round(out[key], digits)
     return out
@@ -257,12 +261,15 @@ def flagged_from_catalog(catalog) -> pd.DataFrame:
 
 
 def compare_summaries(a: pd.DataFrame, b: pd.DataFrame, tol: float = 1e-9) -> pd.DataFrame:
-    """``a`` and ``b`` (same recordings, ``SUMMARY_COLUMNS``) side by side with a column ``same`` per recording."""
+    """``a`` and ``b`` (same recordings, ``SUMMARY_COLUMNS``) side by side with a column ``same`` per recording: equal
+    within ``tol`` and the catalog's rounding (half a unit of the decimals ``SHOWN_DIGITS`` keeps; the tables keep full
+    precision)."""
     a, b = a.sort_index(), b.reindex(a.sort_index().index)
     same = np.ones(len(a), bool)
     for c in SUMMARY_COLUMNS:
         x, y = a[c].astype(float).to_numpy(), b[c].astype(float).to_numpy()
-        same &= (np.isnan(x) & np.isnan(y)) | (np.abs(x - y) <= tol)
+        close = tol + (0.5 * 10.0 ** -SHOWN_DIGITS[c] if c in SHOWN_DIGITS else 0.0)  # within the rounding
+        same &= (np.isnan(x) & np.isnan(y)) | (np.abs(x - y) <= close)
     return pd.concat({"pandas": a, "catalog": b}, axis=1).assign(same=same)
 
 
@@ -272,7 +279,7 @@ def tagged_rows(patches: pd.DataFrame, keys: Iterable[tuple[str, int]]) -> pd.Da
     return patches[[(str(r), int(k)) in keys for r, k in zip(patches["recording"], patches["rank"])]]
 
 
-__all__ = ["PATCH_COLUMNS", "SUMMARY_COLUMNS", "best_frame", "flag_cues", "recording_properties", "rounded_properties", "patch_rows",
+__all__ = ["PATCH_COLUMNS", "SUMMARY_COLUMNS", "SHOWN_DIGITS", "best_frame", "flag_cues", "recording_properties", "rounded_properties", "patch_rows",
            "recordings_table", "tables_from_traces", "read_dataset", "ranked", "per_class", "filter_patches",
            "cues_of", "patch_exclusions", "pandas_summary", "catalog_summary", "flagged_from_catalog",
            "compare_summaries", "tagged_rows"]

@@ -13,6 +13,8 @@ A prediction file that predicts the same recording twice is an error (there is n
 
 Notebook use::
 
+    from massviz.io.ccm_annotations import read_annotations
+
     report = score(read_predictions("F1.csv"), read_annotations("test_annotations_fold0.csv"))
     report.score_pct, report.per_class, report.per_container
     score_from_estimates({23: 6.0, 38: 36.0}, read_annotations("Val_annotations.csv"))
@@ -21,17 +23,16 @@ from __future__ import annotations
 
 import json
 import math
-import re
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple
 
 import numpy as np
 import pandas as pd
 
 from massviz.errors import DataError
-from massviz.io.challenge_csv import ANN_CONTAINER, ANN_ID, ANN_MASS, ANN_SIZES  # noqa: F401 - re-exported
+from massviz.io.ccm_annotations import (ANN_CONTAINER, ANN_ID, ANN_MASS, MAX_ID, check_unique, column_values,
+                                        parse_id, parse_number, read_table)
 
 #: Key and value columns of the challenge prediction CSV.
 PRED_ID, PRED_MASS = "Configuration ID", "Container mass"
@@ -42,137 +43,6 @@ ClassOf = Callable[[int], str] | Mapping[int, str]
 
 
 # ----------------------------------------------------------------------------------------------------------- reading
-class _Row(NamedTuple):
-    number: int  # 1-based data row (the header is not counted)
-    line: int  # line in the file
-    fields: list[str]
-
-
-_RAGGED = re.compile(r"Expected (\d+) fields in line (\d+), saw (\d+)")
-
-
-def _read_table(path: Path, required: Sequence[str]) -> tuple[list[str], list[_Row]]:
-    """Header and data rows of a CSV file (``pandas.read_csv``, every field as text), checking it is UTF-8 text,
-    has the ``required`` columns and a rectangular shape. Blank lines are skipped; rows keep their line numbers."""
-    try:
-        # header=None: the header is read as row 0, so its length is what every row must have (pandas then names
-        # the line of a longer row); shorter rows come back padded with NaN
-        frame = pd.read_csv(path, dtype=str, keep_default_na=False, skip_blank_lines=False, encoding="utf-8-sig",
-                            header=None, engine="python", on_bad_lines="error")
-    except UnicodeDecodeError:
-        raise DataError("not a CSV file (not UTF-8 text)", path) from None
-    except pd.errors.EmptyDataError:
-        raise DataError("empty file: no header row", path) from None
-    except pd.errors.ParserError as err:
-        m = _RAGGED.search(str(err))
-        if m is None:
-            raise DataError(f"not a valid CSV file ({str(err).splitlines()[0]})", path) from None
-        n_header, line, n_fields = (int(g) for g in m.groups())
-        number = _data_row_number(path, line)
-        raise DataError(f"row {number} (line {line}): {n_fields} fields, but the header has only {n_header}",
-                        path) from None
-    except OSError as err:
-        raise DataError(f"cannot read the file ({err.strerror})", path) from None
-    header = [str(name).strip() for name in frame.iloc[0].fillna("")]
-    frame = frame.iloc[1:]
-    if not any(header):
-        raise DataError("empty file: no header row", path)
-    seen = set()
-    for name in header:
-        if name in seen and name:
-            raise DataError(f"header: column '{name[:60]}' appears twice (which one holds the values?)", path)
-        seen.add(name)
-    for name in required:
-        if name not in header:
-            raise DataError(f"header: missing column '{name}' (expected a CSV with columns "
-                            f"{', '.join(repr(n) for n in required)})", path)
-    rows: list[_Row] = []
-    missing = frame.isna().to_numpy()
-    values = frame.to_numpy()
-    for i in range(len(frame)):
-        if missing[i].all():
-            continue  # a blank line
-        row = _Row(len(rows) + 1, i + 2, [str(v) for v, m in zip(values[i], missing[i]) if not m])
-        if missing[i].any():
-            first = int(missing[i].argmax())
-            raise DataError(f"row {row.number} (line {row.line}), column '{header[first]}': missing "
-                            f"(the row has {len(row.fields)} fields, the header {len(header)})", path)
-        rows.append(row)
-    return header, rows
-
-
-def _data_row_number(path: Path, line: int) -> int:
-    """The data-row number (blank lines not counted) of file line ``line``."""
-    with open(path, encoding="utf-8-sig", errors="replace") as f:
-        lines = f.read().splitlines()[1:line]
-    return sum(1 for text in lines if text.strip())
-
-
-#: largest recording / container id read from a CSV (ids are indices, never near this).
-MAX_ID = 2**31 - 1
-
-
-def _integer(text: str) -> int:
-    """A recording or container id: an integer in [0, MAX_ID] (``1e30`` would overflow the int64 columns)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise ValueError(f"{text!r} is not an integer" if text else "empty value") from None
-    if not value.is_integer():
-        raise ValueError(f"{text!r} is not an integer")
-    if not 0 <= value <= MAX_ID:
-        raise ValueError(f"{text!r} must be >= 0 and <= {MAX_ID}")
-    return int(value)
-
-
-#: largest magnitude of a mass (g) or size (mm, mL) read from a CSV (a container is far below: 1e9 g is 1000 t).
-MAX_QUANTITY = 1e9
-#: smallest true mass (g): ε divides by it (a 1e-300 g container would make ε overflow).
-MIN_TRUE_MASS_G = 1e-3
-
-
-def _number(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise ValueError(f"{text!r} is not a number" if text else "empty value") from None
-    if not math.isfinite(value):
-        raise ValueError(f"{text!r} is not a finite number")
-    if abs(value) > MAX_QUANTITY:
-        raise ValueError(f"{text[:40]!r} is beyond +-{MAX_QUANTITY:g}")
-    return value
-
-
-def _positive_mass(text: str) -> float:
-    value = _number(text)
-    if value <= 0:
-        raise ValueError(f"the true mass must be > 0 g (ε divides by it), got {text[:40]}")
-    if value < MIN_TRUE_MASS_G:
-        raise ValueError(f"the true mass must be >= {MIN_TRUE_MASS_G:g} g (ε divides by it), got {text[:40]}")
-    return value
-
-
-def _column(path: Path, header: list[str], rows: list[_Row], name: str, parse: Callable[[str], Any]) -> list:
-    """The values of column ``name`` parsed with ``parse``; a failure names the file, row and column."""
-    index = header.index(name)
-    values = []
-    for row in rows:
-        try:
-            values.append(parse(row.fields[index].strip()))
-        except ValueError as err:
-            raise DataError(f"row {row.number} (line {row.line}), column '{name}': {err}", path) from None
-    return values
-
-
-def _check_unique(path: Path, rows: list[_Row], name: str, ids: list[int]) -> None:
-    first: dict[int, int] = {}
-    for row, value in zip(rows, ids):
-        if value in first:
-            raise DataError(f"row {row.number} (line {row.line}), column '{name}': recording {value} already "
-                            f"appears in row {first[value]} (one row per recording)", path)
-        first[value] = row.number
-
-
 def read_predictions(path: str | Path) -> pd.DataFrame:
     """Read a CORSMAL challenge prediction CSV: a frame with int ``'Configuration ID'`` and float ``'Container mass'``.
 
@@ -182,39 +52,11 @@ def read_predictions(path: str | Path) -> pd.DataFrame:
     ragged row, a non-numeric or non-finite value, or a recording id that appears twice.
     """
     path = Path(path)
-    header, rows = _read_table(path, (PRED_ID, PRED_MASS))
-    ids = _column(path, header, rows, PRED_ID, _integer)
-    _check_unique(path, rows, PRED_ID, ids)
-    masses = _column(path, header, rows, PRED_MASS, _number)
+    header, rows = read_table(path, (PRED_ID, PRED_MASS))
+    ids = column_values(path, header, rows, PRED_ID, parse_id)
+    check_unique(path, rows, PRED_ID, ids)
+    masses = column_values(path, header, rows, PRED_MASS, parse_number)
     return pd.DataFrame({PRED_ID: pd.Series(ids, dtype="int64"), PRED_MASS: pd.Series(masses, dtype="float64")})
-
-
-def read_annotations(path: str | Path) -> pd.DataFrame:
-    """Read a CCM annotation CSV (``id``, ``container id``, ..., ``container mass``, ...) into a frame.
-
-    ``id`` and ``container id`` are ints in [0, 2^31), ``container mass`` (g) a finite float > 0, the size columns
-    (:data:`ANN_SIZES`, mm / mL; -1 = not given) finite floats; every other column is kept, numeric where all its
-    values parse as numbers. Raises ``DataError`` (naming file, row and column) for an unreadable or
-    non-CSV file, a missing column, a ragged row, a non-numeric value, a mass ≤ 0, a repeated id or no data rows.
-    """
-    path = Path(path)
-    header, rows = _read_table(path, (ANN_ID, ANN_CONTAINER, ANN_MASS))
-    if not rows:
-        raise DataError("no annotated recordings (only a header)", path)
-    parsers = {ANN_ID: _integer, ANN_CONTAINER: _integer, ANN_MASS: _positive_mass,
-               **{name: _number for name in ANN_SIZES}}
-    data = {}
-    for name in header:
-        if name in parsers:
-            data[name] = _column(path, header, rows, name, parsers[name])
-        else:
-            text = pd.Series([row.fields[header.index(name)] for row in rows])
-            try:
-                data[name] = pd.to_numeric(text)
-            except ValueError:
-                data[name] = text
-    _check_unique(path, rows, ANN_ID, data[ANN_ID])
-    return pd.DataFrame(data)
 
 
 # ----------------------------------------------------------------------------------------------------------- classes

@@ -15,7 +15,8 @@ import numpy as np
 import pandas as pd
 
 from massviz.errors import MassvizError
-from massviz.evaluation.metrics import ANN_CONTAINER, ANN_ID, ANN_MASS, default_class_of, recording_scores
+from massviz.evaluation.metrics import default_class_of, recording_scores
+from massviz.io.ccm_annotations import ANN_CONTAINER, ANN_ID, ANN_MASS
 from massviz.core.selection import NearestOrder, estimate_mass
 from massviz.core.trace import Trace
 

@@ -5,9 +5,11 @@ Nothing here runs the detector or the model: every detection of a trace already 
 * ``subsample(trace, stride)``: the trace as if only every ``stride``-th frame had been processed (detections whose
   ``frame % stride == 0``), with its selection and estimate recomputed. Detection indices change (the kept ones are
   renumbered in order); ``kept_indices`` maps them back.
-* ``retune(trace, k=, threshold=, stride=, exclude=)``: all four at once; ``exclude`` are indices into *this*
-  trace's detections, as for ``Trace.reselect``. For ``stride == 1`` it is exactly ``trace.reselect(k, threshold,
-  exclude)``.
+* ``retune(trace, k=, threshold=, stride=, exclude=)``: all four at once, in one ``reselect`` (one flags analysis);
+  ``exclude`` are indices into *this* trace's detections, as for ``Trace.reselect``. For ``stride == 1`` it is
+  exactly ``trace.reselect(k, threshold, exclude)``.
+* ``retuned_selection`` / ``retuned_estimate``: the selection stage alone (indices into the trace's detections and
+  their estimate), no trace made: of a ``Trace`` or a cached trace's selection index (``SelectionSource``).
 * ``score_traces(traces, ann)``: the CORSMAL score (``massviz.evaluation.metrics.ScoreReport``) of the traces' estimates,
   against an annotation CSV frame or, by default, the ground truth in the recordings' ``meta.json``.
 """
@@ -16,7 +18,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from pathlib import Path
-from typing import Sequence
+from typing import Protocol, Sequence
 
 import numpy as np
 import pandas as pd
@@ -24,43 +26,66 @@ import pandas as pd
 from massviz.evaluation.metrics import ScoreReport, default_class_of, score_from_estimates
 from massviz.evaluation.sweep import annotations_from_meta, match_annotations
 from massviz.core.selection import estimate_mass, select_k_nearest
-from massviz.core.trace import Trace
+from massviz.core.trace import Trace, check_reselectable
+from massviz.core.types import Detections
 
 
-def kept_indices(trace: Trace, stride: int) -> np.ndarray:
+def kept_indices(trace: "Trace | SelectionSource", stride: int) -> np.ndarray:
     """Indices of the detections that ``subsample(trace, stride)`` keeps (frame % stride == 0), ascending."""
     if int(stride) < 1:
         raise ValueError(f"stride must be >= 1, got {stride}")
     return np.flatnonzero(trace.detections.frame % int(stride) == 0)
 
 
+def _renumbered(n: int, keep: np.ndarray) -> np.ndarray:
+    """Old detection index -> its index among ``keep`` (-1: not kept)."""
+    renumber = np.full(n, -1, dtype=np.int64)
+    renumber[keep] = np.arange(len(keep))
+    return renumber
+
+
+def _restricted(trace: Trace, stride: int, excluded) -> Trace:
+    """``trace``'s data restricted to the frames with ``frame % stride == 0`` (detections renumbered, ``excluded``
+    and the measurements carried over renumbered), not yet selected: plain data for one ``reselect``."""
+    keep = kept_indices(trace, stride)
+    renumber = _renumbered(len(trace.detections), keep)
+    ex = renumber[np.asarray(excluded, dtype=np.int64)]
+    measurements = [dataclasses.replace(m, detection=int(renumber[int(m.detection)])) for m in trace.measurements
+                    if renumber[int(m.detection)] >= 0]
+    return dataclasses.replace(
+        trace, detections=trace.detections[keep], frames=trace.frames[trace.frames % stride == 0],
+        stride=math.lcm(int(trace.stride), stride), excluded=ex[ex >= 0], selection=np.zeros(0, dtype=np.int64),
+        measurements=measurements, flags=None)
+
+
+def _exclusions(exclude) -> np.ndarray:
+    ex = np.asarray(exclude)
+    return np.flatnonzero(ex) if ex.dtype == bool else ex.astype(np.int64).reshape(-1)
+
+
 def subsample(trace: Trace, stride: int) -> Trace:
     """``trace`` restricted to the frames with ``frame % stride == 0``; selection and estimate recomputed with the
-    trace's K and threshold, its exclusions carried over (renumbered). ``stride`` of the result is the least common
-    multiple of the trace's stride and ``stride`` (the frames a run with that stride would have processed, when the
-    trace's stride divides it)."""
+    trace's K and threshold, its exclusions and measurements carried over (renumbered). ``stride`` of the result is
+    the least common multiple of the trace's stride and ``stride`` (the frames a run with that stride would have
+    processed, when the trace's stride divides it)."""
     stride = int(stride)
-    keep = kept_indices(trace, stride)
+    kept_indices(trace, stride)  # its check of stride
     if stride == 1:
         return trace
-    renumber = np.full(len(trace.detections), -1, dtype=np.int64)
-    renumber[keep] = np.arange(len(keep))
-    excluded = renumber[np.asarray(trace.excluded, dtype=np.int64)]
-    sub = dataclasses.replace(
-        trace, detections=trace.detections[keep], frames=trace.frames[trace.frames % stride == 0],
-        stride=math.lcm(int(trace.stride), stride), excluded=excluded[excluded >= 0],
-        selection=np.zeros(0, dtype=np.int64))
-    return sub.reselect()
+    return _restricted(trace, stride, trace.excluded).reselect()
 
 
 def retune(trace: Trace, *, k: int | None = None, threshold: float | None = None, stride: int = 1,
            exclude=None) -> Trace:
     """The trace re-selected for ``k``/``threshold`` (None: keep the trace's), every ``stride``-th frame and the
-    detections ``exclude`` (indices into ``trace.detections`` or a bool mask; None keeps the trace's exclusions)."""
-    base = trace if exclude is None else trace.reselect(exclude=exclude)
-    if int(stride) == 1:
-        return base.reselect(k=k, threshold=threshold)
-    return subsample(base, stride).reselect(k=k, threshold=threshold)
+    detections ``exclude`` (indices into ``trace.detections`` or a bool mask; None keeps the trace's exclusions):
+    one ``reselect`` (one flags analysis)."""
+    stride = int(stride)
+    kept_indices(trace, stride)  # its check of stride
+    if stride == 1:
+        return trace.reselect(k=k, threshold=threshold, exclude=exclude)
+    excluded = trace.excluded if exclude is None else _exclusions(exclude)
+    return _restricted(trace, stride, excluded).reselect(k=k, threshold=threshold)
 
 
 def original_selection(trace: Trace, retuned: Trace, stride: int) -> np.ndarray:
@@ -74,7 +99,7 @@ def score_traces(traces: Sequence[Trace], ann: pd.DataFrame | None = None, class
 
     ``ann`` None: the ground truth of the recordings' ``meta.json`` (``massviz.evaluation.sweep.annotations_from_meta``; ids are
     the traces' positions, one container per recording, its class from ``container.class``). Otherwise an annotation
-    frame (``massviz.evaluation.metrics.read_annotations``) matched by the recordings' configuration ids, with ``class_of``
+    frame (``massviz.io.ccm_annotations.read_annotations``) matched by the recordings' configuration ids, with ``class_of``
     (default: the CCM classes).
     """
     return score_estimates(traces, [float(t.estimate) for t in traces], ann, class_of)
@@ -92,32 +117,34 @@ def score_estimates(traces: Sequence[Trace], estimates: Sequence[float], ann: pd
     return score_from_estimates(values, ann, class_of or default_class_of)
 
 
-def retuned_selection(trace: Trace, *, k: int, threshold: float, stride: int = 1, exclude=()) -> np.ndarray:
-    """``original_selection(trace, retune(trace, k=, threshold=, stride=, exclude=), stride)`` (indices into
-    ``trace.detections``, nearest first) without making the trace (no flags analysis); ``trace`` may be a selection
-    index (``massviz.io.cache.TraceIndex``): only its detections' columns are read."""
-    if threshold < trace.detect_threshold - 1e-9:
-        full = retune(trace, k=k, threshold=threshold, stride=stride, exclude=exclude)  # its error
-        return original_selection(trace, full, stride)
-    dets = trace.detections
-    excluded = np.asarray(exclude, dtype=np.int64).reshape(-1)
+class SelectionSource(Protocol):
+    """What the selection stage reads: a ``Trace``, or a cached trace's selection index
+    (``massviz.io.cache.TraceIndex``, its detections' columns without masks or patches)."""
+
+    detections: Detections
+    detect_threshold: float
+
+
+def retuned_selection(source: SelectionSource, *, k: int, threshold: float, stride: int = 1,
+                      exclude=()) -> np.ndarray:
+    """The selection stage alone: what ``retune(source, k=, threshold=, stride=, exclude=)`` selects, as indices
+    into ``source.detections`` (nearest first; ``original_selection`` of the retuned trace), with no trace made and
+    so no flags analysis: what a slider needs for every recording but the one shown."""
+    check_reselectable(float(threshold), source.detect_threshold)
+    dets = source.detections
+    excluded = _exclusions(exclude)
     if int(stride) == 1:
         return select_k_nearest(dets.d, dets.score, int(k), float(threshold), excluded)
-    keep = kept_indices(trace, stride)
-    renumber = np.full(len(dets), -1, dtype=np.int64)
-    renumber[keep] = np.arange(len(keep))
-    ex = renumber[excluded]
+    keep = kept_indices(source, stride)
+    ex = _renumbered(len(dets), keep)[excluded]
     return keep[select_k_nearest(dets.d[keep], dets.score[keep], int(k), float(threshold), ex[ex >= 0])]
 
 
-def retuned_estimate(trace: Trace, *, k: int, threshold: float, stride: int = 1, exclude=()) -> float:
-    """``retune(trace, k=, threshold=, stride=, exclude=).estimate`` without making the trace (no flags analysis):
-    what a slider needs for every recording but the one shown (the same predictions in the same order as
-    ``retune``'s, so the same value to the bit)."""
-    if threshold < trace.detect_threshold - 1e-9:
-        return retune(trace, k=k, threshold=threshold, stride=stride, exclude=exclude).estimate  # its error
-    return estimate_mass(trace.detections.pred,
-                         retuned_selection(trace, k=k, threshold=threshold, stride=stride, exclude=exclude))
+def retuned_estimate(source: SelectionSource, *, k: int, threshold: float, stride: int = 1, exclude=()) -> float:
+    """The estimate of ``retuned_selection`` (``retune(...).estimate``: the same predictions in the same order, so
+    the same value to the bit)."""
+    return estimate_mass(source.detections.pred,
+                         retuned_selection(source, k=k, threshold=threshold, stride=stride, exclude=exclude))
 
 
 def index_recordings(recordings, options=None, *, progress: bool = False, **kwargs) -> list:
@@ -128,7 +155,7 @@ def index_recordings(recordings, options=None, *, progress: bool = False, **kwar
     import dataclasses
 
     from massviz.app import build_pipeline
-    from massviz.io.identity import open_remembered
+    from massviz.io.identity import LocatedRecording, open_remembered
 
     pipeline = build_pipeline(options, **kwargs)
     if pipeline.cache is None:
@@ -141,7 +168,7 @@ def index_recordings(recordings, options=None, *, progress: bool = False, **kwar
                                                                        allow_partial=o.allow_partial)
         index = pipeline.cache.load_index(rec, info, o.stride, pipeline.threshold)
         if index is None or index.weights_id != getattr(pipeline.model, "weights_id", ""):
-            if not hasattr(rec, "frames"):  # recognised, not opened: open it to process it
+            if isinstance(rec, LocatedRecording):  # recognised, not opened: open it to process it
                 from massviz.io.recording import open_recording
 
                 rec = open_recording(r, allow_partial=o.allow_partial)
@@ -151,5 +178,6 @@ def index_recordings(recordings, options=None, *, progress: bool = False, **kwar
     return out
 
 
-__all__ = ["index_recordings", "kept_indices", "subsample", "retune", "retuned_estimate", "retuned_selection", "original_selection", "score_traces",
+__all__ = ["index_recordings", "kept_indices", "subsample", "retune", "retuned_estimate", "retuned_selection",
+           "original_selection", "score_traces", "SelectionSource",
            "score_estimates"]

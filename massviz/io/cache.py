@@ -15,6 +15,7 @@ Location: ``--cache PATH``, else env ``MASSVIZ_CACHE_DIR``, else the user cache 
 """
 from __future__ import annotations
 
+import logging
 import contextlib
 import functools
 import glob
@@ -22,7 +23,6 @@ import hashlib
 import json
 import os
 import shutil
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -35,6 +35,8 @@ from massviz.io.recording import Recording
 from massviz.core.trace import Trace
 from massviz.core.types import Detections, RecordingInfo
 from massviz.io.trace_file import load_trace, save_trace
+
+_LOG = logging.getLogger(__name__)
 
 
 def default_cache_dir() -> Path:
@@ -155,8 +157,8 @@ class TraceCache:
         cached. So is a frame file that changed while the run read it (no content key)."""
         entry = self.entry(recording, detector_info, trace.stride, known)
         if entry is None:
-            print(f"massviz: warning: {recording.path}: a frame file changed while it was read; the result is not "
-                  "cached", file=sys.stderr)
+            _LOG.warning("massviz: warning: %s: a frame file changed while it was read; the result is not cached",
+                         recording.path)
             return None
         path = entry / f"t{float(trace.detect_threshold)!r}.npz"  # exact: t0.4.npz, t0.40005.npz
         try:
@@ -167,8 +169,8 @@ class TraceCache:
             return saved
         except (OSError, MassvizError) as err:
             what = getattr(err, "strerror", None) or str(err)
-            print(f"massviz: warning: {path}: cannot write the trace cache entry ({what}); the result is not cached",
-                  file=sys.stderr)
+            _LOG.warning("massviz: warning: %s: cannot write the trace cache entry (%s); the result is not cached",
+                         path, what)
             return None
 
 
@@ -190,9 +192,10 @@ class TraceIndex:
     """What re-selection, sweeps, scores and the flags need of a cached trace, without its masks and patches: the
     recording's info, the detector's threshold, the stride, the model's id, the processed frames and every detection's
     columns (``Detections`` with ``masks``/``patches`` None: frame, class, score, box, d, a, b, prediction, track and
-    the ground-truth overlaps). A few kilobytes per recording. Reads like a ``Trace`` where a sweep reads one
-    (``recording``, ``detections``, ``excluded``, ``detect_threshold``, ``ground_truth``); ``trace_path`` is the full
-    trace, for the view that needs patches or masks (``load_trace``)."""
+    the ground-truth overlaps). A few kilobytes per recording. What the selection stage alone reads
+    (``massviz.evaluation.tuning.SelectionSource``: ``detections``, ``detect_threshold``) and a sweep's scores read
+    (``recording``, ``excluded``, ``ground_truth``); it is no ``Trace``: ``full_trace`` reads the full trace (patches,
+    masks, flags) for the view that needs it."""
 
     recording: RecordingInfo
     detector: dict
@@ -215,7 +218,10 @@ class TraceIndex:
 
         from massviz.io.ground_truth import with_ground_truth
 
-        return with_ground_truth(dataclasses.replace(load_trace(self.trace_path), recording=self.recording))
+        from massviz.core.trace import analyse_trace
+
+        return analyse_trace(with_ground_truth(dataclasses.replace(load_trace(self.trace_path),
+                                                                   recording=self.recording)))
 
 
 def index_path(trace_path: Path) -> Path:

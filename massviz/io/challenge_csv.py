@@ -19,11 +19,6 @@ COLUMNS = (
     "Filling type", "Empty", "Half-full", "Full", "Filling level", "Width at the top", "Width at the bottom",
     "Height", "Object safety", "Distance", "Angle difference", "Execution time",
 )
-#: Recording id, container id and empty container mass (g) columns of the CCM annotation CSV (the challenge's
-#: ground truth, read by ``massviz.evaluation.metrics.read_annotations``).
-ANN_ID, ANN_CONTAINER, ANN_MASS = "id", "container id", "container mass"
-#: Size columns of the CCM annotation CSV read as numbers (the 3D stage compares with them).
-ANN_SIZES = ("width at the top", "width at the bottom", "height", "depth", "container capacity")
 #: The value the challenge reads as "not estimated".
 NOT_ESTIMATED = -1
 

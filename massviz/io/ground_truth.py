@@ -53,8 +53,9 @@ def ground_truth_masks(trace, frame: int) -> tuple[np.ndarray, dict[int, str]] |
 
 def with_ground_truth(trace):
     """``trace`` with every detection's ground-truth overlap (``Detections.gt_iou``, ``gt_instance``,
-    ``gt_fraction``: ``massviz.core.flags.mask_overlap``) read from its recording's instance masks, and flags made
-    with them; ``trace`` itself when it has no ground truth or already carries these overlaps."""
+    ``gt_fraction``: ``massviz.core.flags.mask_overlap``) read from its recording's instance masks, its flags cleared
+    (the caller's analysis stage makes them with the overlaps: ``massviz.core.trace.analyse_trace`` or
+    ``Trace.reselect``); ``trace`` itself when it has no ground truth or already carries these overlaps."""
     source = ground_truth_source(trace.recording)
     if not source or trace.ground_truth_source == source:
         return trace
@@ -62,16 +63,16 @@ def with_ground_truth(trace):
     iou = np.full(len(dets), np.nan)
     instance = np.full(len(dets), -1, np.int32)
     fraction = np.full(len(dets), np.nan)
-    for frame in np.unique(dets.frame):
-        gt = ground_truth_masks(trace, int(frame))
+    for frame, idx in dets.indices_by_frame().items():
+        gt = ground_truth_masks(trace, frame)
         if gt is None:
             continue
         img, names = gt
-        for i in np.flatnonzero(dets.frame == frame):
+        for i in idx:
             iou[i], instance[i], fraction[i] = mask_overlap(dets.full_mask(int(i), *img.shape[:2]), img, names)
     new = Detections(**{n: getattr(dets, n) for n in Detections._ARRAYS if not n.startswith("gt_")}, gt_iou=iou,
                      gt_instance=instance, gt_fraction=fraction, masks=dets.masks, patches=dets.patches)
-    return dataclasses.replace(trace, detections=new, ground_truth_source=source)
+    return dataclasses.replace(trace, detections=new, ground_truth_source=source, flags=None)
 
 
 __all__ = ["read_instance_image", "ground_truth_masks", "with_ground_truth"]

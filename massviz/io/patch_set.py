@@ -22,7 +22,7 @@ from PIL import Image
 from massviz.core.types import GroundTruth
 from massviz.errors import DataError, MassvizError
 from massviz.io.atomic import atomic_dir, check_replaceable
-from massviz.io.challenge_csv import ANN_CONTAINER, ANN_ID, ANN_MASS
+from massviz.io.ccm_annotations import SIZE_FIELDS, annotation_of
 from massviz.io.untrusted import check_image_size, confined, safe_filename, text_id, write_csv
 
 #: file name of a patch set's index, inside the PATCHES folder.
@@ -36,11 +36,8 @@ PATCH_SET_FILES = (INDEX_NAME, IMAGES_DIR, f"{IMAGES_DIR}/*.png")
 INDEX_COLUMNS = ("file", "recording", "config_id", "rank", "frame", "a", "b", "d", "mass_g", "container_id",
                  "width_top_mm", "width_bottom_mm", "height_mm", "depth_mm", "capacity_ml", "class", "score",
                  "x1", "y1", "x2", "y2", "source", "flagged", "cues")
-#: container dimensions: index column -> (annotation CSV column, meta.json ``container`` key).
-DIMENSIONS = {"width_top_mm": ("width at the top", "width_top_mm"),
-              "width_bottom_mm": ("width at the bottom", "width_bottom_mm"),
-              "height_mm": ("height", "height_mm"), "depth_mm": ("depth", "depth_mm"),
-              "capacity_ml": ("container capacity", "capacity_ml")}
+#: container dimensions: the index columns, named as ``CcmAnnotation``'s fields and meta.json's ``container`` keys.
+DIMENSIONS = tuple(SIZE_FIELDS)
 
 
 @dataclass(frozen=True)
@@ -54,7 +51,7 @@ class Annotation:
 
 def annotation_for(recording, table: pd.DataFrame | None, path: str | Path | None = None) -> Annotation:
     """The annotation of ``recording``: its row in a CCM annotation ``table`` (read from ``path`` with
-    :func:`massviz.evaluation.metrics.read_annotations`, matched on ``id`` = the recording's integer configuration id), or,
+    :func:`massviz.io.ccm_annotations.read_annotations`, matched on ``id`` = the recording's integer configuration id), or,
     with no table, its ``meta.json`` ``container`` (``mass_g``, optional ``id`` and dimensions).
     Raises :class:`DataError` naming the file when the recording is not annotated."""
     if table is None:
@@ -67,21 +64,17 @@ def annotation_for(recording, table: pd.DataFrame | None, path: str | Path | Non
             # a CCM video (or another single file): there is no meta.json to name, the mass comes from --annotations
             raise DataError("no container mass for this recording: pass --annotations ANN.csv (the CCM annotation "
                             "file)", where)
-        dims = tuple((col, math.nan if getattr(gt, key) is None else float(getattr(gt, key)))
-                     for col, (_, key) in DIMENSIONS.items())
+        dims = tuple((col, math.nan if getattr(gt, col) is None else float(getattr(gt, col))) for col in DIMENSIONS)
         return Annotation(gt.mass_g, gt.container_id, dims)
     try:
         rec_id = int(recording.config_id)
     except ValueError:
         raise DataError(f"recording {recording.id} has no integer id to look up in the annotations",
                         path) from None
-    rows = table[table[ANN_ID] == rec_id]
-    if rows.empty:
+    row = annotation_of(table, rec_id)
+    if row is None:
         raise DataError(f"no annotation for recording {recording.id} (id {rec_id}; {recording.path})", path)
-    row = rows.iloc[0]
-    dims = tuple((col, float(row[csv_col]) if csv_col in row.index else math.nan)
-                 for col, (csv_col, _) in DIMENSIONS.items())
-    return Annotation(float(row[ANN_MASS]), int(row[ANN_CONTAINER]), dims)
+    return Annotation(row.mass_g, row.container_id, tuple((col, getattr(row, col)) for col in DIMENSIONS))
 
 
 def flag_columns(trace, detection: int) -> dict:

@@ -1,22 +1,28 @@
 """Trace files: a ``massviz.core.trace.Trace`` saved to a single ``.npz`` (no pickle) and read back, checked.
 
 The file holds a JSON header + parallel arrays + packed masks + PNG-encoded patches. Traces carry their tracks (array
-``det_track``) and flags (header ``flags``); a file of format 2 written before them lacks them and they are made when
-the trace is (``Trace.__post_init__``, pure computation); the detections' ground-truth overlaps, when the file lacks
-them, are read by :func:`load_trace` (``massviz.io.ground_truth.with_ground_truth``). A trace file is untrusted (a replay source, a cache entry):
+``det_track``) and flags (header ``flags``); a file of format 2 written before them lacks them and :func:`load_trace`
+computes them (``massviz.core.trace.analyse_trace``, pure computation, only what is missing or stale); the
+detections' ground-truth overlaps, when the file lacks them, are read by :func:`load_trace`
+(``massviz.io.ground_truth.with_ground_truth``). Events carry their ``reason`` (a sixth element, when there is one);
+the rejected objects' events of a file written before reasons get theirs from their message on load. A trace file is untrusted (a replay source, a cache entry):
 :func:`load_trace` bounds array sizes before they are allocated and checks every field (:func:`check_trace_arrays`).
 """
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
+import re
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from massviz.core.flags import Flags
-from massviz.core.trace import Event, Trace
+from massviz.core.measurement import Measurement
+from massviz.core.selection import REJECTED_PREFIX
+from massviz.core.trace import Event, Trace, analyse_trace
 from massviz.core.types import Detections, PackedMask, RecordingInfo
 from massviz.errors import MassvizError
 from massviz.io.atomic import atomic_path
@@ -37,7 +43,8 @@ def save_trace(trace: Trace, path: str | Path) -> Path:
         "detect_threshold": trace.detect_threshold, "threshold": trace.threshold, "k": trace.k,
         "stride": trace.stride, "estimate": trace.estimate, "weights_id": trace.weights_id,
         "timings": trace.timings, "events": [e.to_list() for e in trace.events],
-        "measurements": list(trace.measurements), "flags": trace.flags.to_dict(),
+        "measurements": [m.to_dict() for m in trace.measurements],
+        "flags": None if trace.flags is None else trace.flags.to_dict(),
         "frame_timing_stages": list(trace.frame_timings),
         "ground_truth_source": trace.ground_truth_source, "compute": trace.compute,
     }
@@ -79,7 +86,19 @@ def load_trace(path: str | Path) -> Trace:
     except Exception as err:  # noqa: BLE001 - a field missing, of the wrong type, shape or value
         raise MassvizError(f"not a complete massviz trace ({type(err).__name__}: {_first_line(err)})",
                            path) from None
-    return with_ground_truth(trace)  # a file from before the overlaps, or made without them: read them now
+    # a file from before the overlaps, or made without them: read them now; tracks and flags a file lacks (or flags
+    # that do not describe it) are computed
+    return analyse_trace(with_ground_truth(trace))
+
+
+def _event(fields: list) -> Event:
+    """An event of the file; a ``skipped`` event of a file written before events had reasons gets the reason its
+    message names (the depth detector's "not a container candidate: border-cut object (box ...)")."""
+    event = Event(*fields)
+    if len(fields) <= 5 and event.kind == "skipped" and event.message.startswith(REJECTED_PREFIX):
+        reason = re.sub(r"[,(].*", "", event.message[len(REJECTED_PREFIX):]).strip()
+        event = event._replace(reason=reason)
+    return event
 
 def _from_arrays(header: dict, data: dict) -> Trace:
     offsets = np.concatenate([[0], np.cumsum(data["mask_sizes"])])
@@ -89,15 +108,15 @@ def _from_arrays(header: dict, data: dict) -> Trace:
     poff = np.concatenate([[0], np.cumsum(data["patch_sizes"])])
     for j, i in enumerate(data["patch_index"]):
         patches[int(i)] = _decode_png(data["patch_bytes"][poff[j]:poff[j + 1]])
-    # det_track and the flags are absent from files written before tracks existed: made by __post_init__
+    # det_track and the flags are absent from files written before tracks existed: made by analyse_trace (load_trace)
     dets = Detections(**{name: data[f"det_{name}"] for name in Detections._ARRAYS
                          if name not in Detections._OPTIONAL or f"det_{name}" in data}, masks=masks, patches=patches)
     return Trace(recording=RecordingInfo.from_dict(header["recording"]), detector=header["detector"],
                detect_threshold=header["detect_threshold"], threshold=header["threshold"], k=header["k"],
                stride=header["stride"], frames=data["frames"], detections=dets, selection=data["selection"],
                estimate=header["estimate"], weights_id=header["weights_id"], timings=header["timings"],
-               events=[Event(*e) for e in header["events"]], excluded=data["excluded"],
-               measurements=header.get("measurements", []),
+               events=[_event(e) for e in header["events"]], excluded=data["excluded"],
+               measurements=[Measurement.from_dict(m) for m in header.get("measurements", [])],
                flags=Flags.from_dict(header["flags"]) if isinstance(header.get("flags"), dict) else None,
                frame_timings={name: data[f"frame_time_{i}"]
                               for i, name in enumerate(header.get("frame_timing_stages", []))},
@@ -223,8 +242,8 @@ def check_trace_header(header: dict, data: dict) -> None:
     for name, seconds in timings.items():
         num(seconds, f"timings.{str(name)[:40]}", lo=0)
     for i, event in enumerate(header["events"]):
-        if not (isinstance(event, list) and 2 <= len(event) <= 5):
-            raise ValueError(f"header events[{i}] must be [frame, message, kind, level, detection]")
+        if not (isinstance(event, list) and 2 <= len(event) <= 6):
+            raise ValueError(f"header events[{i}] must be [frame, message, kind, level, detection, reason]")
         num(event[0], f"events[{i}] frame", lo=-1, hi=MAX_INDEX, integral=True)
         text(event[1], f"events[{i}] message")
         if len(event) > 2 and event[2] not in EVENT_KINDS:
@@ -233,6 +252,8 @@ def check_trace_header(header: dict, data: dict) -> None:
             raise ValueError(f"header events[{i}] level must be debug, info or warn")
         if len(event) > 4:
             num(event[4], f"events[{i}] detection", lo=-1, hi=MAX_INDEX, integral=True)
+        if len(event) > 5:
+            text(event[5], f"events[{i}] reason")
     rec = header["recording"]
     try:
         text_id(rec.get("id"), "header recording.id", None)
@@ -259,8 +280,22 @@ def check_trace_header(header: dict, data: dict) -> None:
             num(intr[name], f"recording.intrinsics.{name}", lo=1, hi=MAX_INDEX, integral=True)
         num(intr["cx"], "recording.intrinsics.cx", lo=0, hi=intr["width"])
         num(intr["cy"], "recording.intrinsics.cy", lo=0, hi=intr["height"])
-    if not isinstance(header.get("measurements", []), list):
-        raise ValueError("header measurements must be a list")
+    measurements = header.get("measurements", [])
+    fields = [f.name for f in dataclasses.fields(Measurement)]
+    if not isinstance(measurements, list) or not all(isinstance(m, dict) and all(f in m for f in fields)
+                                                     for m in measurements):
+        raise ValueError(f"header measurements must be a list of objects with {', '.join(fields)}")
+    for m in measurements:
+        for name in ("rank", "detection", "frame", "n_points"):
+            num(m[name], f"measurements.{name}", lo=-1, hi=MAX_INDEX, integral=True)
+        for name in ("height_mm", "width_mm", "depth_mm"):
+            num(m[name], f"measurements.{name}")
+        try:
+            shapes = [np.asarray(m[k], dtype=np.float64).shape for k in ("center", "extent", "R")]
+        except (TypeError, ValueError):
+            shapes = []
+        if shapes != [(3,), (3,), (3, 3)]:
+            raise ValueError("header measurements: center and extent must hold 3 numbers, R 3×3")
     if "flags" in header and header["flags"] is not None and not isinstance(header["flags"], dict):
         raise ValueError("header flags must be an object")
     stages = header.get("frame_timing_stages", [])

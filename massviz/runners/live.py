@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 from tqdm.auto import tqdm
 
+from massviz.core.trace import analyse_trace
 from massviz.errors import MassvizError
 from massviz.io.formats.folder import FolderFrameWriter
 
@@ -221,7 +222,7 @@ class _StopFlag:
 
 def run_live(stream, frame_pipeline, *, logger=None, duration: float | None = None, save: str | Path | None = None,
              max_frames: int | None = None, progress: bool = False, name: str = "live", source: str = "") -> LiveResult:
-    """Run a live session (see the module docstring). ``stream``: a started-or-not ``massviz.io.realsense
+    """Run a live session (see the module docstring). ``stream``: a started-or-not ``massviz.io.formats.realsense_live
     .LiveStream``; ``frame_pipeline``: a fresh ``FramePipeline``; ``logger``: a ``LiveLogger`` or None;
     ``duration``: seconds (None: until Ctrl-C or the end of a file); ``max_frames``: stop after that many processed
     frames; ``save``: folder for the processed frames. The stream is stopped and the logger closed on return."""
@@ -313,7 +314,7 @@ def run_live(stream, frame_pipeline, *, logger=None, duration: float | None = No
             raise MassvizError(f"{stream.description}: no frame was processed ({stats.stopped or 'stopped'})")
         fp.recording.num_frames = stats.processed
         fp.recording.meta.setdefault("live", {}).update(live_meta(stats, source or stream.description))
-        trace = fp.finish()
+        trace = fp.finish(analyse=False)  # analysed once, with the saved recording's info when there is one
         saved = saved_recording = None
         if writer is not None:
             meta = dict(fp.recording.meta, id=name, fps=info.fps)
@@ -323,6 +324,7 @@ def run_live(stream, frame_pipeline, *, logger=None, duration: float | None = No
             saved_recording = writer.recording()
             trace = dataclasses.replace(trace, recording=saved_recording.info())
             writer = None
+        trace = analyse_trace(trace)
         if logger is not None:
             logger.close(trace, timings={"live_seconds": stats.seconds}, summary=stats.summary())
             logger = None

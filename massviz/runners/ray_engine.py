@@ -24,6 +24,7 @@ actor never waits a round trip for its next recording). ``_dispatch`` is the ~40
 """
 from __future__ import annotations
 
+import logging
 import os
 import re
 import sys
@@ -33,6 +34,8 @@ from collections import deque
 from massviz.errors import MassvizError
 from massviz.io.endpoint import CONNECT_TIMEOUT_S, host_port, reach_grpc
 from massviz.runners.worker import FAULT_ENV, Outcome, RecordingWorker
+
+_LOG = logging.getLogger(__name__)
 
 #: restarts of a dead actor process, and retries of each call it was running, that Ray makes.
 MAX_RETRIES = 3
@@ -213,7 +216,7 @@ def _wait(ray, refs, log=None, slow: str = "", after: float = 60.0):
     while pending:
         _, pending = ray.wait(pending, num_returns=len(pending), timeout=0.5)
         if pending and slow and time.monotonic() - t0 > after:
-            (log or (lambda m: print(m, file=sys.stderr)))(slow)
+            (log or _LOG.warning)(slow)
             slow = ""
     return ray.get(list(refs))
 

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from massviz.errors import MassvizError
+from massviz.io.identity import LocatedRecording
 
 #: test-only fault injection (Ray engine): the worker process that gets the recording with this id dies once,
 #: after reading its first frame (``os._exit``, as a crash); Ray restarts it and retries the recording.
@@ -93,9 +94,9 @@ class RecordingWorker:
         try:
             # a pipeline may open recordings its own way (the warm path: recognised from file identities)
             opener = getattr(self.pipeline, "open_recording", open_recording)
-            # the recording opened up front is used when it can give frames (a LocatedRecording, recognised from
-            # file identities, cannot: the pipeline's opener opens it its own way)
-            rec = recording if recording is not None and hasattr(recording, "frames") else \
+            # the recording opened up front is used when it was opened (a LocatedRecording, recognised from file
+            # identities, has no frames: the pipeline's opener opens it its own way)
+            rec = recording if recording is not None and not isinstance(recording, LocatedRecording) else \
                 opener(task.path, allow_partial=self.pipeline.options.allow_partial)
             if fault is not None:
                 fault(rec)

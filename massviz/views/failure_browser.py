@@ -199,7 +199,7 @@ class RecordingViewer:
         import rerun as rr
 
         from massviz.views.rerun_dataset import rrd_name
-        from massviz.views.rerun_log import APPLICATION_ID, use_local_notebook_assets
+        from massviz.views.rerun.output import APPLICATION_ID, use_local_notebook_assets
 
         use_local_notebook_assets()  # before rerun_notebook is imported
         from rerun.notebook import Viewer

@@ -1,6 +1,7 @@
 """Open3D as a sink: .ply files, the offscreen renderer and the interactive window, all drawn from a trace.
 
-The geometry (clouds, measured boxes) comes from ``massviz.core.geometry``; this module only writes and draws it.
+The clouds and measured boxes come from the measure stage (``massviz.measure.stage.MeasureStage``): this module only
+writes and draws them (the scene around them is back-projected here, for the picture).
 Axes are the camera frame (RDF: x right, y down, z forward); Open3D's viewers look down -z with y up, so the renderers
 set their cameras accordingly.
 """
@@ -16,9 +17,8 @@ from pathlib import Path
 import numpy as np
 from massviz._open3d import o3d
 
-from massviz.core.geometry import (DEPTH_TRUNC_M, _by_frame, detection_cloud, measurements_of,
-                                   require_intrinsics, rgbd_cloud, scene_cloud, skip_reason)
 from massviz.core.types import Intrinsics
+from massviz.measure.geometry import DEPTH_TRUNC_M, measured_box, require_intrinsics, rgbd_cloud
 from massviz.errors import MassvizError
 from massviz.io.atomic import atomic_path, native_stderr
 from massviz.views.palette import BOX_COLOUR, CHOSEN_COLOUR, FLAGGED_COLOUR, rgb255
@@ -56,50 +56,30 @@ class PlyFiles(dict):
         return text
 
 
-def write_ply(out_dir: str | Path, trace, recording, *, frames=None, depth_trunc: float = DEPTH_TRUNC_M) -> PlyFiles:
-    """Write .ply clouds into ``out_dir`` and return them (``PlyFiles``: {file name: point count}, and the empty
-    clouds left unwritten in ``.empty``).
-
-    For each frame in ``frames`` (default: the frames of the chosen detections): ``scene_<frame>.ply`` (the whole
-    frame) and ``detection_<id>.ply`` for every detection of that frame above the trace's threshold (``id`` = index
-    in ``trace.detections``); the chosen ones also as ``chosen_<rank>.ply``. Nothing is written (and an empty
-    ``PlyFiles`` returned) for a recording without intrinsics.
-    """
+def write_ply(out_dir: str | Path, clouds) -> PlyFiles:
+    """Write ``clouds`` ((file name, cloud) pairs, ``MeasureStage.ply_clouds``: the scene, each detection and the
+    chosen ones of the chosen frames) into ``out_dir`` as binary .ply files and return them (``PlyFiles``: {file
+    name: point count}, and the empty clouds left unwritten in ``.empty``). ``clouds`` None (a recording without
+    intrinsics): nothing written, not even ``out_dir``."""
     written = PlyFiles()
-    if skip_reason(recording):
+    if clouds is None:
         return written
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    intr, dets = recording.intrinsics, trace.detections
-    rank_of = {int(i): r for r, i in enumerate(trace.selection)}
-    if frames is None:
-        frames = sorted({int(dets.frame[i]) for i in trace.selection})
-    active = np.flatnonzero(trace.active())
-    groups = _by_frame([i for i in active if int(dets.frame[i]) in set(int(f) for f in frames)], dets)
-
-    def save(name: str, pcd) -> None:
+    for name, pcd in clouds:
         if len(pcd.points) == 0:
             written.empty.append(name)
         else:
             written[save_cloud(out_dir / name, pcd).name] = len(pcd.points)
-
-    for frame in recording.frames(indices=frames):
-        save(f"scene_{frame.index:06d}.ply", scene_cloud(frame, intr, depth_trunc=depth_trunc))
-        for i in groups.get(frame.index, []):
-            pcd = detection_cloud(frame, dets, i, intr, depth_trunc=depth_trunc)
-            save(f"detection_{i}.ply", pcd)
-            if i in rank_of:
-                save(f"chosen_{rank_of[i]}.ply", pcd)
     return written
 
 
-def write_ply_or_skip(out_dir: str | Path, trace, recording) -> str:
-    """``write_ply`` with the default frames; returns the one line to print (what was written, or why nothing)."""
-    reason = skip_reason(recording)
-    if reason:
-        return reason
-    written = write_ply(out_dir, trace, recording)
-    return f"{recording.id}: wrote {written.describe()} to {out_dir}"
+def write_ply_or_skip(out_dir: str | Path, clouds, *, recording_id: str, skip: str | None) -> str:
+    """``write_ply``; returns the one line to print (what was written, or ``skip``: why nothing)."""
+    if skip:
+        return skip
+    written = write_ply(out_dir, clouds)
+    return f"{recording_id}: wrote {written.describe()} to {out_dir}"
 
 
 def box_lineset(obb: o3d.geometry.OrientedBoundingBox, colour=BOX_COLOUR) -> o3d.geometry.LineSet:
@@ -109,9 +89,10 @@ def box_lineset(obb: o3d.geometry.OrientedBoundingBox, colour=BOX_COLOUR) -> o3d
 
 
 # ------------------------------------------------------------------------------------------------ views
-def frame_geometries(trace, recording, frame_index: int | None = None, *, depth_trunc: float = DEPTH_TRUNC_M
-                     ) -> tuple[int, list[tuple[str, object]]]:
-    """(frame, [(name, geometry)]) to draw: the scene cloud with the chosen detections' points recoloured
+def frame_geometries(trace, recording, clouds: dict, frame_index: int | None = None, *,
+                     depth_trunc: float = DEPTH_TRUNC_M) -> tuple[int, list[tuple[str, object]]]:
+    """(frame, [(name, geometry)]) to draw: the scene cloud with the chosen detections' clouds (``clouds``:
+    {detection: cleaned cloud} of the chosen ones, ``MeasureStage.clouds_of``) recoloured
     (``CHOSEN_COLOUR``, flagged ones ``FLAGGED_COLOUR``: the palette the Rerun and notebook views use) and their
     oriented boxes as line sets (a flagged one's in ``FLAGGED_COLOUR``). ``frame_index`` defaults to the frame of the
     nearest chosen detection; a frame without a chosen patch (or a trace without any) is a ``MassvizError`` naming
@@ -136,16 +117,16 @@ def frame_geometries(trace, recording, frame_index: int | None = None, *, depth_
     depth = frame.depth
     scene = rgbd_cloud(frame.rgb, np.where(highlight, 0, depth).astype(np.uint16), intr, depth_trunc=depth_trunc)
     geoms: list[tuple[str, object]] = [("scene", scene)]
-    stored = {m.detection: m for m in measurements_of(trace)}
+    stored = {m.detection: m for m in trace.measurements}
     for r, i in enumerate(chosen):
-        pcd = detection_cloud(frame, dets, i, intr, depth_trunc=depth_trunc)
+        pcd = o3d.geometry.PointCloud(clouds[i])  # a copy: the stage's cloud keeps its colours
         flag = trace.flags.of(i)
         flagged = flag is not None and flag.flagged
         pcd.paint_uniform_color(FLAGGED_COLOUR if flagged else CHOSEN_COLOUR)
         geoms.append((f"chosen_{i}", pcd))
-        m = stored.get(i)  # measured by the pipeline (``Trace.measurements``): a view never measures
+        m = stored.get(i)  # measured by the measure stage (``Trace.measurements``): a view never measures
         if m is not None:
-            geoms.append((f"box_{i}", box_lineset(m.obb(), FLAGGED_COLOUR if flagged else BOX_COLOUR)))
+            geoms.append((f"box_{i}", box_lineset(measured_box(m), FLAGGED_COLOUR if flagged else BOX_COLOUR)))
     return frame.index, geoms
 
 
@@ -175,17 +156,17 @@ def view_extrinsic(target: np.ndarray, yaw_deg: float = 0.0, pitch_deg: float = 
     return _look_at(target + offset, target)
 
 
-def render_png(trace, recording, out: str | Path, *, frame_index: int | None = None, width: int = 960,
+def render_png(trace, recording, clouds: dict, out: str | Path, *, frame_index: int | None = None, width: int = 960,
                height: int = 540, yaw_deg: float = 25.0, pitch_deg: float = 15.0, point_size: float = 2.0,
                background=(1.0, 1.0, 1.0)) -> dict:
-    """Draw ``frame_geometries`` with Open3D's offscreen renderer (CPU: Filament on Mesa's llvmpipe, no display)
+    """Draw ``frame_geometries`` (``clouds``: see there) with Open3D's offscreen renderer (CPU: Filament on Mesa's llvmpipe, no display)
     into ``out`` (.png, atomically). The camera orbits the nearest chosen detection (or the scene's median point)
     from the recording camera's viewpoint by ``yaw_deg``/``pitch_deg``; 0/0 reproduces the recording's view.
     A caption names the frame and each chosen patch drawn, a flagged one as FLAGGED with why (``trace.flags``).
     Returns {"frame", "path", "seconds", "chosen" (ranks drawn), "flagged" (their ``PatchFlag``s)}."""
     t0 = time.perf_counter()
     intr = require_intrinsics(recording)
-    frame, geoms = frame_geometries(trace, recording, frame_index)
+    frame, geoms = frame_geometries(trace, recording, clouds, frame_index)
     image = render_geometries(geoms, intr, width=width, height=height, yaw_deg=yaw_deg, pitch_deg=pitch_deg,
                               point_size=point_size, background=background)
     here = [p for p in trace.flags.patches if p.frame == frame]
@@ -302,10 +283,10 @@ def require_display() -> None:
                            "view.png' for a headless picture")
 
 
-def show(trace, recording, frame_index: int | None = None) -> int:
+def show(trace, recording, clouds: dict, frame_index: int | None = None) -> int:
     """Open Open3D's interactive window on ``frame_geometries``; ``MassvizError`` when there is no display."""
     require_display()
-    frame, geoms = frame_geometries(trace, recording, frame_index)
+    frame, geoms = frame_geometries(trace, recording, clouds, frame_index)
     o3d.visualization.draw_geometries([g for _, g in geoms], window_name=f"massviz {recording.id} frame {frame}",
                                       front=[0, 0, -1], up=[0, -1, 0], lookat=_orbit_target(geoms), zoom=0.5)
     return frame

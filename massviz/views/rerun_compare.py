@@ -1,6 +1,6 @@
 """Two traces in one Rerun file, as two recordings of application ``massviz`` (``massviz compare --rrd``).
 
-Each trace is logged exactly as ``massviz log`` logs it (``log_trace``: the entity tree in the README), on its own
+Each trace is logged exactly as ``massviz log`` logs it (``log_trace``: the entity tree in docs/entity-tree.md), on its own
 recording named after its side ("A: ...", "B: ..."), plus ``/compare`` (static ``TextDocument``, markdown): the
 comparison report. The viewer lists both recordings; switch between them in its recording panel, the layout (the
 default blueprint) is the same for both. The two recordings are written to temporary files and merged into one
@@ -19,13 +19,16 @@ import rerun as rr
 
 from massviz.errors import MassvizError
 from massviz.io.atomic import atomic_path
-from massviz.views.rerun_log import APPLICATION_ID, log_trace
+from massviz.views.rerun.output import APPLICATION_ID
+from massviz.views.rerun.replay import log_trace
 
 
 def log_two_traces(sides, rrd: str | Path, *, markdown: str | None = None, progress: bool = False,
-                   video: str = "auto") -> list[str]:
+                   video: str = "auto", replay=None) -> list[str]:
     """Write ``sides`` — ``[(name, trace, recording), (name, trace, recording)]`` — into one .rrd at ``rrd``, one
-    Rerun recording per side; returns their recording ids (in order)."""
+    Rerun recording per side; returns their recording ids (in order). ``replay(trace, recording)``: (the trace
+    measured, its frames with their clouds), ``massviz.measure.stage.measured_replay``; without it no cloud is
+    logged."""
     rrd = Path(rrd)
     ids = []
     with tempfile.TemporaryDirectory(prefix="massviz-compare-") as tmp, atomic_path(rrd) as out:
@@ -36,7 +39,10 @@ def log_two_traces(sides, rrd: str | Path, *, markdown: str | None = None, progr
             stream.save(os.fspath(part))
             try:
                 stream.send_recording_name(str(name))
-                log_trace(trace, recording, stream=stream, progress=progress, video=video)
+                frames = None
+                if replay is not None:
+                    trace, frames = replay(trace, recording)
+                log_trace(trace, recording, stream=stream, progress=progress, video=video, frames=frames)
                 if markdown is not None:
                     stream.log("/compare", rr.TextDocument(markdown, media_type=rr.MediaType.MARKDOWN), static=True)
                 stream.flush()

@@ -8,7 +8,7 @@ local or Ray) and ``write_index`` at the end. OUT then holds:
   (``/patches/<rank>``, static: shown whatever the time cursor), the predictions, decisions and summary, a JPEG of the best frame (the frame of the nearest
   chosen patch, at ``/camera/rgb``, and a small ``/thumbnail``) and ``/source`` (a ``TextDocument`` naming the source
   frames, which are *referenced*, not copied: the path is also the ``source`` property). ``full=True`` logs
-  everything ``massviz log`` logs (``massviz.views.rerun_log.log_trace``: every frame, depth, masks, 3D clouds).
+  everything ``massviz log`` logs (``massviz.views.rerun.log_trace``: every frame, depth, masks, 3D clouds).
 * ``index.csv`` — one row per recording: the properties, the .rrd file and its bytes, the input bytes.
 * ``patches.csv`` and ``patches/<id>_<rank>.jpg`` — one row and one thumbnail per chosen patch (rank, frame, track,
   class, d, prediction, flag, cues, box), what the failure browser (notebook 04) shows without opening a recording.
@@ -21,6 +21,11 @@ decided), ``flagged_ranks``, ``detector``, ``k``, ``threshold``, ``stride``, ``w
 view, 0 for other recordings), ``source``, ``frames`` (processed), ``detections``, ``best_frame``, ``estimated``,
 ``input_bytes`` and ``kind`` (``light`` or ``full``). Values that are unknown (no ground truth: ``gt_mass_g``,
 ``rel_error``, ``score``; not estimated: ``estimate_g``, ``rel_error``) are left out, i.e. null in the table.
+``massviz serve`` adds ``open`` (the recording's URL at its best frame, ``…?segment_id=ID#when=frame@N``, a
+``rerun.components.Url``) as each segment's ``link`` layer: the segment table's first column, a button.
+
+Every property is a one-value list in the segment table (Rerun stores each component as a batch; there is no scalar
+property): a SQL query reads ``"property:massviz:rel_error"[1]``.
 """
 from __future__ import annotations
 
@@ -33,13 +38,14 @@ import pandas as pd
 import rerun as rr
 import rerun.blueprint as rrb
 
-from massviz.core.patches import crop
-from massviz.core.trace import Trace
+from massviz.core.trace import Trace, frame_results
 from massviz.evaluation.browser import INDEX_NAME, PATCH_COLUMNS as _PATCH_COLUMNS, PATCHES_NAME, best_frame, \
     patch_rows, recording_properties, recordings_table, rounded_properties
 from massviz.io.atomic import atomic_path
 from massviz.io.untrusted import safe_filename, write_csv
-from massviz.views import rerun_log as rl
+from massviz.views.rerun import entities as rl
+from massviz.views.rerun.output import APPLICATION_ID
+from massviz.views.rerun.replay import log_conclusion, log_opening, log_overlays, log_trace
 
 PROPERTY = "massviz"
 PATCHES_DIR = "patches"
@@ -49,6 +55,12 @@ THUMB_PX = 160
 TABLE_COLUMNS = ("id", "container_class", "rel_error", "score", "estimate_g", "gt_mass_g", "n_flagged", "cues",
                  "detector", "k", "threshold", "stride", "view", "weights_id", "source")
 PATCH_COLUMNS = (*_PATCH_COLUMNS, "thumb")
+#: the property (and first segment-table column) ``massviz serve`` adds: the recording's URL at its best frame
+OPEN = "open"
+#: the layer of each segment that holds ``OPEN`` (a recording of that property only)
+LINK_LAYER = "link"
+#: the column of segment URLs Rerun's viewer adds to a segment table (they open at the last frame)
+VIEWER_LINK_COLUMN = "recording link"
 
 
 def property_column(name: str) -> str:
@@ -93,17 +105,18 @@ def thumbnail(rgb: np.ndarray, px: int = THUMB_PX) -> np.ndarray:
 
 def _patch_images(trace: Trace, recording) -> tuple[dict[int, np.ndarray], np.ndarray | None]:
     """(chosen detection → its RGB patch, the best frame's RGB); frames are read only where the trace kept no
-    patch, and for the best frame."""
+    patch, and for the best frame; a patch the trace did not keep is its frame's result's
+    (``massviz.core.trace.frame_results``: the patches as the pipeline cut them)."""
     dets = trace.detections
     patches = {int(i): dets.patches[int(i)] for i in trace.selection if dets.patches[int(i)] is not None}
     need = {int(dets.frame[int(i)]) for i in trace.selection if int(i) not in patches}
     best = best_frame(trace)
     rgb_best = None
     if len(trace.frames) or need:
-        for frame in recording.frames(indices=sorted(need | {best})):
+        for frame, result in frame_results(trace, recording.frames(indices=sorted(need | {best}))):
             for i in trace.selection:
                 if int(i) not in patches and int(dets.frame[int(i)]) == frame.index:
-                    patches[int(i)] = crop(frame.rgb, dets.xyxy[int(i)])
+                    patches[int(i)] = result.patches[int(i) - result.offset]
             if frame.index == best:
                 rgb_best = frame.rgb
     return patches, rgb_best
@@ -113,39 +126,27 @@ def log_light(stream: rr.RecordingStream, trace: Trace, recording, patches: dict
               source_text: str) -> None:
     """The light recording (module docstring) into ``stream``."""
     dets, frames = trace.detections, [int(f) for f in trace.frames]
-    first = frames[0] if frames else 0
     rank_of = {int(i): r for r, i in enumerate(trace.selection)}
     flag_of = {p.detection: p for p in trace.flags.patches}
-    flagged = frozenset(p.detection for p in trace.flags.flagged)
-    rl.log_annotation_context(stream, trace.k)
-    rl.log_summary(stream, trace)
+    log_opening(stream, trace)
     stream.log("/source", rr.TextDocument(source_text, media_type=rr.MediaType.MARKDOWN), static=True)
-    by_frame: dict[int, list[int]] = {}
-    for i, f in enumerate(dets.frame):
-        by_frame.setdefault(int(f), []).append(i)
     best = best_frame(trace)
     log_thumbnail(stream, rgb_best)
-    for f in frames:
-        stream.set_time("frame", sequence=f)
-        if f == first and recording.intrinsics is not None:
-            rl.log_pinhole(stream, recording.intrinsics, 0.3)
-        if f == best and rgb_best is not None:
-            stream.log("/camera/rgb", rr.EncodedImage(contents=rl.jpeg_bytes(rgb_best, 85), media_type="image/jpeg"))
-        idx = by_frame.get(f, [])
-        class_ids = rl.detection_class_ids(dets, idx, rank_of, trace.threshold, flagged)
-        rl.log_detections(stream, dets, idx, class_ids, rank_of)
+    if frames and recording.intrinsics is not None:
+        stream.set_time("frame", sequence=frames[0])
+        rl.log_pinhole(stream, recording.intrinsics, 0.3)
+    if best in frames and rgb_best is not None:
+        stream.set_time("frame", sequence=best)
+        stream.log("/camera/rgb", rr.EncodedImage(contents=rl.jpeg_bytes(rgb_best, 85), media_type="image/jpeg"))
+    log_overlays(stream, trace)  # detections only: a light recording has no masks
     # the chosen patches are static: every tile shows its patch whatever the time cursor (a recording opens at its
     # best frame, before the frames some patches come from); each says its frame (``frame`` in its values)
     stream.reset_time()
     for i, rank in rank_of.items():
         if i in patches:
             rl.log_patch(stream, rank, dets, i, patches[i], flag_of.get(i), static=True)
-    rl.log_predictions(stream, trace)
-    rl.log_running(stream, trace)
-    rl.log_events(stream, trace.events, first)
-    rl.log_flags(stream, trace)
+    log_conclusion(stream, trace)
     rl.log_timings(stream, trace.timings, len(frames))
-    stream.reset_time()
 
 
 def light_blueprint(n_patches: int, flagged=()) -> rrb.Blueprint:
@@ -201,9 +202,16 @@ def patch_table_rows(trace: Trace, patches: dict, out_dir: Path | None) -> list[
 
 
 def write_recording(trace: Trace, recording, out_dir: str | Path, *, full: bool = False, view: int | None = None,
-                    video: str = "auto") -> dict:
+                    video: str = "auto", replay=None) -> dict:
     """Write ``out_dir/<id>.rrd`` for ``trace`` (light, or ``full``) with its properties, and the patch thumbnails.
+    ``replay(trace, recording)``: (the trace measured, its frames with each detection's cloud), the measure stage's
+    ``massviz.measure.stage.measured_replay``; without it the trace is logged as it is, a full one without clouds.
     Returns what ``write_index`` needs: ``properties``, ``rrd`` (file name), ``rrd_bytes``, ``patches`` (rows)."""
+    frames = None
+    if replay is not None:
+        trace, frames = replay(trace, recording)
+        if not full:
+            frames = None
     out_dir = Path(out_dir)
     (out_dir / PATCHES_DIR).mkdir(parents=True, exist_ok=True)
     view = ccm_view(recording.path) if view is None else view
@@ -211,14 +219,14 @@ def write_recording(trace: Trace, recording, out_dir: str | Path, *, full: bool 
                                  kind="full" if full else "light")
     patches, rgb_best = _patch_images(trace, recording)
     name = rrd_name(trace.recording.id)
-    stream = rr.RecordingStream(rl.APPLICATION_ID, recording_id=trace.recording.id)
+    stream = rr.RecordingStream(APPLICATION_ID, recording_id=trace.recording.id)
     with atomic_path(out_dir / name) as tmp:
         stream.save(tmp)
         try:
             stream.send_recording_name(f"massviz {trace.recording.id}")
             send_properties(stream, rounded_properties(props))
             if full:
-                rl.log_trace(trace, recording, stream=stream, video=video)
+                log_trace(trace, recording, stream=stream, video=video, frames=frames)
                 log_thumbnail(stream, rgb_best)
             else:
                 stream.send_blueprint(light_blueprint(len(trace.selection), [p.rank for p in trace.flags.flagged]),
@@ -245,12 +253,15 @@ def write_index(out_dir: str | Path, results: list[dict]) -> tuple[pd.DataFrame,
     return index, patches
 
 
-def write_dataset(traces, recordings, out_dir: str | Path, *, full: bool = False) -> tuple[pd.DataFrame, pd.DataFrame]:
+def write_dataset(traces, recordings, out_dir: str | Path, *, full: bool = False,
+                  replay=None) -> tuple[pd.DataFrame, pd.DataFrame]:
     """A dataset folder from traces made in this process (notebooks; ``massviz log --rrd-dir`` runs
-    ``write_recording`` on the dataset runner's workers instead): one .rrd per trace, then ``write_index``."""
+    ``write_recording`` on the dataset runner's workers instead): one .rrd per trace, then ``write_index``
+    (``replay``: see ``write_recording``)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    return write_index(out_dir, [write_recording(t, r, out_dir, full=full) for t, r in zip(traces, recordings)])
+    return write_index(out_dir, [write_recording(t, r, out_dir, full=full, replay=replay)
+                                     for t, r in zip(traces, recordings)])
 
 
 # ----------------------------------------------------------------------------------------------- catalog layout
@@ -260,26 +271,47 @@ def dataset_blueprint(k: int = 5) -> rrb.Blueprint:
 
 
 def table_blueprint():
-    """The segment table's layout: massviz's columns first (``TABLE_COLUMNS``), the worst relative error first.
+    """The segment table's layout: first "recording", a button with the recording's id that opens it at its best
+    frame (the ``open`` property ``massviz serve`` adds, shown as a ``rerun.components.Url``), then massviz's columns
+    (``TABLE_COLUMNS``); the segment id and the viewer's own "recording link" (it opens a recording at its last
+    frame) hidden; the worst relative error first.
     (A ``PreviewCell`` of ``/thumbnail`` needs a column of recording URLs, which the segment table has not.)"""
     from rerun.blueprint import table as rbt
     from rerun.blueprint.encodings import SortBy
 
-    columns = [rbt.Column("rerun_segment_id", name="recording")]
+    columns = [rbt.Column(property_column(OPEN), name="recording", column_type=rr.components.Url),
+               rbt.Column("rerun_segment_id", visible=False)]  # the button shows the id
     columns += [rbt.Column(property_column(c), name=c) for c in TABLE_COLUMNS if c != "id"]
+    columns.append(rbt.Column(VIEWER_LINK_COLUMN, visible=False))
     return rbt.TableBlueprint(table_layout=rbt.TableLayout(columns=columns),
                               sort_by=SortBy(property_column("rel_error"), direction="descending"))
+
+
+def write_link(path: str | Path, segment_id: str, url: str) -> Path:
+    """``path``: a recording of ``segment_id`` holding only the ``open`` property, ``url`` as a
+    ``rerun.components.Url`` (the viewer shows it as a button that opens it): what ``massviz serve`` registers as
+    each segment's ``link`` layer (``LINK_LAYER``) once the dataset's URL is known."""
+    path = Path(path)
+    stream = rr.RecordingStream(APPLICATION_ID, recording_id=segment_id)
+    try:
+        data = stream.binary_stream()  # in memory, then one write: a third of a file sink's time (~1 ms)
+        stream.send_property(PROPERTY, rr.AnyValues().with_component_override(OPEN, "rerun.components.Url", url))
+        path.write_bytes(data.read(flush=True))
+    finally:
+        stream.disconnect()
+    return path
 
 
 def save_blueprints(folder: str | Path, k: int = 5) -> tuple[Path, Path]:
     """Write the dataset's recording layout and segment-table layout as ``.rbl`` files into ``folder``."""
     folder = Path(folder)
     recording, table = folder / "massviz_recording.rbl", folder / "massviz_table.rbl"
-    dataset_blueprint(k).save(rl.APPLICATION_ID, recording)
-    table_blueprint().save(rl.APPLICATION_ID, table)
+    dataset_blueprint(k).save(APPLICATION_ID, recording)
+    table_blueprint().save(APPLICATION_ID, table)
     return recording, table
 
 
 __all__ = ["PROPERTY", "INDEX_NAME", "PATCHES_NAME", "TABLE_COLUMNS", "PATCH_COLUMNS", "property_column", "ccm_view",
            "input_bytes", "best_frame", "recording_properties", "send_properties", "write_recording", "write_index", "write_dataset",
-           "log_light", "light_blueprint", "dataset_blueprint", "table_blueprint", "save_blueprints", "rrd_name"]
+           "log_light", "light_blueprint", "dataset_blueprint", "table_blueprint", "save_blueprints", "rrd_name",
+           "OPEN", "LINK_LAYER", "write_link"]

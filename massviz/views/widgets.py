@@ -35,7 +35,7 @@ import pandas as pd
 
 from massviz.evaluation.failures import (Exclusion, chosen_table, exclusion_of, rank_by_error, save_exclusions,
                                          track_of)
-from massviz.core.trace import Trace
+from massviz.core.trace import Trace, analyse_trace
 from massviz.evaluation.sweep import SweepTable
 from massviz.core.selection import estimate_mass
 from massviz.evaluation.tuning import original_selection, retune, retuned_selection, score_estimates
@@ -434,7 +434,7 @@ class FailurePanel(TuningPanel):
         if len(table):
             table["detection"] = original_selection(full, cur, self.tuner.stride)
         excluded = list(self.tuner.modes[i])
-        none = dataclasses.replace(full, selection=np.zeros(0, dtype=np.int64))
+        none = analyse_trace(dataclasses.replace(full, selection=np.zeros(0, dtype=np.int64), flags=None))
         extra = chosen_table(none, extra=excluded).assign(why="not chosen while excluded")
         out = pd.concat([table, extra], ignore_index=True) if len(extra) else table
         out["mode"] = [self.tuner.modes[i].get(int(d), "keep") for d in out["detection"]]

@@ -3,13 +3,13 @@
 loading. One copy of each; the formats (``folder``, ``ccm``, ``realsense_file``) build on it."""
 from __future__ import annotations
 
+import logging
 import hashlib
 import json
 import math
 import os
 from collections import OrderedDict
 from contextlib import contextmanager
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
@@ -21,6 +21,8 @@ from massviz.core.types import Frame, Intrinsics, RecordingInfo
 from massviz.errors import RecordingError
 from massviz.io.untrusted import MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE, MAX_INDEX, check_image_size, number
 from massviz.io.untrusted import load_json as untrusted_json
+
+_LOG = logging.getLogger(__name__)
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
@@ -346,10 +348,11 @@ _WARNED: set[str] = set()
 
 
 def warn_once(note: str) -> None:
-    """One warning line on stderr per note and process (the user is told once)."""
+    """One warning (a WARNING record of the ``massviz`` logger: a line on stderr from the command line) per note and
+    process (the user is told once)."""
     if note not in _WARNED:
         _WARNED.add(note)
-        print(f"massviz: warning: {note}", file=sys.stderr)
+        _LOG.warning("massviz: warning: %s", note)
 
 
 # ------------------------------------------------------------------------------------------------------- JSON

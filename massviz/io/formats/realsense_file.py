@@ -110,11 +110,6 @@ class RealSenseRecording(RecordingBase):
     _depth_cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     DEPTH_CACHE: ClassVar[int] = 4
-    #: TEMPORARY, for views not yet moved to ``video_file()``/``Frame.rgb_encoded`` (issue 19's sinks part): this
-    #: format has no frame files and no video. Class constants, not fields; remove when the sinks use only the
-    #: ``Recording`` protocol.
-    rgb_video: ClassVar[None] = None
-    rgb_files: ClassVar[None] = None
 
     def input_files(self) -> list[Path]:
         """The RealSense file itself: the content key (``fingerprint``) hashes its bytes."""

@@ -3,11 +3,11 @@
 The package: ``entities`` (one small ``log_*`` function per kind of data, in the style of Rerun's ``rgbd`` and
 ``detect_and_track_objects`` examples), ``blueprint`` (the default layout), ``replay`` (a trace -> a recording
 stream: ``log_trace``), ``live`` (``LiveLogger``: a live session frame by frame), ``output`` (where a stream goes:
-.rrd file, spawned or running viewer, a caller's stream, the notebook's inline viewer) and ``rrd_reader`` (test
-support: reading an .rrd back). Sinks only read: they log results (traces, frames, step results) and never run a
-stage or measure.
+.rrd file, spawned or running viewer, a caller's stream, the notebook's inline viewer). Sinks only read: they log
+results (traces, frames, step results, the measure stage's clouds) and never run a stage or measure
+(``massviz.runners.replay.log_trace`` gives ``log_trace`` the measure stage's clouds).
 
-Entity tree (a public contract; the README copies it). Everything temporal is on the ``frame`` timeline (sequence =
+Entity tree (a public contract; docs/entity-tree.md copies it). Everything temporal is on the ``frame`` timeline (sequence =
 frame index in the recording); a video asset's frames are also on ``video_time``.
 
 =============================  ========================================================================================
@@ -44,7 +44,7 @@ entity                         what is logged
                                the first and the last processed frame (absent when unknown)
 ``/world/detections/<id>``     ``Points3D``: detection ``id``'s cleaned Open3D cloud (chosen ones highlighted), with
                                ``/box`` (``Boxes3D``, measured box of a chosen one) and ``/measurement`` (AnyValues);
-                               see ``log_frame_clouds`` (clouds from ``massviz.core.geometry``) (only with intrinsics; ``clouds=False`` skips)
+                               see ``log_frame_clouds`` (clouds from the measure stage, ``massviz.measure.stage``) (only with intrinsics; ``clouds=False`` skips)
 ``/log``                       ``TextLog`` of the decisions (trace events, missing intrinsics, video fallback) with
                                levels, at their frames; one WARN per flagged patch at its frame and the flags'
                                summary line ("3 of 5 chosen patches look like another object ...") at the last
@@ -66,8 +66,8 @@ from massviz.views.rerun.blueprint import blueprint_for, default_blueprint
 from massviz.views.rerun.entities import CHOSEN_ID, CLASS_IDS, FLAGGED_ID, MAX_POINTS, POINT_STEP, RgbLogger
 from massviz.views.rerun.entities import log_clouds, log_flags, log_frame_clouds
 from massviz.views.rerun.output import APPLICATION_ID, use_local_notebook_assets
-from massviz.views.rerun.replay import log_trace, show_in_notebook
+from massviz.views.rerun.replay import log_trace
 
 __all__ = ["log_trace", "log_flags", "default_blueprint", "log_clouds", "log_frame_clouds", "RgbLogger", "CLASS_IDS",
-           "CHOSEN_ID", "FLAGGED_ID", "POINT_STEP", "MAX_POINTS", "blueprint_for", "show_in_notebook",
+           "CHOSEN_ID", "FLAGGED_ID", "POINT_STEP", "MAX_POINTS", "blueprint_for",
            "use_local_notebook_assets", "APPLICATION_ID"]

@@ -85,8 +85,8 @@ def _target(trace: Trace, recording):
         return None
     i = int(trace.selection[0])
     for m in trace.measurements:
-        if int(m["detection"]) == i:
-            return [float(v) for v in m["center"]]
+        if m.detection == i:
+            return [float(v) for v in m.center]
     d = float(trace.detections.d[i])
     if not np.isfinite(d):
         return None

@@ -162,7 +162,7 @@ def scene_depth_m(depth: np.ndarray) -> float:
 def log_points(rec: rr.RecordingStream, depth: np.ndarray, rgb: np.ndarray, intr: Intrinsics, step: int,
                max_points: int) -> int:
     """``/world/points`` of one frame (at most ``max_points``, evenly subsampled); returns the number logged."""
-    from massviz.core.geometry import depth_to_points  # Open3D: imported only with --points
+    from massviz.measure.geometry import depth_to_points  # Open3D: imported only with --points
 
     points, colours = depth_to_points(depth, intr, rgb, step)
     if max_points > 0 and len(points) > max_points:
@@ -173,14 +173,16 @@ def log_points(rec: rr.RecordingStream, depth: np.ndarray, rgb: np.ndarray, intr
 
 
 # ------------------------------------------------------------------------------------------ detections and masks
-def detection_class_ids(dets: Detections, idx: list[int], rank_of: dict[int, int], threshold: float,
+def detection_class_ids(dets: Detections, idx: list[int], rank_of: dict[int, int], active: np.ndarray,
                         flagged=frozenset()) -> np.ndarray:
-    """Annotation class id of each detection in ``idx``: flagged or chosen rank, below threshold, or its class."""
+    """Annotation class id of each detection in ``idx``: flagged or chosen rank, below the selection's threshold
+    (``active``: one bool per detection of ``dets``, True above it: ``Trace.active``, ``FrameResult.active``), or
+    its class."""
     out = []
     for i in idx:
         if i in rank_of:
             out.append((FLAGGED_ID if i in flagged else CHOSEN_ID) + rank_of[i])
-        elif dets.score[i] <= threshold:
+        elif not active[i]:
             out.append(BELOW_THRESHOLD_ID)
         else:
             out.append(class_id_of(class_name(dets.class_id[i])))
@@ -428,18 +430,15 @@ def log_timings(rec: rr.RecordingStream, timings: dict, n_frames: int) -> None:
 
 
 # ------------------------------------------------------------------------------------------------ 3D clouds
-def log_detection_clouds(stream, frame: Frame, dets: Detections, ids, intr: Intrinsics, *,
-                         root: str = "world/detections", voxel_m: float = 0.004) -> dict[int, str]:
-    """Log the cleaned cloud (``massviz.core.geometry.detection_cloud``) of each detection of ``frame`` as
-    ``/<root>/<id>`` (Points3D in its RGB colours; ``dets`` the frame's detections, ``ids`` their indices in the
-    trace), with the stream's time already set to the frame. ``voxel_m`` thins the clouds (0: every point). Returns
-    {id: entity path} of the clouds logged (empty clouds are not). ``log_cloud_overlays`` adds what the selection
-    says (colours of the chosen ones, their measured boxes)."""
-    from massviz.core.geometry import detection_cloud  # Open3D: imported when clouds are logged
-
+def log_detection_clouds(stream, clouds: dict, *, root: str = "world/detections",
+                         voxel_m: float = 0.004) -> dict[int, str]:
+    """Log the clouds of one frame's detections (``clouds``: {detection index in the trace: cleaned Open3D cloud},
+    as the measure stage made them, ``massviz.measure.stage.MeasureStage``) as ``/<root>/<id>`` (Points3D in their RGB
+    colours), with the stream's time already set to the frame. ``voxel_m`` thins the clouds (0: every point).
+    Returns {id: entity path} of the clouds logged (empty clouds are not). ``log_cloud_overlays`` adds what the
+    selection says (colours of the chosen ones, their measured boxes)."""
     paths = {}
-    for j, i in enumerate(ids):
-        pcd = detection_cloud(frame, dets, j, intr)
+    for i, pcd in clouds.items():
         if len(pcd.points) == 0:
             continue
         shown = pcd.voxel_down_sample(voxel_m) if voxel_m > 0 else pcd
@@ -454,12 +453,10 @@ def log_cloud_overlays(stream, trace: Trace, paths: dict[int, str], *, timeline:
     """For each chosen detection whose cloud is at ``paths`` ({id: entity path}, ``log_detection_clouds``), at its
     frame: the cloud recoloured (``CHOSEN_COLOUR``, flagged ones ``FLAGGED_COLOUR``) and its measured box as
     ``<path>/box`` (Boxes3D labelled with the size) and ``<path>/measurement`` (AnyValues), from
-    ``Trace.measurements`` (what the pipeline measured; none when the trace has no measurement: a view never
+    ``Trace.measurements`` (what the measure stage measured; none when the trace has no measurement: a view never
     measures)."""
-    from massviz.core.geometry import measurements_of
-
     dets = trace.detections
-    stored = {m.detection: m for m in measurements_of(trace)}
+    stored = {m.detection: m for m in trace.measurements}
     for i in (int(i) for i in trace.selection):
         path = paths.get(i)
         if path is None:
@@ -478,44 +475,28 @@ def log_cloud_overlays(stream, trace: Trace, paths: dict[int, str], *, timeline:
                 rank=m.rank, height_mm=m.height_mm, width_mm=m.width_mm, depth_mm=m.depth_mm, n_points=m.n_points))
 
 
-def frame_detections(trace: Trace, frame_index: int) -> tuple[Detections, list[int]]:
-    """The detections of one frame above the trace's threshold (what gets a cloud) and their indices in the trace."""
-    dets = trace.detections
-    ids = [int(i) for i in np.flatnonzero((dets.frame == frame_index) & trace.active())]
-    return dets[ids], ids
-
-
-def log_frame_clouds(trace, frame: Frame, intr: Intrinsics, stream, *, root: str = "world/detections",
+def log_frame_clouds(trace, frame_index: int, clouds: dict, stream, *, root: str = "world/detections",
                      voxel_m: float = 0.004, timeline: str = "frame") -> list[str]:
-    """``log_detection_clouds`` of the trace's detections in ``frame`` (above its threshold) and their
-    ``log_cloud_overlays``; the stream's time already set to the frame. Returns the entity paths logged."""
-    dets, ids = frame_detections(trace, frame.index)
-    paths = log_detection_clouds(stream, frame, dets, ids, intr, root=root, voxel_m=voxel_m)
+    """``log_detection_clouds`` of one frame's ``clouds`` and their ``log_cloud_overlays``; the stream's time
+    already set to the frame. Returns the entity paths logged."""
+    paths = log_detection_clouds(stream, clouds, root=root, voxel_m=voxel_m)
     log_cloud_overlays(stream, trace, paths, timeline=timeline)
-    stream.set_time(timeline, sequence=frame.index)
+    stream.set_time(timeline, sequence=frame_index)
     return list(paths.values())
 
 
-def log_clouds(trace, recording, stream, *, timeline: str = "frame", root: str = "world/detections",
+def log_clouds(trace, frames, stream, *, timeline: str = "frame", root: str = "world/detections",
                voxel_m: float = 0.004) -> int:
-    """Log every processed frame's detection clouds (``log_frame_clouds``) on ``timeline`` (sequence = frame index),
-    clearing each frame's detection entities at the next processed frame so that none lingers. Returns the number of
-    clouds logged; 0 (and nothing logged) for a recording without intrinsics."""
-    if recording.intrinsics is None:
-        return 0
-    dets = trace.detections
-    with_dets = sorted({int(f) for f in dets.frame[trace.active()]})
-    processed = [int(f) for f in trace.frames]
+    """Log each processed frame's detection clouds (``log_frame_clouds``) on ``timeline`` (sequence = frame index),
+    clearing each frame's detection entities at the next processed frame so that none lingers. ``frames``: (frame,
+    {detection: cloud}) of every processed frame, e.g. ``MeasureStage(recording, clouds="active")
+    .replay_frames(trace)``. Returns the number of clouds logged."""
     n = 0
     shown: list[str] = []
-    for frame in recording.frames(indices=sorted(set(with_dets) | set(processed))):
+    for frame, clouds in frames:
         stream.set_time(timeline, sequence=frame.index)
         for p in shown:
             stream.log(p, rr.Clear(recursive=True))
-        shown = log_frame_clouds(trace, frame, recording.intrinsics, stream, root=root, voxel_m=voxel_m,
-                                 timeline=timeline) \
-            if frame.index in with_dets else []
+        shown = log_frame_clouds(trace, frame.index, clouds, stream, root=root, voxel_m=voxel_m, timeline=timeline)
         n += len(shown)
     return n
-
-

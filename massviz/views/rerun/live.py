@@ -18,14 +18,16 @@ and on ``capture_time`` (seconds since the first frame, from the camera's timest
 - ``/log``: skipped detections, changes of the K nearest, dropped frames.
 
 ``close(trace, ...)`` logs what only the end knows: the flags (at the last processed frame, each flagged patch's tile
-again with its flag and the flag warnings in ``/log``), ``/predictions/patch_<rank>``, ``/predictions/estimate`` (as
-``massviz log`` does), ``/summary`` and ``/timings``. This module reads results only; it runs no stage.
+again with its flag), then, as every path from a trace to Rerun does (``massviz.views.rerun.replay.log_conclusion``),
+``/predictions/patch_<rank>``, ``/predictions/estimate`` and the flag warnings in ``/log``; ``/summary`` and
+``/timings``. This module reads results only; it runs no stage.
 """
 from __future__ import annotations
 
 import time
 from pathlib import Path
 
+import numpy as np
 import rerun as rr
 
 from massviz.core.trace import Trace, describe_detection
@@ -34,21 +36,24 @@ from massviz.errors import MassvizError
 from massviz.views.rerun.blueprint import default_blueprint
 from massviz.views.rerun.entities import (MAX_POINTS, POINT_STEP, RUNNING_COLOUR, PatchTiles, detection_class_ids,
                                           frustum_depth, jpeg_bytes, log_annotation_context, log_depth, log_detections,
-                                          log_flags, log_masks, log_patch, log_pinhole, log_points, log_predictions,
-                                          log_summary, log_timings, summary_markdown, text_log)
+                                          log_masks, log_patch, log_pinhole, log_points, log_summary, log_timings,
+                                          summary_markdown, text_log)
 from massviz.views.rerun.output import Output
+from massviz.views.rerun.replay import log_conclusion
 
 
 class LiveLogger:
     """Rerun output of a live session: ``rrd`` (file, written atomically at ``close``), ``spawn`` (a native
-    viewer), ``connect`` (a running viewer or server's gRPC URL) — any combination — or ``stream`` (a caller's)."""
+    viewer), ``connect`` (a running viewer or server's gRPC URL) — any combination — or ``stream`` (a caller's).
+    ``k``: the selection's K (the layout's tiles, before the first frame); everything else comes with each frame's
+    ``FrameResult`` and the final trace."""
 
-    def __init__(self, *, name: str, k: int, threshold: float, intrinsics: Intrinsics | None,
+    def __init__(self, *, name: str, k: int, intrinsics: Intrinsics | None,
                  rrd: str | Path | None = None, spawn: bool = False, connect: str | None = None,
                  stream: rr.RecordingStream | None = None, jpeg_quality: int = 85, points: bool = False):
         if stream is None and rrd is None and not spawn and not connect:
             raise ValueError("nothing to log to: give rrd, spawn, connect or stream")
-        self.k, self.threshold, self.intrinsics, self.quality = k, threshold, intrinsics, int(jpeg_quality)
+        self.k, self.intrinsics, self.quality = k, intrinsics, int(jpeg_quality)
         self.points = points and intrinsics is not None  # /world/points as massviz log does (costly; off by default)
         self.out = Output(rrd=rrd, spawn=spawn, connect=connect, stream=stream)
         self.rrd = self.out.rrd
@@ -91,7 +96,9 @@ class LiveLogger:
         rank_global = {int(g): r for r, g in enumerate(res.selection)}
         rank_of = {i: rank_global[res.offset + i] for i in range(n) if res.offset + i in rank_global}
         idx = list(range(n))
-        class_ids = detection_class_ids(dets, idx, rank_of, self.threshold)
+        active = np.zeros(n, dtype=bool)
+        active[np.asarray(res.active, dtype=np.int64)] = True  # above the selection's threshold (the step's)
+        class_ids = detection_class_ids(dets, idx, rank_of, active)
         log_detections(rec, dets, idx, class_ids, rank_of)
         log_masks(rec, dets, idx, class_ids, frame.depth.shape[:2])
         for i in rank_of:  # a detection of this frame entered the K nearest: keep what its tile shows
@@ -130,8 +137,9 @@ class LiveLogger:
         try:
             if trace is not None:
                 self._log_final_flags(trace)
-                self.rec.reset_time()
-                log_predictions(self.rec, trace)
+                # the predictions and the flags' /log entries as every trace path logs them (the running estimate
+                # and the decisions were logged as they came)
+                log_conclusion(self.rec, trace, running=False, events=False)
                 if summary:
                     self.rec.log("/summary", rr.TextDocument(_summary_doc(trace, summary),
                                                              media_type=rr.MediaType.MARKDOWN), static=True)
@@ -147,7 +155,7 @@ class LiveLogger:
     def _log_final_flags(self, trace: Trace) -> None:
         """The flags are known when the session ends (they need its last frames): at the last processed frame, each
         tile of a flagged patch is logged again with its flag (outline and label in the flagged colour, ``flagged``
-        true) and ``/log`` gets the flag warnings, as ``massviz log`` shows them."""
+        true), as ``massviz log`` shows them (``/log`` gets the flag warnings from ``log_conclusion``)."""
         if not trace.flags.flagged or not len(trace.frames):
             return
         self.rec.set_time("frame", sequence=int(trace.frames[-1]))
@@ -160,7 +168,6 @@ class LiveLogger:
             patch = dets.patches[int(i)] if dets.patches[int(i)] is not None else (held[2] if held else None)
             if patch is not None and patch.size:
                 log_patch(self.rec, rank, dets, int(i), patch, flag)
-        log_flags(self.rec, trace)
         # the layout's tile titles say it too ("★0 ⚑ flagged"), as in massviz log's layout
         self.rec.send_blueprint(default_blueprint(self.k, has_3d=self.intrinsics is not None, image_size=self._size,
                                                   flagged=[p.rank for p in trace.flags.flagged]),

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import sys
 import uuid
@@ -14,6 +15,7 @@ import rerun as rr
 
 from massviz.errors import MassvizError
 from massviz.io.atomic import atomic_path, check_room
+from massviz.logs import ROOT
 
 APPLICATION_ID = "massviz"
 #: seconds one wait for Rerun's file writer lasts; between waits massviz checks that the file still grows (a writer
@@ -31,6 +33,25 @@ def file_batcher() -> rr.ChunkBatcherConfig:
     config = rr.ChunkBatcherConfig.DEFAULT()
     config.flush_tick = timedelta(days=1)
     return config
+
+
+class RerunLogHandler(logging.Handler):
+    """massviz's log records (the ``massviz`` logger) into a Rerun stream's ``/log`` as ``TextLog`` entries at the
+    stream's current time, as Rerun's logging-handler example routes Python's ``logging``; ``Output`` attaches one
+    while its stream is open."""
+
+    LEVELS = ((logging.ERROR, "ERROR"), (logging.WARNING, "WARN"), (logging.INFO, "INFO"), (0, "DEBUG"))
+
+    def __init__(self, stream: rr.RecordingStream, path: str = "/log"):
+        super().__init__()
+        self.stream, self.path = stream, path
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            level = next(name for at, name in self.LEVELS if record.levelno >= at)
+            self.stream.log(self.path, rr.TextLog(record.getMessage(), level=getattr(rr.TextLogLevel, level)))
+        except Exception:  # noqa: BLE001 - logging must never raise into the caller
+            self.handleError(record)
 
 
 class Output:
@@ -51,8 +72,10 @@ class Output:
         self._stack = contextlib.ExitStack()
         self._tmp: Path | None = None
         self.own = stream is None
+        self._handler: RerunLogHandler | None = None
         if stream is not None:
             self.stream = stream
+            self._route_logs()
             return
         # a file alone: chunks cut by size, not by a clock tick (Rerun's default flushes every few ms, so the chunking
         # — and an .rrd's size, ±10 % — depended on how busy the machine was); a viewer keeps the low-latency default
@@ -78,6 +101,17 @@ class Output:
         except BaseException as err:
             self._abandon(err)
             raise
+        self._route_logs()
+
+    def _route_logs(self) -> None:
+        """massviz's log records also go to this stream's ``/log`` until ``close``."""
+        self._handler = RerunLogHandler(self.stream)
+        logging.getLogger(ROOT).addHandler(self._handler)
+
+    def _unroute_logs(self) -> None:
+        if self._handler is not None:
+            logging.getLogger(ROOT).removeHandler(self._handler)
+            self._handler = None
 
     def flush(self, what: str = "the recording") -> None:
         """Deliver what was logged; an unreachable viewer (the gRPC sink reports it here) is one clear line, and so
@@ -143,6 +177,7 @@ class Output:
     def close(self, err: BaseException | None = None) -> None:
         """Disconnect an own stream; with ``err`` None rename the .rrd into place (a ``MassvizError`` when Rerun wrote
         nothing), else leave nothing at its path (the caller re-raises ``err``)."""
+        self._unroute_logs()
         if self.own:
             self._disconnect(err is not None)
         if err is None and self._tmp is not None and (not self._tmp.is_file() or self._tmp.stat().st_size == 0):
@@ -155,6 +190,7 @@ class Output:
             self._abandon(err)
 
     def _abandon(self, err: BaseException) -> None:
+        self._unroute_logs()
         with contextlib.suppress(BaseException):
             self._stack.__exit__(type(err), err, err.__traceback__)
 
@@ -184,4 +220,4 @@ def notebook_stream(name: str, blueprint, *, width: int = 1000, height: int = 64
     return stream
 
 
-__all__ = ["APPLICATION_ID", "Output", "NOTEBOOK_ASSET_ENV", "use_local_notebook_assets", "notebook_stream"]
+__all__ = ["APPLICATION_ID", "Output", "RerunLogHandler", "NOTEBOOK_ASSET_ENV", "use_local_notebook_assets", "notebook_stream"]

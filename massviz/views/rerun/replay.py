@@ -1,10 +1,10 @@
 """A trace -> a Rerun recording stream (``log_trace``): what ``massviz log`` shows, from the trace and the
-recording's frames; it never runs the detector or the model."""
+recording's frames. A sink: it is given each frame's ``FrameResult`` and the final trace; it never runs the
+pipeline, filters, crops or measures (``massviz.runners.logged.log_run`` runs the pipeline with it)."""
 from __future__ import annotations
 
 import sys
 import time
-from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
@@ -12,15 +12,14 @@ import rerun as rr
 from tqdm.auto import tqdm
 
 from massviz.errors import MassvizError
-from massviz.core.patches import crop
-from massviz.core.trace import Trace
-from massviz.views.rerun.blueprint import blueprint_for, default_blueprint
+from massviz.core.trace import FrameResult, Trace, frame_results
+from massviz.views.rerun.blueprint import blueprint_for
 from massviz.views.rerun.entities import (CLOUD_VOXEL_M, MAX_POINTS, POINT_STEP, PatchTiles, RgbLogger,
-                                          detection_class_ids, frame_detections, frustum_depth, log_annotation_context,
+                                          detection_class_ids, frustum_depth, log_annotation_context,
                                           log_cloud_overlays, log_depth, log_detection_clouds, log_detections,
                                           log_events, log_flags, log_masks, log_pinhole, log_points,
                                           log_predictions, log_running, log_summary, log_timings, text_log)
-from massviz.views.rerun.output import Output, notebook_stream
+from massviz.views.rerun.output import Output
 
 def _check_match(trace: Trace, recording) -> None:
     w, h = trace.recording.width, trace.recording.height
@@ -33,19 +32,19 @@ def _check_match(trace: Trace, recording) -> None:
 
 
 class TraceLogger:
-    """Logs one run of the pipeline to ``stream`` in one pass over the frames: ``on_frame(frame, result)`` logs what
-    needs the frame (its RGB and depth as the reader read them, the camera, the detections' clouds) as the pipeline
-    processes it (``massviz.core.pipeline.run``'s read-only observer, so no frame is read twice), ``replay(trace)``
-    does the same pass over a finished trace's frames (a trace from the cache), and ``finish(trace)`` logs what needs
-    the whole trace (ranks, chosen patches, predictions, flags, decisions, summary, the layout), reading no frame.
+    """Logs one run of the pipeline to ``stream`` in one pass over the frames: ``on_frame(frame, result, clouds)``
+    logs what needs the frame (its RGB and depth as the reader read them, the camera, the patches of the detections
+    entering the running selection, the clouds of the detections above the threshold as the measure stage made them)
+    as the pipeline processes it (``massviz.core.pipeline.run``'s read-only observer, so no frame is read twice; for
+    a finished trace, e.g. one from the cache, the caller passes ``trace_frames``), and ``finish(trace)`` logs what
+    needs the whole trace (ranks, chosen patches, predictions, flags, decisions, summary, the layout), reading no
+    frame.
 
-    ``threshold``: the selection's score threshold (detections above it get a cloud; default: every detection).
     ``video``, ``points``, ``step``, ``max_points``, ``clouds``: see ``log_trace``.
     """
 
     def __init__(self, recording, stream: rr.RecordingStream, *, video: str = "auto", points: bool = False,
-                 step: int = POINT_STEP, max_points: int = MAX_POINTS, clouds: bool = True,
-                 threshold: float | None = None, blueprint=None):
+                 step: int = POINT_STEP, max_points: int = MAX_POINTS, clouds: bool = True, blueprint=None):
         self.recording, self.rec = recording, stream
         if blueprint is not None:  # a layout first, as a viewer expects it (``finish`` sends the trace's own)
             stream.send_blueprint(blueprint, make_active=True, make_default=True)
@@ -53,22 +52,21 @@ class TraceLogger:
         self.rgb = RgbLogger(recording, video)
         self.points, self.step, self.max_points = points and self.intr is not None, step, max_points
         self.clouds = clouds and self.intr is not None
-        self.threshold = threshold
         self.frames: list[int] = []
         self.cloud_paths: dict[int, str] = {}
         self.patches: dict[int, np.ndarray] = {}  # RGB patches of the running K nearest's entrants
         self.n_points = 0
         self.seconds = 0.0
         self._shown: list[str] = []
-        self._trace: Trace | None = None
-        self._tile_detections: dict[int, set] = {}
         self.rec.send_recording_name(f"massviz {recording.id}")
         self.rgb.log_static(self.rec)
 
     # ------------------------------------------------------------------------------------------------ per frame
-    def on_frame(self, frame, result=None) -> None:
-        """Log one processed frame. ``result``: its ``FrameResult`` (during the pipeline's run); None during
-        ``replay`` (the detections come from the trace)."""
+    def on_frame(self, frame, result: FrameResult, clouds: dict | None = None) -> None:
+        """Log one processed frame and its ``FrameResult`` (the pipeline's, or ``trace_frames``' for a finished
+        trace). ``clouds``: {detection index: cleaned cloud} of the frame's detections above the selection's
+        threshold, as the measure stage made them (``massviz.measure.stage.MeasureStage``), logged with
+        ``clouds=True``; None: no cloud."""
         t0 = time.perf_counter()
         rec = self.rec
         rec.set_time("frame", sequence=frame.index)
@@ -82,47 +80,17 @@ class TraceLogger:
         log_depth(rec, frame.depth, frame.depth_encoded)
         if self.points:
             self.n_points += log_points(rec, frame.depth, frame.rgb, self.intr, self.step, self.max_points)
-        if result is not None:
-            dets, ids = result.detections, [result.offset + i for i in range(len(result.detections))]
-            for g in result.selection[result.selection >= result.offset]:  # entered the running K nearest
-                patch = result.patches[int(g) - result.offset]
-                if patch is not None and patch.size:
-                    self.patches[int(g)] = patch
-            if self.threshold is not None:
-                keep = [j for j in range(len(dets)) if dets.score[j] > self.threshold]
-                dets, ids = dets[keep], [ids[j] for j in keep]
-        else:
-            dets, ids = frame_detections(self._trace, frame.index)
-            trace_dets = self._trace.detections
-            for i in self._tile_detections.get(frame.index, ()):  # the trace keeps the nearest patches; crop others
-                if trace_dets.patches[i] is None:
-                    self.patches[i] = crop(frame.rgb, trace_dets.xyxy[i])
+        for g in result.selection[result.selection >= result.offset]:  # entered the running K nearest
+            patch = result.patches[int(g) - result.offset]
+            if patch is not None and patch.size:
+                self.patches[int(g)] = patch
         if self.clouds:
             for path in self._shown:
                 rec.log(path, rr.Clear(recursive=True))
-            paths = log_detection_clouds(rec, frame, dets, ids, self.intr, voxel_m=CLOUD_VOXEL_M)
+            paths = log_detection_clouds(rec, clouds or {}, voxel_m=CLOUD_VOXEL_M)
             self.cloud_paths.update(paths)
             self._shown = list(paths.values())
         self.seconds += time.perf_counter() - t0
-
-    def replay(self, trace: Trace, *, progress: bool = False) -> None:
-        """The per-frame pass over ``trace``'s processed frames, read from the recording once (a trace that did not
-        come from a run observed by ``on_frame``)."""
-        _check_match(trace, self.recording)
-        self._trace = trace
-        self._tile_detections = defaultdict(set)  # frame -> detections that hold a tile at some frame
-        for i in {int(i) for sel in trace.running_selections() for i in sel}:
-            self._tile_detections[int(trace.detections.frame[i])].add(i)
-        if self.threshold is None:
-            self.threshold = trace.threshold
-        frames = [int(f) for f in trace.frames]
-        bar = tqdm(self.recording.frames(indices=frames), total=len(frames), desc=f"{self.recording.id} → rerun",
-                   unit="frame", file=sys.stderr, disable=not progress, leave=False)
-        try:
-            for frame in bar:
-                self.on_frame(frame)
-        finally:
-            bar.close()
 
     # ------------------------------------------------------------------------------------------------------ end
     def finish(self, trace: Trace, *, points: bool = False, layout: bool = True) -> dict:
@@ -134,15 +102,10 @@ class TraceLogger:
         first = frames[0] if frames else 0
         rank_of = {int(i): r for r, i in enumerate(trace.selection)}
         flag_of = {p.detection: p for p in trace.flags.patches}
-        flagged = frozenset(p.detection for p in trace.flags.flagged)
-        by_frame: dict[int, list[int]] = defaultdict(list)
-        for i, f in enumerate(dets.frame):
-            by_frame[int(f)].append(i)
         if layout:
             rec.send_blueprint(blueprint_for(trace, self.recording, points=points), make_active=True,
                                make_default=True)
-        log_annotation_context(rec, trace.k)
-        log_summary(rec, trace)
+        log_opening(rec, trace)
         notes = []
         if self.intr is None:
             notes.append("no camera intrinsics for this recording: no /camera Pinhole, no 3D view")
@@ -153,13 +116,8 @@ class TraceLogger:
         rec.set_time("frame", sequence=first)
         for note in notes:
             rec.log("/log", text_log(note, "warn"))
-        shape = (trace.recording.height or self.recording.height, trace.recording.width or self.recording.width)
-        for f in frames:
-            rec.set_time("frame", sequence=f)
-            idx = by_frame.get(f, [])
-            class_ids = detection_class_ids(dets, idx, rank_of, trace.threshold, flagged)
-            log_detections(rec, dets, idx, class_ids, rank_of)
-            log_masks(rec, dets, idx, class_ids, shape)
+        log_overlays(rec, trace, masks_shape=(trace.recording.height or self.recording.height,
+                                              trace.recording.width or self.recording.width))
         # each tile shows the patch holding its rank at every frame: logged where the running selection changes
         tiles = PatchTiles(lambda i: (dets, i, dets.patches[i] if dets.patches[i] is not None else self.patches.get(i),
                                       flag_of.get(i)))
@@ -168,20 +126,81 @@ class TraceLogger:
             tiles.update(rec, selection)
         if self.cloud_paths:
             log_cloud_overlays(rec, trace, self.cloud_paths)
-        rec.reset_time()
-        log_predictions(rec, trace)
-        log_running(rec, trace)
-        log_events(rec, trace.events, first)
-        log_flags(rec, trace)
-        rec.reset_time()
+        log_conclusion(rec, trace)
         self.seconds += time.perf_counter() - t0
         return {"frames": len(frames), "detections": len(dets), "chosen": len(rank_of), "points": self.n_points,
                 "clouds": len(self.cloud_paths), "rgb": self.rgb.mode, "notes": notes}
 
 
+# ------------------------------------------------------------------------------------- what every trace path logs
+# The one way a finished trace reaches Rerun, shared by ``massviz log`` (``TraceLogger.finish``), the dataset's light
+# recordings (``massviz.views.rerun_dataset.log_light``) and ``massviz live`` (``massviz.views.rerun.live``).
+def log_opening(stream: rr.RecordingStream, trace: Trace) -> None:
+    """The annotation classes for the trace's K and ``/summary``."""
+    log_annotation_context(stream, trace.k)
+    log_summary(stream, trace)
+
+
+def log_overlays(stream: rr.RecordingStream, trace: Trace, *, masks_shape: tuple[int, int] | None = None) -> None:
+    """``/camera/detections`` of every processed frame at its frame (chosen ranks, flagged, below the threshold:
+    ``Trace.active``) and, with ``masks_shape`` (height, width), ``/camera/masks``."""
+    dets = trace.detections
+    rank_of = {int(i): r for r, i in enumerate(trace.selection)}
+    flagged = frozenset(p.detection for p in trace.flags.flagged)
+    by_frame = {f: idx.tolist() for f, idx in dets.indices_by_frame().items()}
+    active = trace.active()
+    for f in (int(f) for f in trace.frames):
+        stream.set_time("frame", sequence=f)
+        idx = by_frame.get(f, [])
+        class_ids = detection_class_ids(dets, idx, rank_of, active, flagged)
+        log_detections(stream, dets, idx, class_ids, rank_of)
+        if masks_shape is not None:
+            log_masks(stream, dets, idx, class_ids, masks_shape)
+
+
+def log_conclusion(stream: rr.RecordingStream, trace: Trace, *, running: bool = True, events: bool = True) -> None:
+    """``/predictions`` (chosen predictions, estimate, without the flagged), with ``running`` the running estimate,
+    with ``events`` the trace's decisions in ``/log``, then the flags' ``/log`` entries; the stream's time reset
+    before and after. ``massviz live`` has logged the running estimate and the decisions as they came."""
+    stream.reset_time()
+    log_predictions(stream, trace)
+    if running:
+        log_running(stream, trace)
+    if events:
+        log_events(stream, trace.events, int(trace.frames[0]) if len(trace.frames) else 0)
+    log_flags(stream, trace)
+    stream.reset_time()
+
+
+def trace_frames(trace: Trace, recording, *, progress: bool = False, frames=None):
+    """(frame, ``FrameResult``, clouds) of each of ``trace``'s processed frames (``massviz.core.trace.frame_results``):
+    what a ``TraceLogger`` is given for a trace that did not come from a run it observed. ``frames``: (frame, its
+    clouds) pairs of the processed frames, in order, as the measure stage replays them
+    (``MeasureStage.replay_frames``); None: the frames read from ``recording`` once, without clouds."""
+    _check_match(trace, recording)
+    indices = [int(f) for f in trace.frames]
+    if frames is None:
+        frames = ((frame, None) for frame in recording.frames(indices=indices))
+    clouds_of: dict = {}
+
+    def only_frames():
+        for frame, clouds in frames:
+            clouds_of[frame.index] = clouds
+            yield frame
+
+    bar = tqdm(only_frames(), total=len(indices), desc=f"{recording.id} → rerun", unit="frame", file=sys.stderr,
+               disable=not progress, leave=False)
+    try:
+        for frame, result in frame_results(trace, bar):
+            yield frame, result, clouds_of.pop(frame.index)
+    finally:
+        bar.close()
+
+
 def log_trace(trace: Trace, recording, *, rrd: str | Path | None = None, spawn: bool = False,
               stream: rr.RecordingStream | None = None, progress: bool = False, max_points: int = MAX_POINTS,
-              step: int = POINT_STEP, video: str = "auto", clouds: bool = True, points: bool = False) -> dict:
+              step: int = POINT_STEP, video: str = "auto", clouds: bool = True, points: bool = False,
+              frames=None) -> dict:
     """Log ``trace`` (made on ``recording``) to Rerun; the entity tree is in ``massviz.views.rerun``'s docstring.
 
     Outputs: ``rrd`` (a file, written atomically: nothing is left at ``rrd`` if logging fails), ``spawn`` (spawn
@@ -192,7 +211,10 @@ def log_trace(trace: Trace, recording, *, rrd: str | Path | None = None, spawn: 
     ``video``: how an mp4 is logged (see ``RgbLogger``). ``points``: also log ``/world/points`` (RGB-coloured
     points; by default Rerun back-projects ``/camera/depth`` itself, which keeps the recording small);
     ``step``/``max_points``: their subsampling.
-    ``clouds``: also log each detection's Open3D cloud under ``/world/detections`` (``massviz.core.geometry``).
+    ``clouds``: also log each detection's Open3D cloud under ``/world/detections``; ``frames``: the processed frames
+    with those clouds, (frame, {detection: cloud}) pairs as the measure stage replays them
+    (``massviz.measure.stage.MeasureStage(recording, clouds="active").replay_frames(trace)``; without them, no cloud
+    is logged: a view makes none). ``massviz.log_trace`` passes them.
 
     Returns stats: ``recording_id``, ``frames``, ``detections``, ``chosen``, ``points``, ``rgb`` ("asset",
     "images" or "files"), ``notes`` (warnings also in /log), ``log_seconds`` (wall time of logging, flushing
@@ -204,7 +226,8 @@ def log_trace(trace: Trace, recording, *, rrd: str | Path | None = None, spawn: 
     try:
         logger = TraceLogger(recording, out.stream, video=video, points=points, step=step, max_points=max_points,
                              clouds=clouds, blueprint=blueprint_for(trace, recording, points=points))
-        logger.replay(trace, progress=progress)
+        for frame, result, frame_clouds in trace_frames(trace, recording, progress=progress, frames=frames):
+            logger.on_frame(frame, result, frame_clouds)
         stats = logger.finish(trace, layout=False)
         log_timings(out.stream, {**trace.timings, "log": time.perf_counter() - t0}, stats["frames"])
         out.flush()
@@ -217,48 +240,5 @@ def log_trace(trace: Trace, recording, *, rrd: str | Path | None = None, spawn: 
     return stats
 
 
-def log_run(recording, process, *, rrd: str | Path | None = None, spawn: bool = False, progress: bool = False,
-            video: str = "auto", points: bool = False, clouds: bool = True, threshold: float | None = None,
-            k: int = 5, before_close=None) -> tuple[Trace, dict]:
-    """Run the pipeline and log it in one pass (``massviz log``): ``process(on_frame)`` runs the pipeline on
-    ``recording`` with ``on_frame`` as its per-frame observer and returns the trace (e.g.
-    ``lambda on_frame: pipeline.process(recording, on_frame=on_frame)``). Each frame is logged as it is processed, so
-    no frame is read twice; a trace that comes from the cache (``on_frame`` never called) is replayed from the
-    recording once. Outputs and options as ``log_trace`` (``threshold``: the selection's score threshold, ``k`` its
-    K: a first layout is sent before the frames, the final one at the end). ``before_close(trace)``: more output
-    made from the trace (``log --ply``), run before the .rrd is renamed into place, so that when it fails no .rrd
-    is left either. Returns (trace, stats)."""
-    t0 = time.perf_counter()
-    out = Output(rrd=rrd, spawn=spawn)
-    try:
-        layout = default_blueprint(k, has_3d=recording.intrinsics is not None, image_size=(recording.width,
-                                                                                             recording.height))
-        logger = TraceLogger(recording, out.stream, video=video, points=points, clouds=clouds, threshold=threshold,
-                             blueprint=layout)
-        trace = process(logger.on_frame)
-        if not logger.frames:
-            logger.replay(trace, progress=progress)
-        stats = logger.finish(trace, points=points)
-        log_timings(out.stream, {**trace.timings, "log": logger.seconds}, stats["frames"])
-        out.flush()
-        if before_close is not None:
-            before_close(trace)
-    except BaseException as err:
-        out.close(err)
-        raise
-    out.close()
-    stats.update(recording_id=out.stream.get_recording_id(), rrd=None if out.rrd is None else str(out.rrd),
-                 log_seconds=logger.seconds, seconds=time.perf_counter() - t0)
-    return trace, stats
-
-
-def show_in_notebook(trace: Trace, recording, *, width: int = 1000, height: int = 640, **options) -> dict:
-    """Show ``trace`` in an inline Rerun viewer (``output.notebook_stream``) in the current notebook cell, with
-    massviz's default layout, and log it there (``log_trace(..., stream=...)``; ``options`` go to it). Returns
-    ``log_trace``'s stats."""
-    stream = notebook_stream(recording.id, blueprint_for(trace, recording, points=bool(options.get("points"))),
-                             width=width, height=height)
-    return log_trace(trace, recording, stream=stream, **options)
-
-
-__all__ = ["TraceLogger", "log_trace", "log_run", "show_in_notebook"]
+__all__ = ["TraceLogger", "log_trace", "trace_frames", "log_opening", "log_overlays",
+           "log_conclusion"]

@@ -1,4 +1,4 @@
-"""Test support (not used by massviz itself): what an .rrd file holds, read back with Rerun's own reader, so tests
+"""Test support (not part of the massviz package): what an .rrd file holds, read back with Rerun's own reader, so tests
 (and a curious user) can check the entity tree a command wrote."""
 from __future__ import annotations
 

@@ -1,4 +1,6 @@
-"""3D through Open3D: back-projected clouds, each detection's masked cloud, its measured size, .ply files.
+"""The measure stage's geometry, through Open3D: back-projected clouds, each detection's masked cloud, its measured
+size. ``massviz.measure.stage`` runs it on a recording; nothing in ``massviz.core`` imports it, so a run that does
+not measure never loads Open3D.
 
 **Axes.** Every cloud is in metres in the *camera frame* of the recording's RGB camera, OpenCV convention (RDF):
 x to the right of the image, y down the image, z forward along the optical axis (depth). This is the convention of
@@ -31,50 +33,28 @@ The box is stored as centre, extent and rotation ``R`` whose columns are the (wi
 camera frame (width ≈ +x, height ≈ +y: down, depth ≈ +z), a proper rotation; ``extent`` holds the matching lengths in
 metres.
 
-A recording without intrinsics has no metric 3D: ``measure`` returns nothing and ``skip_reason`` says why in one line.
+A recording without intrinsics has no metric 3D: the measure stage measures nothing and ``skip_reason`` says why
+in one line.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
-import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from massviz._open3d import o3d
 
-from massviz.errors import MassvizError
-from massviz.core.trace import Event
+from massviz.core.measurement import Measurement
 from massviz.core.types import Detections, Frame, GroundTruth, Intrinsics
+from massviz.io.ccm_annotations import annotation_of
+from massviz.measure.settings import BAND_M, DEPTH_TRUNC_M, require_intrinsics, skip_reason
 
-#: default farthest depth (m) kept in clouds.
-DEPTH_TRUNC_M = 4.0
-#: half-width (m) of the depth band around a detection's median depth kept in its cloud.
-BAND_M = 0.25
 #: ``remove_statistical_outlier`` settings: neighbours, standard-deviation ratio.
 SOR_NEIGHBOURS = 20
 SOR_STD_RATIO = 2.0
 
 
 # ------------------------------------------------------------------------------------------------ intrinsics
-def skip_reason(recording) -> str | None:
-    """One line saying why ``recording`` gets no 3D stage, or None when it has intrinsics."""
-    if getattr(recording, "intrinsics", None) is None:
-        where = ("a calib/NNNNNN.pickle beside the CCM view" if getattr(recording, "kind", "") == "ccm"
-                 else "intrinsics.json in the recording folder")
-        return f"{recording.id}: no camera intrinsics ({where}), so no 3D: clouds and measurements skipped"
-    return None
-
-
-def require_intrinsics(recording) -> Intrinsics:
-    """The recording's intrinsics, or a ``MassvizError`` naming what is missing."""
-    reason = skip_reason(recording)
-    if reason:
-        raise MassvizError(reason)
-    return recording.intrinsics
-
-
 def pinhole(intr: Intrinsics) -> o3d.camera.PinholeCameraIntrinsic:
     return o3d.camera.PinholeCameraIntrinsic(int(intr.width), int(intr.height), float(intr.fx), float(intr.fy),
                                              float(intr.cx), float(intr.cy))
@@ -119,8 +99,8 @@ class Crop:
     """What the measure stage needs of one detection: the RGB and depth inside a rectangle ``xyxy`` of frame
     ``frame`` (copies, so a reader may reuse its buffers) and the boolean mask over it. Back-projecting the crop with
     the principal point shifted by the rectangle's corner gives exactly the points of the same pixels in the full
-    frame (pixel (u, v) of the crop is (u + x1, v + y1) of the frame), so a crop can be kept from a frame and measured
-    later — the pipeline measures only the detections still chosen at the end, without reading a frame again."""
+    frame (pixel (u, v) of the crop is (u + x1, v + y1) of the frame), so a crop can be kept from a frame and its
+    cloud made later."""
 
     frame: int
     xyxy: tuple[int, int, int, int]
@@ -216,39 +196,25 @@ def measure_cloud(pcd: o3d.geometry.PointCloud) -> Size | None:
                 extent=extent, R=R, n_points=n)
 
 
-@dataclass
-class Measurement:
-    """Measured size of one chosen detection (``rank`` in the selection, ``detection`` its index in the trace)."""
+def measurement_of(size: Size, *, rank: int, detection: int, frame: int) -> Measurement:
+    """A ``Size`` as the ``Measurement`` a trace carries (lengths rounded to 0.1 mm, plain lists)."""
+    return Measurement(rank=int(rank), detection=int(detection), frame=int(frame),
+                       height_mm=round(float(size.height_mm), 1), width_mm=round(float(size.width_mm), 1),
+                       depth_mm=round(float(size.depth_mm), 1), center=[float(v) for v in size.center],
+                       extent=[float(v) for v in size.extent], R=np.asarray(size.R, float).tolist(),
+                       n_points=int(size.n_points))
 
-    rank: int
-    detection: int
-    frame: int
-    height_mm: float
-    width_mm: float
-    depth_mm: float
-    center: list  # m, camera frame
-    extent: list  # m: width, height, depth
-    R: list  # 3×3 rows; columns are the width, height, depth directions
-    n_points: int
 
-    @classmethod
-    def from_size(cls, rank: int, detection: int, frame: int, size: Size) -> "Measurement":
-        return cls(rank=int(rank), detection=int(detection), frame=int(frame),
-                   height_mm=round(float(size.height_mm), 1), width_mm=round(float(size.width_mm), 1),
-                   depth_mm=round(float(size.depth_mm), 1), center=[float(v) for v in size.center],
-                   extent=[float(v) for v in size.extent], R=np.asarray(size.R, float).tolist(),
-                   n_points=int(size.n_points))
+def measured_box(m: Measurement) -> o3d.geometry.OrientedBoundingBox:
+    """A measurement's box as an Open3D ``OrientedBoundingBox``."""
+    return o3d.geometry.OrientedBoundingBox(np.asarray(m.center, float), np.asarray(m.R, float),
+                                            np.asarray(m.extent, float))
 
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
 
-    @classmethod
-    def from_dict(cls, d: dict) -> "Measurement":
-        return cls(**{f.name: d[f.name] for f in dataclasses.fields(cls)})
-
-    def obb(self) -> o3d.geometry.OrientedBoundingBox:
-        return o3d.geometry.OrientedBoundingBox(np.asarray(self.center, float), np.asarray(self.R, float),
-                                                np.asarray(self.extent, float))
+def measure_cloud_as(pcd: o3d.geometry.PointCloud, *, rank: int, detection: int, frame: int) -> Measurement | None:
+    """``measure_cloud`` as a ``Measurement``; None with fewer than 10 points."""
+    size = measure_cloud(pcd)
+    return None if size is None else measurement_of(size, rank=rank, detection=detection, frame=frame)
 
 
 def measure_detection(frame: Frame, dets: Detections, i: int, intr: Intrinsics, *, detection: int | None = None,
@@ -263,12 +229,9 @@ def measure_detection(frame: Frame, dets: Detections, i: int, intr: Intrinsics, 
 
 def measure_crop(crop: Crop, intr: Intrinsics, *, detection: int, rank: int = -1,
                  depth_trunc: float = DEPTH_TRUNC_M, band_m: float | None = BAND_M) -> Measurement | None:
-    """``measure_detection`` on a kept ``Crop``: what the pipeline's measure stage runs, at the end of a recording, on
-    each chosen detection (``massviz.core.pipeline.FramePipeline``)."""
-    size = measure_cloud(crop.cloud(intr, depth_trunc=depth_trunc, band_m=band_m))
-    if size is None:
-        return None
-    return Measurement.from_size(rank, detection, crop.frame, size)
+    """``measure_detection`` on a kept ``Crop``."""
+    return measure_cloud_as(crop.cloud(intr, depth_trunc=depth_trunc, band_m=band_m), rank=rank,
+                            detection=detection, frame=crop.frame)
 
 
 def ground_truth_size(meta: dict | None) -> dict | None:
@@ -279,14 +242,17 @@ def ground_truth_size(meta: dict | None) -> dict | None:
 
 
 def annotation_size(annotations, config_id) -> dict | None:
-    """A CCM annotation row (``massviz.evaluation.metrics.read_annotations`` frame) as ``ground_truth_size`` input."""
-    rows = annotations[annotations["id"].astype(str) == str(config_id)]
-    if rows.empty:
+    """The annotated size (``ground_truth_size``) of recording ``config_id`` in a CCM annotation table
+    (``massviz.io.ccm_annotations.read_annotations``), or None when it has no row (or no integer id)."""
+    try:
+        row = annotation_of(annotations, int(config_id))
+    except (TypeError, ValueError):
         return None
-    r = rows.iloc[0]
-    return ground_truth_size({"container": {"width_top_mm": r["width at the top"],
-                                            "width_bottom_mm": r["width at the bottom"], "height_mm": r["height"],
-                                            "depth_mm": r.get("depth", -1)}})
+    if row is None:
+        return None
+    return ground_truth_size({"container": {"width_top_mm": row.width_top_mm, "width_bottom_mm": row.width_bottom_mm,
+                                            "height_mm": row.height_mm,
+                                            "depth_mm": -1 if math.isnan(row.depth_mm) else row.depth_mm}})
 
 
 def compare(m: Measurement, gt: dict | None) -> dict:
@@ -295,61 +261,6 @@ def compare(m: Measurement, gt: dict | None) -> dict:
         return {"height_err_pct": None, "width_err_pct": None}
     return {"height_err_pct": round(100 * (m.height_mm - gt["height_mm"]) / gt["height_mm"], 1),
             "width_err_pct": round(100 * (m.width_mm - gt["width_mm"]) / gt["width_mm"], 1)}
-
-
-def _by_frame(indices, dets: Detections) -> dict[int, list[int]]:
-    out: dict[int, list[int]] = {}
-    for i in indices:
-        out.setdefault(int(dets.frame[i]), []).append(int(i))
-    return out
-
-
-def measure(trace, recording, *, depth_trunc: float = DEPTH_TRUNC_M, band_m: float | None = BAND_M
-            ) -> list[Measurement]:
-    """Measure every chosen detection of ``trace`` (``trace.selection``, nearest first) from its cleaned cloud.
-
-    The measurements the pipeline already made (``trace.measurements``, default settings) are reused; only the frames
-    of the chosen detections without one are read. Returns [] for a recording without intrinsics (see
-    ``skip_reason``) and skips detections whose cloud has fewer than 10 points.
-    """
-    if skip_reason(recording):
-        return []
-    intr = recording.intrinsics
-    dets = trace.detections
-    rank_of = {int(i): r for r, i in enumerate(trace.selection)}
-    default = depth_trunc == DEPTH_TRUNC_M and band_m == BAND_M
-    out = [dataclasses.replace(m, rank=rank_of[m.detection]) for m in measurements_of(trace)
-           if default and m.detection in rank_of]
-    have = {m.detection for m in out}
-    groups = _by_frame([i for i in trace.selection if int(i) not in have], dets)
-    for frame in recording.frames(indices=list(groups)):
-        for i in groups[frame.index]:
-            m = measure_detection(frame, dets, i, intr, rank=rank_of[i], depth_trunc=depth_trunc, band_m=band_m)
-            if m is not None:
-                out.append(m)
-    return sorted(out, key=lambda m: m.rank)
-
-
-def with_measurements(trace, recording, **kw):
-    """A copy of ``trace`` with ``measurements`` (``Measurement.to_dict()`` each) and the stage's wall time
-    (``timings["measure3d"]``); an event records a skip for a recording without intrinsics."""
-    t0 = time.perf_counter()
-    ms = measure(trace, recording, **kw)
-    timings = {**trace.timings, "measure3d": time.perf_counter() - t0}
-    events = list(trace.events)
-    reason = skip_reason(recording)
-    if reason:
-        events.append(Event(-1, reason, "warning", "warn"))
-    for m in ms:
-        events.append(Event(m.frame, f"measured chosen patch {m.rank} (detection {m.detection}): height "
-                                     f"{m.height_mm:.0f} mm, width {m.width_mm:.0f} mm, depth {m.depth_mm:.0f} mm "
-                                     f"from {m.n_points} points", "measured", "info", m.detection))
-    return dataclasses.replace(trace, measurements=[m.to_dict() for m in ms], timings=timings, events=events)
-
-
-def measurements_of(trace) -> list[Measurement]:
-    """The trace's stored measurements as ``Measurement`` objects."""
-    return [Measurement.from_dict(d) for d in getattr(trace, "measurements", None) or []]
 
 
 def depth_to_points(depth: np.ndarray, intrinsics: Intrinsics, rgb: np.ndarray | None = None,
@@ -369,6 +280,6 @@ def depth_to_points(depth: np.ndarray, intrinsics: Intrinsics, rgb: np.ndarray |
 
 __all__ = [
     "DEPTH_TRUNC_M", "BAND_M", "skip_reason", "require_intrinsics", "pinhole", "rgbd_cloud", "scene_cloud",
-    "masked_cloud", "detection_cloud", "Crop", "Size", "oriented_box", "vertical_axis", "view_aligned_box", "measure_cloud",
-    "Measurement", "measure_detection", "measure_crop", "ground_truth_size", "annotation_size", "compare", "measure", "with_measurements",
-    "measurements_of", "depth_to_points"]
+    "masked_cloud", "detection_cloud", "Crop", "Size", "oriented_box", "vertical_axis", "view_aligned_box",
+    "measure_cloud", "measurement_of", "measured_box", "measure_cloud_as", "measure_detection", "measure_crop",
+    "ground_truth_size", "annotation_size", "compare", "depth_to_points"]
