@@ -121,8 +121,7 @@ class TraceCache:
             from massviz.io.untrusted import printable
 
             reason = (str(err).splitlines() or [type(err).__name__])[0][:200]
-            print(f"massviz: warning: {path}: damaged trace cache entry ({printable(reason)}); recomputed",
-                  file=sys.stderr)
+            _LOG.warning("massviz: warning: %s: damaged trace cache entry (%s); recomputed", path, printable(reason))
             _drop(path)
             return None
         if not index_path(path).is_file():  # an entry written before the index: index it now (cheap)

@@ -14,6 +14,7 @@ process serves over HTTP (only to the viewer's page): no display needed, and idl
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import re
 import shutil
@@ -90,7 +91,7 @@ def _rrd_files(folder: Path) -> list[Path]:
         try:
             files.append(check_rrd(path))
         except MassvizError as err:
-            print(f"massviz: warning: {printable(err)}; not served", file=sys.stderr)
+            logging.getLogger(__name__).warning("massviz: warning: %s; not served", printable(err))
     if not files:
         raise MassvizError("holds no readable .rrd file (make a dataset with: massviz log DATASET --rrd-dir OUT)",
                            folder)
