@@ -6,27 +6,26 @@ line on stderr and exit code 2, as does any ``OSError`` (the path and what the O
 user.
 
 Two things are done here once for every command: SIGTERM and SIGHUP end a command the way Ctrl-C (SIGINT) does
-(:class:`Terminated` is a ``KeyboardInterrupt``: every ``atomic_path``/``atomic_dir`` and runner removes its
-temporary files on the way out; exit code 128 + the signal), and everything written to stderr goes through
+(:mod:`massviz.signals`: :class:`~massviz.signals.Terminated` is a ``KeyboardInterrupt``: every
+``atomic_path``/``atomic_dir`` and runner removes its temporary files on the way out; exit code 128 + the signal), and everything written to stderr goes through
 :func:`massviz.io.untrusted.printable` (a name from a data file cannot send terminal escape sequences).
 """
 from __future__ import annotations
 
-import _thread
 import argparse
 import importlib
-import contextlib
 import os
 import pkgutil
 import re
 import signal
 import sys
-import threading
-import time
 
 from massviz import __version__
 from massviz.errors import MassvizError
 from massviz.logs import to_stderr
+from massviz.signals import CLEANUP_SIGNALS, Terminated, interrupt_behind, signals_end_like_ctrl_c
+
+__all__ = ["main", "build_parser", "error_line", "os_error_line", "EscapingStream", "Terminated", "CLEANUP_SIGNALS"]
 
 # Order in ``massviz --help``; modules not listed here are appended alphabetically.
 _ORDER = ["log", "view", "estimate", "score", "sweep", "baseline", "samples", "cloud", "render", "view3d", "extract", "train"]
@@ -70,108 +69,6 @@ def os_error_line(err: OSError) -> str:
     return f"{' -> '.join(names)}: {what}" if names else f"{what} ({type(err).__name__})"
 
 
-class Terminated(KeyboardInterrupt):
-    """SIGTERM or SIGHUP arrived: raised in the main thread like Ctrl-C's ``KeyboardInterrupt`` (a subclass, so
-    every clean-up written for Ctrl-C runs), carrying the signal."""
-
-    def __init__(self, signum: int):
-        self.signum = signum
-        super().__init__(signal.Signals(signum).name)
-
-
-#: the signals that end a command like Ctrl-C does (SIGINT itself raises KeyboardInterrupt already).
-CLEANUP_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
-
-
-def terminate(signum, frame):
-    """The handler of :data:`CLEANUP_SIGNALS`: raise :class:`Terminated` (further such signals are ignored from
-    here on, so they cannot interrupt the clean-up of the first)."""
-    for sig in CLEANUP_SIGNALS:
-        signal.signal(sig, signal.SIG_IGN)
-    raise Terminated(signum)
-
-
-#: the frames of Python's import machinery: a signal handled while one of them runs waits until it is done.
-_IMPORT_FRAMES = ("<frozen importlib._bootstrap>", "<frozen importlib._bootstrap_external>")
-_deferred: list[int] = []  # the signal waiting for the main thread's import to end (at most one)
-
-
-def _importing(frame) -> bool:
-    while frame is not None:
-        if frame.f_code.co_filename in _IMPORT_FRAMES:
-            return True
-        frame = frame.f_back
-    return False
-
-
-def end_like_ctrl_c(signum, frame):
-    """The handler of SIGINT and :data:`CLEANUP_SIGNALS` while a command runs: ``KeyboardInterrupt`` (SIGINT) or
-    :func:`terminate`, raised where the main thread is, unless it is importing a module. An exception raised
-    there does not reach massviz as itself: numpy's C extension turns it into "Importing the numpy C-extensions
-    failed", pybind11 into ``ImportError("initialization failed")`` (and the module cannot be imported again in
-    that process), and in one of importlib's weakref callbacks it is printed as "Exception ignored" and lost. So
-    during an import the signal waits: a thread watches the main thread's frames and hands the signal back
-    (``_thread.interrupt_main``) within 10 ms of the import's end."""
-    if _importing(frame):
-        if not _deferred:
-            _deferred.append(signum)
-            threading.Thread(target=_deliver_after_import, name="massviz-deferred-signal", daemon=True).start()
-        return
-    if signum == signal.SIGINT:
-        raise KeyboardInterrupt
-    terminate(signum, frame)
-
-
-def _deliver_after_import() -> None:
-    main = threading.main_thread()
-    while main.is_alive() and _importing(sys._current_frames().get(main.ident)):
-        time.sleep(0.01)
-    signum = _deferred.pop()
-    if main.is_alive():
-        _thread.interrupt_main(signum)  # runs the main thread's handler for signum (which may defer it again)
-
-
-def interrupt_behind(err: BaseException) -> KeyboardInterrupt | None:
-    """The Ctrl-C or :class:`Terminated` that ``err`` was raised from or while handling, if any: a native module
-    (pybind11's, e.g. pyrealsense2) turns an interrupt raised during its import into ``ImportError("initialization
-    failed")``, which a caller may turn into its own error in turn."""
-    seen = set()
-    while err is not None and id(err) not in seen:
-        if isinstance(err, KeyboardInterrupt):
-            return err
-        seen.add(id(err))
-        err = err.__cause__ or err.__context__
-    return None
-
-
-def install_handlers(handler, previous: dict) -> None:
-    """Put ``handler`` in for SIGINT and :data:`CLEANUP_SIGNALS`, each one's previous handler recorded in ``previous``
-    before it is replaced (an interrupt half-way leaves a complete record of what to restore). A signal ignored when
-    massviz started (nohup's SIGHUP, a background job's SIGINT) stays ignored."""
-    for sig in (signal.SIGINT, *CLEANUP_SIGNALS):
-        current = signal.getsignal(sig)
-        if current == signal.SIG_IGN:
-            continue
-        previous[sig] = current
-        signal.signal(sig, handler)
-
-
-@contextlib.contextmanager
-def _signals_end_like_ctrl_c():
-    """SIGTERM/SIGHUP raise :class:`Terminated` and SIGINT ``KeyboardInterrupt`` while the command runs, not in the
-    middle of an import (:func:`end_like_ctrl_c`; main thread only; the previous handlers are restored after)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = {}
-    try:  # a Ctrl-C while they go in: the ones already in come out again
-        install_handlers(end_like_ctrl_c, previous)
-        yield
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-
-
 #: what tqdm writes to move between its bars (cursor up): let through; any other escape is printed escaped.
 _TQDM_MOVES = re.compile(r"(\x1b\[A)+")
 
@@ -208,13 +105,28 @@ def main(argv: list[str] | None = None) -> int:
     try:
         _quiet_native_logs()
         sys.stderr = EscapingStream(real_stderr)
-        with to_stderr(), _signals_end_like_ctrl_c():  # the library's log records: one line each on stderr
+        with to_stderr(), signals_end_like_ctrl_c():  # the library's log records: one line each on stderr
             return _run(build_parser(), argv)
     except KeyboardInterrupt as err:  # before the command started (its parser built, the handlers going in) or
         return _interrupted(_command_word(argv), err)  # after it ended (the handlers coming out): nothing to undo
     finally:
         if isinstance(sys.stderr, EscapingStream) and sys.stderr.raw is real_stderr:
             sys.stderr = real_stderr
+
+
+def _out_of_memory_line(err: BaseException) -> str | None:
+    """The line for a run that ran out of memory or address space (a ``MemoryError``, or a native library that could
+    not be mapped: ``ulimit -v`` set too low for torch), naming the limit when one is set; None for other errors."""
+    import resource
+
+    text = str(err).splitlines()[0] if str(err).strip() else type(err).__name__
+    if isinstance(err, ImportError) and not re.search(r"map segment|allocate memory|Cannot allocate", text):
+        return None
+    limit = resource.getrlimit(resource.RLIMIT_AS)[0]
+    why = (f"the address-space limit (ulimit -v {limit // 1024} KiB) is too low" if limit != resource.RLIM_INFINITY
+           else "not enough memory")
+    what = f"cannot load a library ({text})" if isinstance(err, ImportError) else "out of memory"
+    return f"{what}: {why}"
 
 
 def _interrupted(command: str, err: KeyboardInterrupt) -> int:
@@ -256,6 +168,12 @@ def _run(parser: argparse.ArgumentParser, argv) -> int:
         return 141
     except KeyboardInterrupt as err:
         return _interrupted(args.command, err)
+    except (MemoryError, ImportError) as err:
+        line = _out_of_memory_line(err)
+        if line is None or os.environ.get("MASSVIZ_DEBUG"):
+            raise
+        print(error_line(args.command, line), file=sys.stderr)
+        return 2
     except OSError as err:  # a file system refusal the command did not foresee: still one line naming the path
         if os.environ.get("MASSVIZ_DEBUG"):
             raise

@@ -221,6 +221,28 @@ def test_no_stage_imports_a_sink():
     assert arrows(["core", "detect", "io"], ["views"]) == []
 
 
+#: layers that may not import a layer above them: io reads and writes files (no scores, tuning or sweeps), runners
+#: run stages (signal handling comes from ``massviz.signals``, not from the command line).
+LOWER_LAYERS = {"io": ("evaluation",), "runners": ("cli", "commands")}
+
+
+def layer_arrows(graph) -> list:
+    return sorted((m, t) for low, high in LOWER_LAYERS.items() for m, targets in graph.items() if under(m, low)
+                  for t in targets if under(t, *high))
+
+
+def test_io_imports_no_evaluation_and_runners_no_command_line():
+    assert layer_arrows(GRAPH) == []
+
+
+def test_the_checks_catch_io_importing_evaluation_and_a_runner_importing_the_cli():
+    graph = {m: set(t) for m, t in GRAPH.items()}
+    graph["massviz.io.patch_set"].add("massviz.evaluation.metrics")
+    graph["massviz.runners.live"].add("massviz.cli")
+    assert layer_arrows(graph) == [("massviz.io.patch_set", "massviz.evaluation.metrics"),
+                                   ("massviz.runners.live", "massviz.cli")]
+
+
 #: what a view may not import: the modules that compute (the per-frame step, the builder, detectors), runners,
 #: commands, training. A view reads traces (core data types) and asks io for frames.
 STAGES_FOR_VIEWS = ["core.pipeline", "app", "detect", "runners", "commands", "cli", "training"]

@@ -80,4 +80,4 @@ def test_no_other_hand_written_bounded_read():
         for n, line in enumerate(p.read_text().splitlines(), 1):
             if pattern.search(line):
                 offenders.append(f"{p.relative_to(ROOT)}:{n}")
-    assert offenders and all(o.startswith("massviz/io/untrusted.py:") for o in offenders), offenders
+    assert offenders and all(o.startswith("massviz/io/untrusted/bounded.py:") for o in offenders), offenders

@@ -340,7 +340,7 @@ def _(work, b):
     rec = copy_sample(work / "rec")
     cv2.imwrite(str(rec / "rgb" / "000002.png"), np.zeros((H // 2, W // 2, 3), np.uint8))
     argv, out = estimate(work, b, rec)
-    return argv, rec / "rgb" / "000002.png", "240x135 but the recording is 480x270", [out]
+    return argv, rec / "rgb" / "000002.png", "declares 240x135 pixels but the recording.s frames are 480x270", [out]
 
 
 def truncated_video(work: Path) -> Path:

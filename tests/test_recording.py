@@ -180,7 +180,7 @@ def bad_depth_8bit(root: Path):
 
 def bad_depth_size(root: Path):
     write_recording(root, rgb_frames(2), depth_frames(2, W // 2, H // 2))
-    return root, root / "depth" / "000000.png", f"depth is {W // 2}x{H // 2} but the RGB frames are {W}x{H}"
+    return root, root / "depth" / "000000.png", f"depth image declares {W // 2}x{H // 2} pixels but the recording's frames are {W}x{H}; not decoded"
 
 
 def bad_depth_rgb(root: Path):

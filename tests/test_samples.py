@@ -119,7 +119,7 @@ def test_failed_generation_leaves_previous_recording(tmp_path, monkeypatch):
 
     spec = SAMPLES["box_handover"]
     (tmp_path / spec.name).mkdir()
-    (tmp_path / spec.name / "keep.txt").write_text("previous")
+    (tmp_path / spec.name / "meta.json").write_text("previous")  # a file of a recording: it may be replaced
 
     def boom(*args, **kwargs):
         raise RuntimeError("render failed")
@@ -128,7 +128,7 @@ def test_failed_generation_leaves_previous_recording(tmp_path, monkeypatch):
     with pytest.raises(RuntimeError):
         samples.write_sample(spec, tmp_path)
     assert [p.name for p in tmp_path.iterdir()] == [spec.name]
-    assert (tmp_path / spec.name / "keep.txt").read_text() == "previous"
+    assert (tmp_path / spec.name / "meta.json").read_text() == "previous"
 
 
 def test_cli_only_one(tmp_path, monkeypatch):

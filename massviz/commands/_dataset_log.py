@@ -5,11 +5,14 @@ worker writes its recording's .rrd itself (``massviz.views.rerun_dataset.write_r
 from __future__ import annotations
 
 import functools
+import os
 import sys
 from pathlib import Path
 
 #: what a dataset folder holds that ``--force`` may replace (nothing else is touched).
 OWN_FILES = ("*.rrd", "index.csv", "patches.csv", "patches/*.jpg")
+#: the sub-folder massviz writes the thumbnails into.
+OWN_DIRS = ("patches",)
 
 
 def collect_rrd(trace, recording, truth, *, out_dir: str, full: bool, view: int | None, video: str) -> dict:
@@ -27,10 +30,28 @@ def collect_rrd(trace, recording, truth, *, out_dir: str, full: bool, view: int 
     return result
 
 
-def _clear(out: Path) -> None:
+def _check_no_links(out: Path) -> None:
+    """A symlink where massviz writes (``patches/``, a ``.rrd``, ``index.csv`` ...) is refused before anything is
+    written or removed: files are never written through, or removed behind, a link out of OUT."""
+    from massviz.errors import MassvizError
+
+    for name in OWN_DIRS:
+        if (out / name).is_symlink():
+            raise MassvizError(f"holds the symlink {name}; massviz writes its own {name}/ folder there, never through "
+                               "a link (remove the link)", out)
     for pattern in OWN_FILES:
         for p in out.glob(pattern):
-            p.unlink()
+            if p.is_symlink():
+                raise MassvizError(f"holds the symlink {p.relative_to(out)}; massviz never replaces or writes through "
+                                   "a link in its output (remove the link)", out)
+
+
+def _clear(out: Path) -> None:
+    """Remove what a previous ``--rrd-dir`` run wrote (:data:`OWN_FILES`, plain files only; checked free of links)."""
+    for pattern in OWN_FILES:
+        for p in out.glob(pattern):
+            if p.is_file() and not p.is_symlink():
+                p.unlink()
 
 
 def run_rrd_dir(args) -> int:
@@ -44,8 +65,10 @@ def run_rrd_dir(args) -> int:
     if args.spawn or args.rrd or args.ply:
         raise MassvizError("--rrd-dir writes one .rrd per recording: leave out --rrd, --spawn and --ply")
     out = check_output_dir(args.rrd_dir, "--rrd-dir")
-    if out.is_dir() and ((out / INDEX_NAME).exists() or any(out.glob("*.rrd"))) and not args.force:
+    if out.is_dir() and (os.path.lexists(out / INDEX_NAME) or any(out.glob("*.rrd"))) and not args.force:
         raise MassvizError("already holds a dataset of .rrd files (pass --force to replace it)", out)
+    if out.is_dir():
+        _check_no_links(out)
     args.recordings = [args.recording]
     tasks, failed, recordings, on_error = open_dataset(args)
     names: dict[str, str] = {}

@@ -58,7 +58,7 @@ def run(args) -> int:
     from massviz.views.open3d_view import write_ply
 
     from massviz.io.atomic import check_output_dir
-    from massviz.io.untrusted import csv_safe, json_safe
+    from massviz.io.untrusted import json_safe, write_csv
 
     from massviz.measure.settings import skip_reason
     from massviz.errors import MassvizError
@@ -86,7 +86,7 @@ def run(args) -> int:
         rows = measurement_rows(trace, gt)
         columns = list(rows[0]) if rows else ["rank", "detection", "frame", "height_mm", "width_mm", "depth_mm"]
         with atomic_path(stage / "measurements.csv") as tmp:
-            csv_safe(pd.DataFrame(rows, columns=columns)).to_csv(tmp, index=False)
+            write_csv(pd.DataFrame(rows, columns=columns), tmp)
         payload = {"recording": rec.id, "estimate_g": trace.estimate, "ground_truth": gt,
                    "axes": "camera frame, metres: x right, y down, z forward (OpenCV/RDF)",
                    "measurements": [{**m.to_dict(), **row} for m, row in zip(trace.measurements, rows)],

@@ -26,7 +26,9 @@ def register(sub) -> None:
     add_dataset_args(p, metavar="DATASET")
     p.add_argument("--out", required=True, metavar="PATCHES", help="output folder (must not exist unless --force)")
     p.add_argument("--annotations", metavar="CSV", help="CCM annotation CSV (default: each recording's meta.json)")
-    p.add_argument("--force", action="store_true", help="replace an existing PATCHES folder")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing patch set in PATCHES (a folder holding anything else, or a symlink, is "
+                   "refused, never emptied)")
     p.add_argument("--exclude", metavar="FILE",
                    help="never select the detections listed in FILE (massviz.exclusions/1 JSON, as for estimate; "
                    "e.g. written by notebooks 03 and 04)")

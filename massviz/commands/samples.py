@@ -36,6 +36,11 @@ def run(args: argparse.Namespace) -> int:
     from massviz.io.atomic import check_output_dir
 
     check_output_dir(args.out, "--out")
+    from massviz.io.atomic import check_replaceable
+    from massviz.samples.generator import SAMPLE_FILES
+
+    for name in names:  # every recording it replaces, before the first is rendered
+        check_replaceable(args.out / name, SAMPLE_FILES, "sample recording", link_ok=False)
     with tqdm(total=N_FRAMES * len(names), desc="rendering", unit="frame", file=sys.stderr) as bar:
         for name in names:
             bar.set_postfix_str(name)

@@ -130,7 +130,7 @@ def _report_table(args, traces, thresholds, ks, ann, class_of, outcomes) -> int:
     from massviz.errors import MassvizError
     from massviz.evaluation.sweep import best_pair, sweep
     from massviz.io.atomic import atomic_path
-    from massviz.io.untrusted import csv_safe
+    from massviz.io.untrusted import write_csv
 
     if not traces:
         raise MassvizError("no recording could be processed (see the errors above)")
@@ -143,7 +143,7 @@ def _report_table(args, traces, thresholds, ks, ann, class_of, outcomes) -> int:
           f"({int(best['estimated'])} estimated)")
     if args.csv:
         with atomic_path(Path(args.csv)) as tmp:
-            csv_safe(table).to_csv(tmp, index=False, float_format="%.4f")
+            write_csv(table, tmp, float_format="%.4f")
     if args.plot:
         from massviz.views.score_plot import plot_heatmap
 

@@ -39,7 +39,9 @@ def register(sub) -> None:
     p.add_argument("--keep-ranges", action="store_true",
                    help="with --init: keep its normalisation ranges instead of the training split's")
     p.add_argument("--device", default="auto", help="auto (CUDA when present, else CPU), cpu, cuda, cuda:1 ...")
-    p.add_argument("--force", action="store_true", help="write into a non-empty RUN folder")
+    p.add_argument("--force", action="store_true",
+                   help="replace a previous run in RUN (a folder holding anything but a run's files is refused, "
+                   "never emptied)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 

@@ -31,7 +31,7 @@ from massviz.core.detector import PAPER_THRESHOLD
 from massviz.core.types import COCO_KEEP, OBJECT_CLASS_ID, Detections, Frame, PackedMask
 from massviz.errors import DataError
 from massviz.io.trace_file import load_trace
-from massviz.io.untrusted import MAX_INDEX, check_image_size, confined, load_json, number
+from massviz.io.untrusted import MAX_INDEX, check_image_size, confined, image_header_size, load_json, number
 
 #: largest replay JSON read.
 MAX_REPLAY_JSON_BYTES = 256 << 20
@@ -50,9 +50,10 @@ def _class_id(value, path: Path, row: int) -> int:
                     "COCO id)"[:300], path)
 
 
-def _load_json(path: Path) -> tuple[Detections, list[Path]]:
+def _load_json(path: Path) -> tuple[Detections, list[Path], dict[int, tuple[int, int]]]:
     """The detections of a replay JSON file (full-box masks left as None: made after the box is checked against
-    the frame) and the mask files it names."""
+    the frame), the mask files it names and, for each detection whose mask is a full frame, that frame's size
+    (width, height: checked against the recording's frames when they are known)."""
     try:
         data = load_json(path, "replay detections file", DataError, MAX_REPLAY_JSON_BYTES)
         rows = data["detections"] if isinstance(data, dict) else None
@@ -60,7 +61,7 @@ def _load_json(path: Path) -> tuple[Detections, list[Path]]:
             raise TypeError("expected an object whose 'detections' is a list")
     except (OSError, ValueError, KeyError, TypeError, RecursionError) as err:
         raise DataError(f"not a replay detections file ({type(err).__name__}: {err})"[:300], path) from None
-    frames, boxes, scores, classes, masks, files = [], [], [], [], [], []
+    frames, boxes, scores, classes, masks, files, frame_sized = [], [], [], [], [], [], {}
     for row, det in enumerate(rows):
         where = f"detection {row}:"
         if not isinstance(det, dict) or "frame" not in det or "box" not in det:
@@ -77,11 +78,17 @@ def _load_json(path: Path) -> tuple[Detections, list[Path]]:
         mask = None
         if det.get("mask") is not None:
             mpath = confined(path.parent, det["mask"], path, f"{where} mask")
+            h, w = y2 - y1, x2 - x1
+            declared = image_header_size(mpath)
+            if declared is not None and declared != (w, h) and (declared[0] < x2 or declared[1] < y2):
+                raise DataError(f"{where} mask {det['mask']} declares {declared[0]}x{declared[1]} pixels, neither the "
+                                f"box's {w}x{h} nor a full frame holding the box; not decoded", path)
             check_image_size(mpath, DataError, "mask image")
             img = cv2.imread(str(mpath), cv2.IMREAD_GRAYSCALE)
             if img is None:
                 raise DataError(f"{where} cannot read mask {det['mask']}", path)
-            h, w = y2 - y1, x2 - x1
+            if img.shape != (h, w):
+                frame_sized[row] = (img.shape[1], img.shape[0])
             crop = img if img.shape == (h, w) else img[y1:y2, x1:x2]
             if crop.shape != (h, w):
                 raise DataError(f"{where} mask {det['mask']} is {img.shape[1]}x{img.shape[0]}, neither the "
@@ -90,18 +97,19 @@ def _load_json(path: Path) -> tuple[Detections, list[Path]]:
             files.append(mpath)
         frames.append(frame), boxes.append([x1, y1, x2, y2]), scores.append(score)
         classes.append(_class_id(det.get("class", "object"), path, row)), masks.append(mask)
-    return Detections(frame=frames, xyxy=boxes, score=scores, class_id=classes, masks=masks), files
+    return Detections(frame=frames, xyxy=boxes, score=scores, class_id=classes, masks=masks), files, frame_sized
 
 
-def _load(path: Path) -> tuple[Detections, list[Path], float]:
-    """The detections, the mask files they name and the default score cut: a trace's own selection cut (what the run
-    it replays chose with), a JSON file's the paper's."""
+def _load(path: Path) -> tuple[Detections, list[Path], float, dict[int, tuple[int, int]]]:
+    """The detections, the mask files they name, the default score cut (a trace's own selection cut: what the run
+    it replays chose with; a JSON file's: the paper's) and the sizes of full-frame masks (see ``_load_json``)."""
     if not path.is_file():
         raise DataError("replay file not found", path)
     if path.suffix == ".npz":
         trace = load_trace(path)
-        return trace.detections, [], float(trace.threshold)
-    return (*_load_json(path), PAPER_THRESHOLD)
+        return trace.detections, [], float(trace.threshold), {}
+    dets, files, frame_sized = _load_json(path)
+    return dets, files, PAPER_THRESHOLD, frame_sized
 
 
 class ReplayDetector:
@@ -112,7 +120,7 @@ class ReplayDetector:
 
     def __init__(self, source: str | Path, threshold: float | None = None):
         self.source = Path(source)
-        dets, self._files, self.default_threshold = _load(self.source)
+        dets, self._files, self.default_threshold, self._frame_sized = _load(self.source)
         self.threshold = self.default_threshold if threshold is None else float(threshold)
         self._by_frame = dets.indices_by_frame()
         self._dets = dets
@@ -126,6 +134,11 @@ class ReplayDetector:
 
     def detect(self, frame: Frame) -> Detections:
         idx = self._by_frame.get(frame.index, np.zeros(0, dtype=np.int64))
+        for i in idx.tolist():
+            if (size := self._frame_sized.get(i)) is not None and size != (frame.width, frame.height):
+                raise DataError(f"detection {i}: its mask is a {size[0]}x{size[1]} image, neither its box nor a "
+                                f"{frame.width}x{frame.height} frame (is this replay file for this recording?)",
+                                self.source)
         dets = self._dets[idx]
         dets = dets[dets.score > self.threshold]
         x1, y1, x2, y2 = dets.xyxy.T

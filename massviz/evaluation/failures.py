@@ -45,7 +45,8 @@ from massviz.io.atomic import atomic_path
 from massviz.errors import DataError
 from massviz.core.flags import GT_MIN_IOU, ground_truth_overlap
 from massviz.io.ground_truth import ground_truth_masks
-from massviz.io.untrusted import _CONTROL, MAX_INDEX, text_id
+from massviz.io.untrusted import MAX_INDEX, text_id
+from massviz.io.untrusted.text import _CONTROL
 from massviz.core.trace import Trace
 from massviz.core.tracks import box_iou
 from massviz.core.types import class_name

@@ -8,6 +8,7 @@ refused (one line; massviz writes whole files, never streams into devices or pip
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import stat
@@ -17,6 +18,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from massviz.errors import MassvizError
+from massviz.signals import deferred
 
 
 _KINDS = {stat.S_IFCHR: "a character device", stat.S_IFBLK: "a block device", stat.S_IFIFO: "a FIFO (named pipe)",
@@ -63,20 +65,73 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         raise MassvizError("is a directory; a file path is needed", path)
     if not path.parent.is_dir():
         raise MassvizError(f"cannot write: folder {path.parent} does not exist", path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=path.parent)
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)
+    tmp = None
     try:
+        with deferred():  # a signal now would leave the new temporary file behind
+            sweep_stale(path.parent, path.name)
+            fd, tmp = tempfile.mkstemp(prefix=_prefix(path.name), suffix=f".tmp{path.suffix}", dir=path.parent)
+            os.close(fd)
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(tmp, 0o666 & ~umask)
         yield Path(tmp)
         os.replace(tmp, path)
     except OSError as err:
-        Path(tmp).unlink(missing_ok=True)
+        _remove(tmp)
         raise _naming(err, path, tmp) from None
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        _remove(tmp)
         raise
+
+
+def _prefix(name: str) -> str:
+    """The start of a temporary's name for the output ``name``: hidden, and carrying this process's id (a temporary
+    of a process that is gone, killed before it could remove it, is found by :func:`sweep_stale`)."""
+    return f".{name}.{os.getpid()}."
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # another user's process: alive
+        return True
+    return True
+
+
+def sweep_stale(folder: str | Path, name: str) -> None:
+    """Remove the temporaries of the output ``name`` in ``folder`` that a process left when it was killed
+    (SIGKILL, a power cut): hidden ``.NAME.PID.*`` files and folders ending ``.tmp*``, ``.part`` or ``.old`` whose
+    process no longer runs. Repeated kills leave at most one run's temporaries, never an accumulation."""
+    import re
+
+    pattern = re.compile(rf"\.{re.escape(name)}\.(\d+)\.[^/]*\.(tmp[^/]*|part|old)$")
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return
+    for entry in entries:
+        m = pattern.match(entry.name)
+        if m is None or int(m.group(1)) == os.getpid() or _alive(int(m.group(1))):
+            continue
+        with deferred():
+            if entry.is_dir(follow_symlinks=False):
+                shutil.rmtree(entry.path, ignore_errors=True)
+            else:
+                with contextlib.suppress(OSError):
+                    os.unlink(entry.path)
+
+
+def _remove(tmp) -> None:
+    """Remove the temporary file or folder ``tmp`` (None: not made yet) whole, a signal held until it is gone."""
+    if tmp is None:
+        return
+    with deferred():
+        if os.path.isdir(tmp) and not os.path.islink(tmp):
+            shutil.rmtree(tmp, ignore_errors=True)
+        else:
+            Path(tmp).unlink(missing_ok=True)
 
 
 def check_room(tmp: str | Path, nbytes: int = 1 << 16) -> None:
@@ -109,24 +164,28 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     if path.exists() and not path.is_dir():
         raise MassvizError("exists and is not a folder", path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part"))
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o777 & ~umask)
+    tmp = None
     try:
+        with deferred():  # a signal now would leave the new temporary folder behind
+            sweep_stale(path.parent, path.name)
+            tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=_prefix(path.name), suffix=".part"))
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(tmp, 0o777 & ~umask)
         yield tmp
-        if path.exists():
-            old = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".old"))
-            os.replace(path, old / path.name)
-            os.replace(tmp, path)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, path)
+        with deferred():  # the swap runs to its end: the old folder or the new one is in place, never neither
+            if path.exists():
+                old = Path(tempfile.mkdtemp(dir=path.parent, prefix=_prefix(path.name), suffix=".old"))
+                os.replace(path, old / path.name)
+                os.replace(tmp, path)
+                shutil.rmtree(old, ignore_errors=True)
+            else:
+                os.replace(tmp, path)
     except OSError as err:
-        shutil.rmtree(tmp, ignore_errors=True)
+        _remove(tmp)
         raise _naming(err, path, tmp) from None
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        _remove(tmp)
         raise
 
 
@@ -138,25 +197,29 @@ def staged_files(folder: str | Path) -> Iterator[Path]:
     a command writing several files into the user's folder leaves all of them or none."""
     folder = Path(folder)
     created = not folder.exists()
-    folder.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(dir=folder, prefix=".massviz.", suffix=".part"))
+    stage = None
     try:
+        with deferred():  # a signal now would leave the folder or the stage behind
+            folder.mkdir(parents=True, exist_ok=True)
+            sweep_stale(folder, "massviz")
+            stage = Path(tempfile.mkdtemp(dir=folder, prefix=_prefix("massviz"), suffix=".part"))
         yield stage
-        for item in sorted(stage.iterdir()):
-            os.replace(item, folder / item.name)
-        stage.rmdir()
+        with deferred():  # every file moves in, or (a failure) none: a signal waits for the end of the moves
+            for item in sorted(stage.iterdir()):
+                os.replace(item, folder / item.name)
+            stage.rmdir()
     except MassvizError as err:  # name the file the user will look for, not the hidden one
-        shutil.rmtree(stage, ignore_errors=True)
+        _remove(stage)
         if created:
-            shutil.rmtree(folder, ignore_errors=True)
+            _remove(folder)
         if err.path is None or not err.path.startswith(str(stage)):
             raise
         message = str(err)[len(err.path) + 2:]
         raise MassvizError(message, folder / Path(err.path).relative_to(stage)) from None
     except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
+        _remove(stage)
         if created:
-            shutil.rmtree(folder, ignore_errors=True)
+            _remove(folder)
         raise
 
 
@@ -199,6 +262,40 @@ def native_stderr(keep: int = 4096) -> Iterator[list[str]]:
         reader.join(timeout=10)
         os.close(read_fd)
         lines.extend(line for line in b"".join(chunks).decode("utf-8", "replace").splitlines() if line.strip())
+
+
+# ------------------------------------------------------------------------------------------- replacing own folders
+def _own(rel: str, owned: tuple[str, ...]) -> bool:
+    from pathlib import PurePosixPath
+
+    parts = PurePosixPath(rel)
+    return any(len(parts.parts) == len(PurePosixPath(p).parts) and parts.match(p) for p in owned)
+
+
+def check_replaceable(path: str | Path, owned: tuple[str, ...], what: str, *, link_ok: bool = True) -> None:
+    """Before a command replaces the folder ``path`` that it wrote before (``--force``, a sample regenerated): every
+    entry under it is something massviz writes there (its path relative to ``path`` matches one of ``owned``, e.g.
+    ``images`` and ``images/*.png``) and none is a symlink. Otherwise one ``MassvizError`` naming ``path`` and the
+    entry, before anything is removed: a replacement never deletes what someone else put there, and never follows a
+    link out of the folder. ``link_ok``: ``path`` itself may be a symlink (the user's own path, written through);
+    False where massviz chose the name."""
+    path = Path(path)
+    if path.is_symlink() and not link_ok:
+        raise MassvizError(f"is a symlink; massviz replaces only a {what} folder it wrote, never through a link "
+                           "(remove the link)", path)
+    root = output_target(path, folder=True)
+    if not root.is_dir():
+        return
+    for folder, dirs, files in os.walk(root):
+        for name in sorted(dirs) + sorted(files):
+            full = Path(folder) / name
+            rel = full.relative_to(root).as_posix()
+            if full.is_symlink():
+                raise MassvizError(f"holds the symlink {rel}; massviz never removes or writes through a link in an "
+                                   f"output it replaces (remove the link, or choose another folder)", path)
+            if not _own(rel, owned):
+                raise MassvizError(f"holds {rel}, which is not part of a {what}; massviz replaces only what it wrote "
+                                   "(move it away, or choose another folder)", path)
 
 
 # ------------------------------------------------------------------------------------------- checking outputs first

@@ -117,7 +117,11 @@ class TraceCache:
             return None
         try:
             trace = load_trace(path)
-        except Exception:  # noqa: BLE001 - whatever is wrong with an entry, it is dropped and recomputed
+        except Exception as err:  # noqa: BLE001 - whatever is wrong with an entry, it is dropped and recomputed
+            from massviz.io.untrusted import printable
+
+            reason = (str(err).splitlines() or [type(err).__name__])[0][:200]
+            _LOG.warning("massviz: warning: %s: damaged trace cache entry (%s); recomputed", path, printable(reason))
             _drop(path)
             return None
         if not index_path(path).is_file():  # an entry written before the index: index it now (cheap)

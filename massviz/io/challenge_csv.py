@@ -5,14 +5,13 @@ mass, so every other task's column is ``-1`` (not estimated), except ``Execution
 """
 from __future__ import annotations
 
-import csv
 import math
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
 from massviz.io.atomic import atomic_path
-from massviz.io.untrusted import csv_cell
+from massviz.io.untrusted import csv_writer
 
 #: The challenge CSV header, in order (the CORSMAL challenge format; shared/ccm/README.md in the reference data).
 COLUMNS = (
@@ -62,7 +61,7 @@ def write_challenge_csv(path: str | Path, rows: Iterable[Any], *, exact: bool = 
             raise ValueError(f"recording {config_id} appears twice")
         seen.add(config_id)
         values = {name: str(NOT_ESTIMATED) for name in COLUMNS}
-        values["Configuration ID"] = csv_cell(str(config_id))  # "=cmd" -> "'=cmd"; seen/matching use the raw id
+        values["Configuration ID"] = str(config_id)  # written "=cmd" -> "'=cmd" (csv_writer); matching uses the raw id
         values["Container mass"] = _mass_text(_field(row, "mass_g"), exact)
         seconds = _field(row, "exec_time_s")
         values["Execution time"] = (str(NOT_ESTIMATED) if seconds is None or float(seconds) < 0
@@ -70,7 +69,7 @@ def write_challenge_csv(path: str | Path, rows: Iterable[Any], *, exact: bool = 
         lines.append([values[name] for name in COLUMNS])
     path = Path(path)
     with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
-        writer = csv.writer(f, lineterminator="\n")
+        writer = csv_writer(f, lineterminator="\n")
         writer.writerow(COLUMNS)
         writer.writerows(lines)
     return path

@@ -83,9 +83,12 @@ def check_ranges(ranges: Ranges, path) -> None:
 
 
 def _check_tensors(state: dict, path: Path) -> None:
-    """NaN, infinite (also once cast to the model's float32: a float64 1e300 is inf there), too large weights and
-    negative BatchNorm variances would turn every prediction into NaN or inf, silently."""
+    """Complex numbers, NaN, infinite (also once cast to the model's float32: a float64 1e300 is inf there), too
+    large weights and negative BatchNorm variances would turn every prediction into NaN or inf, silently."""
     for name, value in state.items():
+        if value.is_complex():  # loading would drop the imaginary part (torch warns), silently changing the model
+            raise WeightsError(f"parameter {name} holds complex numbers ({str(value.dtype).removeprefix('torch.')}); "
+                               "a MassNet checkpoint holds real weights", path)
         if not value.is_floating_point():
             continue
         as32 = value.detach().to(torch.float32)

@@ -15,19 +15,18 @@ import numpy as np
 
 from massviz.core.flags import ground_truth_source, mask_overlap
 from massviz.core.types import Detections
-from massviz.errors import DataError, MassvizError
+from massviz.errors import DataError
 from massviz.io.untrusted import check_image_size, frame_path
 
 
 @lru_cache(maxsize=256)
-def read_instance_image(path: str) -> np.ndarray | None:
-    """The instance-id image of one ground-truth PNG (first channel), None when missing, oversized or unreadable."""
-    try:  # the header is checked before decoding: a small file may declare gigabytes of pixels
-        check_image_size(path, MassvizError, "ground-truth image")
-    except MassvizError:
-        return None
+def read_instance_image(path: str, size: tuple[int, int] | None = None) -> np.ndarray | None:
+    """The instance-id image of one ground-truth PNG (first channel), None when missing or unreadable. Its header
+    is checked before it is decoded (a small file may declare gigabytes of pixels): more than massviz decodes, or
+    another size than ``size`` (the frames' width, height), is a ``DataError`` naming the file."""
     if not Path(path).is_file():
         return None
+    check_image_size(path, DataError, "ground-truth image", expected=size)
     img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
     return None if img is None else (img if img.ndim == 2 else img[..., 0])
 
@@ -46,7 +45,7 @@ def ground_truth_masks(trace, frame: int) -> tuple[np.ndarray, dict[int, str]] |
         path = frame_path(gt.instance_masks, root, int(frame), root, "instance_masks")
     except DataError:
         return None
-    img = read_instance_image(str(path))
+    img = read_instance_image(str(path), (info.width, info.height) if info.height else None)
     if img is None or (info.height and img.shape[:2] != (info.height, info.width)):
         return None
     return img, dict(gt.instances)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import io
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -20,14 +21,16 @@ from PIL import Image
 
 from massviz.core.types import GroundTruth
 from massviz.errors import DataError, MassvizError
+from massviz.io.atomic import atomic_dir, check_replaceable
 from massviz.io.ccm_annotations import SIZE_FIELDS, annotation_of
-from massviz.io.atomic import atomic_dir
-from massviz.io.untrusted import check_image_size, confined, csv_safe, safe_filename, text_id
+from massviz.io.untrusted import check_image_size, confined, safe_filename, text_id, write_csv
 
 #: file name of a patch set's index, inside the PATCHES folder.
 INDEX_NAME = "index.csv"
 #: sub-folder of a patch set holding the PNG crops.
 IMAGES_DIR = "images"
+#: what a patch set folder holds (relative paths): all ``--force`` may replace.
+PATCH_SET_FILES = (INDEX_NAME, IMAGES_DIR, f"{IMAGES_DIR}/*.png")
 #: columns of ``index.csv``: the image (relative to the patch set), where it came from, its features and its label.
 #: ``container_id`` is -1 and a dimension NaN when the annotation does not give it.
 INDEX_COLUMNS = ("file", "recording", "config_id", "rank", "frame", "a", "b", "d", "mass_g", "container_id",
@@ -118,10 +121,13 @@ class ExtractResult:
 
 def check_extract(recordings: Sequence, out: str | Path, annotations: pd.DataFrame | None = None,
                   annotations_path: str | Path | None = None, force: bool = False) -> list[Annotation]:
-    """The cheap checks to make before anything runs: ``out`` is free (or ``force``), recording ids are unique and
-    every recording is annotated (:func:`annotation_for`). Returns the recordings' annotations, in order."""
-    if Path(out).exists() and not force:
+    """The cheap checks to make before anything runs: ``out`` is free (or, with ``force``, holds only a patch set:
+:func:`massviz.io.atomic.check_replaceable`), recording ids are unique and every recording is annotated
+    (:func:`annotation_for`). Returns the recordings' annotations, in order."""
+    if os.path.lexists(out) and not force:
         raise MassvizError("already exists (pass --force to replace it)", out)
+    if force:
+        check_replaceable(out, PATCH_SET_FILES, "patch set")
     ids = [r.id for r in recordings]
     if dup := sorted({i for i in ids if ids.count(i) > 1}):
         raise MassvizError(f"recording id {dup[0]} appears more than once; extract each dataset on its own")
@@ -159,7 +165,7 @@ def write_patch_set(out: str | Path, found: Sequence[tuple[str, Sequence[tuple[s
             for name, png, row in files:
                 (tmp / name).write_bytes(png)
                 rows.append(row)
-        csv_safe(pd.DataFrame(rows, columns=list(INDEX_COLUMNS))).to_csv(tmp / INDEX_NAME, index=False)
+        write_csv(pd.DataFrame(rows, columns=list(INDEX_COLUMNS)), tmp / INDEX_NAME)
     return ExtractResult(out, len(rows), len(found) if n_recordings is None else n_recordings, tuple(empty))
 
 

@@ -192,7 +192,7 @@ class FolderWriter:
 
 class _StopFlag:
     """Ctrl-C, SIGTERM or SIGHUP ends the session after the current frame, as the end of a file does (the outputs
-    are written); a second one interrupts at once, as ``massviz.cli`` ends any command (nothing half-written is left).
+    are written); a second one interrupts at once, as every command ends (``massviz.signals``) (nothing half-written is left).
     """
 
     def __init__(self):
@@ -201,14 +201,14 @@ class _StopFlag:
 
     def __enter__(self):
         if threading.current_thread() is threading.main_thread():
-            from massviz.cli import install_handlers
+            from massviz.signals import install_handlers
 
             install_handlers(self._handle, self._old)  # nohup's SIGHUP stays ignored
         return self
 
     def _handle(self, signum, frame):
         if self.reason:
-            from massviz.cli import end_like_ctrl_c
+            from massviz.signals import end_like_ctrl_c
 
             end_like_ctrl_c(signum, frame)  # KeyboardInterrupt or Terminated (once an import under way is done)
             return
@@ -216,7 +216,7 @@ class _StopFlag:
 
     def __exit__(self, *exc):
         for sig, old in self._old.items():
-            if signal.getsignal(sig) == self._handle:  # not when massviz.cli has since set it (a clean-up runs)
+            if signal.getsignal(sig) == self._handle:  # not when the command line has since set it (a clean-up runs)
                 signal.signal(sig, old)
 
 

@@ -29,7 +29,7 @@ import numpy as np
 from massviz._open3d import o3d
 
 from massviz import __version__
-from massviz.io.atomic import atomic_dir
+from massviz.io.atomic import atomic_dir, check_replaceable
 from massviz.io.formats.folder import FolderFrameWriter
 from massviz.core.types import Intrinsics
 
@@ -428,6 +428,10 @@ def _meta(spec: SampleSpec, frames: list[dict]) -> dict:
     }
 
 
+#: what a sample recording folder holds (relative paths): all that regenerating it replaces.
+SAMPLE_FILES = ("rgb", "depth", "gt", "rgb/*.png", "depth/*.png", "gt/*.png", "intrinsics.json", "meta.json")
+
+
 def write_sample(spec: SampleSpec, out_dir: Path, progress: Callable[[int], None] = lambda n: None) -> Path:
     """Render ``spec`` into ``out_dir/<name>`` and return that path.
 
@@ -444,6 +448,7 @@ def write_sample(spec: SampleSpec, out_dir: Path, progress: Callable[[int], None
     after each frame.
     """
     target = out_dir / spec.name
+    check_replaceable(target, SAMPLE_FILES, "sample recording", link_ok=False)
     with atomic_dir(target) as tmp:
         writer = FolderFrameWriter(tmp, compression=7, extra=("gt",))  # the folder format's writer
         rng = np.random.default_rng(spec.seed)

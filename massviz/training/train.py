@@ -37,7 +37,6 @@ Kept from the original: gradient-norm clipping at 5 (``max_grad_norm`` of its Co
 """
 from __future__ import annotations
 
-import csv
 import math
 import random
 import sys
@@ -55,11 +54,11 @@ from torch.utils.data import DataLoader, Dataset
 from tqdm.auto import tqdm
 
 from massviz.errors import DataError, MassvizError
-from massviz.io.atomic import atomic_dir
+from massviz.io.atomic import atomic_dir, check_replaceable
 from massviz.io.patch_set import (  # noqa: F401 - the patch set's names, also here
     DIMENSIONS, IMAGES_DIR, INDEX_COLUMNS, INDEX_NAME, Annotation, ExtractResult, annotation_for, check_extract,
     flag_columns, patch_files, patch_rows, read_index, write_patch_set)
-from massviz.io.untrusted import csv_safe, number
+from massviz.io.untrusted import csv_writer, number, write_csv
 from massviz.core.model import MassNet, Ranges, preprocess_patch
 from massviz.io.checkpoint import load_checkpoint, save_checkpoint
 
@@ -71,6 +70,8 @@ AUGMENT_FACTOR = {"random": 5, **{f: 3 for f in FOLDS}}
 #: largest augmentation factor (the training set is this many times as long).
 MAX_AUGMENT = 100
 DEFAULT_EPOCHS = {"random": 300, **{f: 100 for f in FOLDS}}
+#: what a run folder holds: all ``--force`` may replace (anything else in RUN is refused, never deleted).
+RUN_FILES = ("best.torch", "metrics.csv", "train.rrd", "split.csv")
 
 
 # ======================================================================================================= extraction
@@ -387,7 +388,7 @@ def train_run(patches: str | Path, out: str | Path, config: TrainConfig, *, init
     training, without a training loss, and never becomes the best), ``train.rrd`` (the same
     metrics as Rerun scalars on an ``epoch`` timeline) and ``split.csv`` (each recording's part). ``init``
     fine-tunes from a checkpoint's weights; its ranges are kept with ``keep_ranges``, else recomputed from the
-    training split. A non-empty ``out`` is an error unless ``force``. The same ``config.seed`` on the CPU gives the
+    training split. A non-empty ``out`` is an error unless ``force`` (and then it may hold only a run's files, :data:`RUN_FILES`). The same ``config.seed`` on the CPU gives the
     same checkpoint. Nothing appears at ``out`` unless training ends (see :func:`massviz.io.atomic.atomic_dir`).
     """
     cfg = config.resolved()
@@ -395,6 +396,8 @@ def train_run(patches: str | Path, out: str | Path, config: TrainConfig, *, init
     index = read_index(patches)
     if out.exists() and any(out.iterdir()) and not force:
         raise MassvizError("run folder is not empty (pass --force to overwrite)", out)
+    if force:
+        check_replaceable(out, RUN_FILES, "training run")
     split = split_recordings(index, cfg.split, cfg.seed, cfg.val_fraction)
     train_rows = index[index["recording"].isin(split.train)]
     val_rows = index[index["recording"].isin(split.val)]
@@ -427,8 +430,8 @@ def _train_into(run: Path, out: Path, model, train_set, val_set, ranges, index, 
     """The body of :func:`train_run`, writing into the temporary folder ``run`` (renamed to ``out`` after)."""
     import rerun as rr
 
-    csv_safe(pd.DataFrame({"recording": sorted(index["recording"].unique())}).assign(
-        part=lambda t: t["recording"].map(split.part_of))).to_csv(run / "split.csv", index=False)
+    write_csv(pd.DataFrame({"recording": sorted(index["recording"].unique())}).assign(
+        part=lambda t: t["recording"].map(split.part_of)), run / "split.csv")
     stream = rr.RecordingStream("massviz_train")
     stream.save(run / "train.rrd")
     try:
@@ -450,7 +453,7 @@ def _epochs(run, stream, model, train_set, val_set, ranges, split, cfg, init, pa
         raise MassvizError(f"the initial model's validation loss is {start.val_loss} (not a finite number)",
                            init)
     with open(run / "metrics.csv", "w", newline="") as f:
-        writer = csv.writer(f)
+        writer = csv_writer(f)
         writer.writerow(["epoch", "train_loss", "val_loss", "val_mae_g", "lr", "steps"])
         for m in (start, *fit(model, train_set, val_set, ranges, cfg, progress=progress)):
             history.append(m)

@@ -42,7 +42,7 @@ from massviz.core.trace import Trace, frame_results
 from massviz.evaluation.browser import INDEX_NAME, PATCH_COLUMNS as _PATCH_COLUMNS, PATCHES_NAME, best_frame, \
     patch_rows, recording_properties, recordings_table, rounded_properties
 from massviz.io.atomic import atomic_path
-from massviz.io.untrusted import safe_filename
+from massviz.io.untrusted import safe_filename, write_csv
 from massviz.views.rerun import entities as rl
 from massviz.views.rerun.output import APPLICATION_ID
 from massviz.views.rerun.replay import log_conclusion, log_opening, log_overlays, log_trace
@@ -247,9 +247,9 @@ def write_index(out_dir: str | Path, results: list[dict]) -> tuple[pd.DataFrame,
         if results else pd.DataFrame(columns=["id", "rrd", "rrd_bytes", "input_bytes"])
     patches = pd.DataFrame([row for r in results for row in r["patches"]], columns=list(PATCH_COLUMNS))
     with atomic_path(out_dir / INDEX_NAME) as tmp:
-        index.to_csv(tmp, index=False)
+        write_csv(index, tmp)
     with atomic_path(out_dir / PATCHES_NAME) as tmp:
-        patches.to_csv(tmp, index=False)
+        write_csv(patches, tmp)
     return index, patches
 
 

@@ -14,6 +14,7 @@ process serves over HTTP (only to the viewer's page): no display needed, and idl
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import re
 import shutil
@@ -76,11 +77,24 @@ class Catalog:
 
 
 def _rrd_files(folder: Path) -> list[Path]:
+    """The readable .rrd files of ``folder`` (their first bytes are Rerun's header); each other ``*.rrd`` is one
+    warning line naming it (the server skips it, the rest is served); none readable is a ``MassvizError``."""
+    from massviz.io.untrusted import printable
+
     if not folder.is_dir():
         raise MassvizError("not a folder (make a dataset with: massviz log DATASET --rrd-dir OUT)", folder)
-    files = sorted(folder.glob("*.rrd"))
-    if not files:
+    found = sorted(folder.glob("*.rrd"))
+    if not found:
         raise MassvizError("holds no .rrd file (make a dataset with: massviz log DATASET --rrd-dir OUT)", folder)
+    files = []
+    for path in found:
+        try:
+            files.append(check_rrd(path))
+        except MassvizError as err:
+            logging.getLogger(__name__).warning("massviz: warning: %s; not served", printable(err))
+    if not files:
+        raise MassvizError("holds no readable .rrd file (make a dataset with: massviz log DATASET --rrd-dir OUT)",
+                           folder)
     return files
 
 
@@ -303,6 +317,8 @@ def _run_until_stopped(command: str, start) -> int:
 
 #: the first bytes of an .rrd file (Rerun's stream header, "RRF2" since 0.x)
 RRD_MAGIC = b"RRF2"
+#: bytes of that header: the magic, Rerun's version and the encoding options.
+RRD_HEADER_BYTES = 12
 
 
 def check_rrd(path: str | Path) -> Path:
@@ -312,11 +328,13 @@ def check_rrd(path: str | Path) -> Path:
         raise MassvizError("no such .rrd file" if not path.exists() else "is not a file", path)
     try:
         with open(path, "rb") as f:
-            head = f.read(len(RRD_MAGIC))
+            head = f.read(RRD_HEADER_BYTES)
     except OSError as err:
         raise MassvizError(f"cannot read ({err.strerror or err})", path) from None
-    if head != RRD_MAGIC:
+    if not head.startswith(RRD_MAGIC):
         raise MassvizError("not a Rerun .rrd file (make one with: massviz log REC --rrd OUT.rrd)", path)
+    if len(head) < RRD_HEADER_BYTES:
+        raise MassvizError(f"a Rerun .rrd file cut off in its header ({len(head)} bytes)", path)
     return path.resolve()
 
 

@@ -150,6 +150,18 @@ class RealSenseRecording(RecordingBase):
             raise RecordingError(f"the RealSense recording ended after {i + 1} of {self.num_frames} frames", self.path)
 
 
+def _check_timing(stamps: list[float], path: Path) -> None:
+    """Every frame's time is a finite number of ms, never earlier than the frame before: the recording's duration
+    (what ``massviz live --file`` plays in real time, and every frame's time in a trace) is a number."""
+    for i, stamp in enumerate(stamps):
+        if not math.isfinite(stamp):
+            raise RecordingError(f"frame {i}'s timestamp is {stamp} ms, so the recording's duration is not a number; "
+                                 "not a playable RealSense recording", path)
+        if i and stamp < stamps[i - 1]:
+            raise RecordingError(f"frame {i}'s timestamp ({stamp:g} ms) is before frame {i - 1}'s "
+                                 f"({stamps[i - 1]:g} ms); not a playable RealSense recording", path)
+
+
 def open_realsense(path: str | Path) -> RealSenseRecording:
     """Open and check a RealSense file: streams, depth scale, intrinsics, extrinsics, and every frame's number and
     time (a .db3: from its ``messages`` table, no playback; a .bag: by playing it back without decoding)."""
@@ -179,6 +191,7 @@ def open_realsense(path: str | Path) -> RealSenseRecording:
         numbers, stamps = counted
     if not numbers:
         raise RecordingError("the RealSense recording has no frame with both colour and depth", path)
+    _check_timing(stamps, path)
     meta = {"id": path.stem, "fps": info.fps,
             "realsense": {"file": path.name, **info.describe(), "frame_numbers": numbers, "timestamps_ms": stamps}}
     return RealSenseRecording(path=path, kind=KIND, id=path.stem, width=info.width, height=info.height,

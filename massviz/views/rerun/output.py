@@ -18,6 +18,13 @@ from massviz.io.atomic import atomic_path, check_room
 from massviz.logs import ROOT
 
 APPLICATION_ID = "massviz"
+#: seconds one wait for Rerun's file writer lasts; between waits massviz checks that the file still grows (a writer
+#: that died on a full disk never answers a flush).
+FLUSH_WAIT_S = 2.0
+#: streams whose file writer died and never answers: kept (never dropped, which would wait for the writer).
+_STUCK: list = []
+#: free bytes below which a failed write of an .rrd is reported as a full disk.
+LOW_SPACE_BYTES = 1 << 20
 
 
 def file_batcher() -> rr.ChunkBatcherConfig:
@@ -107,22 +114,72 @@ class Output:
             self._handler = None
 
     def flush(self, what: str = "the recording") -> None:
-        """Deliver what was logged; an unreachable viewer (the gRPC sink reports it here) is one clear line."""
-        try:
-            self.stream.flush()
-        except RuntimeError as err:
-            if self.rrd is not None and not self.spawn:  # the file sink: a full disk or a failing write
-                raise MassvizError(f"cannot write {what} ({err}; is the disk full?)", self.rrd) from None
+        """Deliver what was logged; an unreachable viewer (the gRPC sink reports it here) is one clear line, and so
+        is a file that cannot be written (a full disk: "No space left on device"), also when Rerun's file writer
+        died without a word (it then never answers: massviz waits while the file still grows)."""
+        file_only = self._tmp is not None and not self.spawn
+        size = -1
+        while True:
+            try:
+                self.stream.flush(timeout_sec=FLUSH_WAIT_S if file_only else 1e38)
+                return
+            except RuntimeError as err:
+                if self.rrd is not None and not self.spawn:  # the file sink: a full disk or a failing write
+                    if "timed out" in str(err) and (grown := self._tmp_size()) > size and self._room():
+                        size = grown  # still writing onto a disk with room: wait on
+                        continue
+                    raise MassvizError(f"cannot write {what} ({self._why(err)})", self.rrd) from None
             where = "the spawned Rerun viewer" if self.spawn else "Rerun"
             raise MassvizError(f"could not deliver {what} to {where} ({err}); without a display, log to a file "
                                "(--rrd FILE.rrd) and open it in a browser with 'massviz view FILE.rrd'") from None
+
+    def _tmp_size(self) -> int:
+        try:
+            return self._tmp.stat().st_size
+        except OSError:
+            return -1
+
+    def _room(self) -> bool:
+        try:
+            st = os.statvfs(self._tmp.parent)
+        except OSError:
+            return True
+        return st.f_bavail * st.f_frsize >= LOW_SPACE_BYTES
+
+    def _why(self, err: RuntimeError) -> str:
+        """What went wrong writing the file: a full disk said in the OS's words (Rerun's own message names no
+        cause), else Rerun's message."""
+        import errno
+        import resource
+
+        if self._tmp is not None and not self._room():
+            return os.strerror(errno.ENOSPC)  # "No space left on device"
+        limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+        if self._tmp is not None and limit != resource.RLIM_INFINITY and self._tmp_size() + (1 << 16) > limit:
+            return os.strerror(errno.EFBIG)  # "File too large": the file-size limit (ulimit -f) is reached
+        return f"{err}; is the disk full?"
+
+    def _disconnect(self, failed: bool) -> None:
+        """Disconnect the own stream; after a failed write without waiting more than FLUSH_WAIT_S (a file writer
+        that died never answers, and the stream's temporary file is removed either way)."""
+        if not failed:
+            self.stream.disconnect()
+            return
+        import threading
+
+        done = threading.Thread(target=self.stream.disconnect, name="massviz-rerun-disconnect", daemon=True)
+        done.start()
+        done.join(FLUSH_WAIT_S)
+        if done.is_alive():  # the writer is gone for good: Rerun's own flush at exit would wait for it for ever
+            rr.unregister_shutdown()
+            _STUCK.append(self.stream)
 
     def close(self, err: BaseException | None = None) -> None:
         """Disconnect an own stream; with ``err`` None rename the .rrd into place (a ``MassvizError`` when Rerun wrote
         nothing), else leave nothing at its path (the caller re-raises ``err``)."""
         self._unroute_logs()
         if self.own:
-            self.stream.disconnect()
+            self._disconnect(err is not None)
         if err is None and self._tmp is not None and (not self._tmp.is_file() or self._tmp.stat().st_size == 0):
             empty = MassvizError("Rerun wrote nothing (is logging disabled with RERUN=off?)", self.rrd)
             self._abandon(empty)

@@ -1,0 +1,194 @@
+"""Crash consistency and concurrency: a command killed (SIGKILL: no clean-up runs) at any of its commits, then run
+again, gives what a clean run gives; what the kill left (a temporary file, a half-made cache entry) is swept or
+detected, never used and never accumulated. Two processes writing the same output: one wins whole.
+
+The kill points are generated: the ``n``-th rename by which a command puts a finished file in place (its outputs and
+its cache entries alike), just before it or just after it, in a process of its own (``python -c`` with ``os.replace``
+wrapped; a real SIGKILL).
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from test_fuzz import Base, base, copy_sample  # noqa: F401
+from test_fuzz2 import clean_env, patch_set  # noqa: F401
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: the command line of a run killed at its ``KILL_AT``-th ``os.replace`` (``KILL_WHEN``: before or after it).
+KILLED_RUN = """
+import os, signal, sys
+n, when, seen = int(os.environ["KILL_AT"]), os.environ["KILL_WHEN"], [0]
+real = os.replace
+def replace(src, dst, *args, **kwargs):
+    seen[0] += 1
+    if seen[0] == n and when == "before":
+        os.kill(os.getpid(), signal.SIGKILL)
+    out = real(src, dst, *args, **kwargs)
+    if seen[0] == n and when == "after":
+        os.kill(os.getpid(), signal.SIGKILL)
+    return out
+os.replace = replace
+from massviz.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def massviz(argv, work: Path, kill_at: int | None = None, when: str = "before") -> subprocess.CompletedProcess:
+    env = {**clean_env(), "PYTHONPATH": str(ROOT), "TMPDIR": str(work / "tmpdir"), "HOME": str(work / "home"),
+           "MASSVIZ_CACHE_DIR": str(work / "usercache"), "XDG_CACHE_HOME": str(work / "xdg"),
+           "TORCHINDUCTOR_CACHE_DIR": str(work / "xdg" / "torchinductor")}
+    for d in ("tmpdir", "home"):
+        (work / d).mkdir(exist_ok=True)
+    if kill_at is None:
+        cmd = [sys.executable, "-m", "massviz", *map(str, argv)]
+    else:
+        cmd = [sys.executable, "-c", KILLED_RUN, *map(str, argv)]
+        env.update(KILL_AT=str(kill_at), KILL_WHEN=when)
+    return subprocess.run(cmd, cwd=work, env=env, capture_output=True, text=True, timeout=300)
+
+
+def pipeline(b: Base, work: Path, command: str, *extra) -> list:
+    return [command, *extra, "--detector", "replay", "--replay", b.replay, "--weights", b.weights,
+            "--cache", work / "cache", "--quiet"]
+
+
+def command_case(command: str, work: Path, b: Base, patches: Path) -> tuple[list, Path]:
+    """(argv, output) of one command on a fresh copy of the sample."""
+    if command == "train":
+        return (["train", patches, "--out", work / "run", "--epochs", "2", "--augment", "1", "--quiet", "--force"],
+                work / "run")  # --force: a rerun after a kill that came once the run was in place replaces it
+    rec = work / "rec"
+    if not rec.exists():
+        copy_sample(rec)
+    outs = {"estimate": ("--out", work / "p.csv", "--exact"), "extract": ("--out", work / "patches", "--force"),
+            "cloud": ("--out", work / "clouds"), "log": ("--rrd", work / "o.rrd")}
+    extra = outs[command]
+    return pipeline(b, work, command, rec, *extra), extra[1]
+
+
+def result(command: str, out: Path):
+    """What a run's output says, without what differs between two clean runs (times, Rerun's recording ids, the
+    folder it ran in)."""
+    return _result(command, out, str(out.parent))
+
+
+def _result(command: str, out: Path, work: str):
+    if command == "estimate":
+        return [line.split(",")[2] for line in out.read_text().splitlines()]
+    if command == "log":
+        return out.is_file() and out.stat().st_size > 0
+    if command == "train":
+        return (out / "metrics.csv").read_text(), sorted(os.listdir(out))
+    if command == "cloud":
+        return (out / "measurements.csv").read_text().replace(work, "W"), sorted(os.listdir(out))
+    return (out / "index.csv").read_text().replace(work, "W"), sorted(os.listdir(out / "images"))
+
+
+def hidden(folder: Path) -> list[str]:
+    skip = {"tmpdir", "home", "usercache", "xdg"}
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob(".*")
+                  if not skip & set(p.relative_to(folder).parts))
+
+
+@pytest.fixture(scope="module")
+def clean_results(base, patch_set, tmp_path_factory) -> dict:
+    """Each command's clean result (computed on first use)."""
+    out = {}
+
+    def get(command):
+        if command not in out:
+            work = tmp_path_factory.mktemp(f"clean_{command}")
+            argv, target = command_case(command, work, base, patch_set)
+            run = massviz(argv, work)
+            assert run.returncode == 0, run.stderr
+            out[command] = result(command, target)
+        return out[command]
+    return get
+
+
+KILL_CASES = [(c, n, w) for c in ("estimate", "extract", "cloud", "train", "log") for n in (1, 2, 3)
+              for w in ("before", "after")]
+
+
+@pytest.mark.parametrize("command,nth,when", [
+    pytest.param(*case, id=f"sigkill-{case[0]}-at-commit-{case[1]}-{case[2]}",
+                 marks=() if i == 0 else pytest.mark.slow) for i, case in enumerate(KILL_CASES)])
+def test_a_command_killed_at_a_commit_then_run_again_equals_a_clean_run(command, nth, when, base, patch_set,
+                                                                         clean_results, tmp_path):
+    work = tmp_path / "w"
+    work.mkdir()
+    argv, out = command_case(command, work, base, patch_set)
+    for _ in range(2):  # killed twice at the same point: what the kills leave must not accumulate
+        killed = massviz(argv, work, kill_at=nth, when=when)
+        if killed.returncode == 0:  # fewer commits than nth: nothing to kill
+            pytest.skip(f"{command} made fewer than {nth} commits")
+        assert killed.returncode == -9, killed.stderr
+    again = massviz(argv, work)
+    assert again.returncode == 0, again.stderr
+    assert "Traceback" not in again.stderr
+    assert result(command, out) == clean_results(command)
+    assert hidden(work) == [], "temporaries left by the killed runs were not swept"
+    assert not any((work / "tmpdir").iterdir())
+
+
+DAMAGE = {"truncated": lambda data: data[: len(data) // 2], "garbage": lambda data: os.urandom(len(data)),
+          "empty": lambda data: b""}
+
+
+@pytest.mark.parametrize("damage", [pytest.param(d, marks=() if i == 0 else pytest.mark.slow)
+                                    for i, d in enumerate(DAMAGE)])
+def test_a_damaged_cache_entry_is_detected_recomputed_and_said_once(damage, base, tmp_path):
+    work = tmp_path / "w"
+    work.mkdir()
+    argv, out = command_case("estimate", work, base, tmp_path)
+    first = massviz(argv, work)
+    assert first.returncode == 0, first.stderr
+    clean = result("estimate", out)
+    (entry,) = (work / "cache").rglob("t*.npz")
+    entry.write_bytes(DAMAGE[damage](entry.read_bytes()))
+    again = massviz(argv, work)
+    warnings = [line for line in again.stderr.splitlines() if "warning" in line]
+    assert again.returncode == 0 and len(warnings) == 1, again.stderr
+    assert warnings[0].startswith(f"massviz: warning: {entry}: damaged trace cache entry (")
+    assert result("estimate", out) == clean
+    third = massviz(argv, work)  # the entry was written again: no warning now
+    assert third.returncode == 0 and "warning" not in third.stderr, third.stderr
+
+
+# ====================================================================================================== concurrency
+def _two_at_once(argv_a, argv_b, work: Path):
+    env = {**clean_env(), "PYTHONPATH": str(ROOT)}
+    procs = [subprocess.Popen([sys.executable, "-m", "massviz", *map(str, a)], cwd=work, env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for a in (argv_a, argv_b)]
+    return [(p.wait(timeout=300), p.stderr.read()) for p in procs]
+
+
+@pytest.mark.parametrize("command", ["extract", pytest.param("cloud", marks=pytest.mark.slow),
+                                     pytest.param("train", marks=pytest.mark.slow),
+                                     pytest.param("log-rrd-dir", marks=pytest.mark.slow)])
+def test_two_processes_writing_the_same_output_leave_one_whole(command, base, patch_set, clean_results, tmp_path):
+    """Both succeed and the output is one run's, whole; or one says in one line why it did not write."""
+    work = tmp_path / "w"
+    work.mkdir()
+    if command == "log-rrd-dir":
+        rec = copy_sample(work / "rec")
+        argv, out = pipeline(base, work, "log", rec, "--rrd-dir", work / "ds"), work / "ds"
+    else:
+        argv, out = command_case(command, work, base, patch_set)
+    runs = _two_at_once(argv, argv, work)
+    for code, err in runs:
+        assert "Traceback" not in err and "internal error" not in err, err
+        errors = [line for line in err.splitlines() if ": error:" in line]
+        assert code == 0 or (code == 2 and len(errors) == 1), (code, err)
+    assert any(code == 0 for code, _ in runs), runs
+    if command == "log-rrd-dir":
+        assert sorted(os.listdir(out)) == ["index.csv", "patches", "patches.csv", "rec.rrd"] or \
+            sorted(os.listdir(out))[:1] == ["cup_handover.rrd"] or "index.csv" in os.listdir(out), os.listdir(out)
+    else:
+        assert result(command, out) == clean_results(command)
+    assert hidden(work) == []
