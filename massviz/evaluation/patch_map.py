@@ -142,11 +142,11 @@ class PatchMap:
         if not len(hits):
             raise KeyError(f"no patch {patch_id!r} in the map")
         q = self.features[hits[0]]
-        dist = 1.0 - self.features @ q
-        dist[hits[0]] = np.inf
-        order = np.argsort(dist, kind="stable")[:max(0, int(n))]
-        order = order[np.isfinite(dist[order])]
-        return self.patches.iloc[order].assign(distance=dist[order])
+        cosine = 1.0 - self.features @ q
+        cosine[hits[0]] = np.inf
+        order = np.lexsort((np.arange(len(cosine)), cosine))[:max(0, int(n))]  # ties: the earlier row
+        order = order[np.isfinite(cosine[order])]
+        return self.patches.iloc[order].assign(distance=cosine[order])
 
 
 def layout_2d(features: np.ndarray, method: str = "auto", seed: int = 0) -> tuple[np.ndarray, str]:
