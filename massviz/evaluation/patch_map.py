@@ -2,17 +2,17 @@
 
 * The embedding of a patch is the mass CNN's own description of it: the pooled maps its head reads
   (``MassNet.pooled_features``: 128×7×7 = 6,272 values), L2-normalised. No other model.
-* ``embed_trace`` computes the embeddings of a trace's chosen patches once and caches them **with the trace**:
-  beside its trace-cache entry (``…/<id>-<key>/t0.4.npz`` → ``e0.4-<model id>.emb``, an .npz inside, not named
-  so: every ``*.npz`` of the cache is a trace), keyed like it: the same
-  recording content, detector settings and stride, and the model's id), with the trace file's identity, so a
-  rewritten trace is embedded again. Patches another K or threshold chooses later are added to the same file.
+* ``embed_trace`` computes the embeddings of a trace's chosen patches once and caches them **with the trace**,
+  beside its trace-cache entry and keyed like it (the same recording content, detector settings and stride) and by
+  the model's id: ``…/<id>-<key>/t0.4.npz`` → ``e0.4-<model id>.emb`` (an .npz inside, not named so: every
+  ``*.npz`` of the cache is a trace). The file names the trace file's identity, so a rewritten trace is embedded
+  again; patches another K or threshold chooses later are added to it.
 * ``patch_map(runs, model)`` — one row per distinct chosen patch (recording, frame and box) of one or more runs
   (``massviz.evaluation.runs.Run`` from traces): ``patch_id`` (``recording/frame:x1,y1,x2,y2``), recording,
-  frame, box, class, rank and flag in each run, ``runs`` (which runs chose it), the recording's class and relative
-  error, the ground-truth instance its mask lies on where the flags know it (``ground_truth``: ``container``, ``pitcher``
-  ...), and its 2D position ``x``,
-  ``y`` (``layout_2d``: UMAP when umap-learn is installed, else t-SNE from scikit-learn, else PCA).
+  frame, box, class, rank, flag, ``runs`` (which runs chose it; ``run``: ``both`` or the one), the recording's class
+  and relative error, ``detection`` (its index in the trace of run ``source_run``), the ground-truth instance its
+  mask lies on where the flags know it (``ground_truth``: ``container``, ``pitcher`` ...), and its 2D position
+  ``x``, ``y`` (``layout_2d``: UMAP when umap-learn is installed, else t-SNE from scikit-learn, else PCA).
 * ``PatchMap.nearest(patch_id, n)`` — the ``n`` most similar patches (cosine distance in the embedding).
 """
 from __future__ import annotations
@@ -226,7 +226,8 @@ def patch_map(runs: Sequence, model, *, cache=None, method: str = "auto", seed: 
                         "y2": y2, "class": names[i], "container_class": (trace.ground_truth.cls if trace.ground_truth
                                                                          is not None else "") or "",
                         "d_mm": float(dets.d[i]), "pred_g": float(dets.pred[i]), "ground_truth": (flag.ground_truth or "") if flag is not None else "",
-                        "runs": [], "rank": {}, "flagged": False, "cues": "", "rel_error": {}, "detection": i}
+                        "runs": [], "rank": {}, "flagged": False, "cues": "", "rel_error": {}, "detection": i,
+                        "source_run": run.label}
                     feats[pid] = emb[i]
                 row["runs"].append(run.label)
                 row["rank"][run.label] = rank
