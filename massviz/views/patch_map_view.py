@@ -27,10 +27,23 @@ COLOURINGS = {"relative error": "rel_error", "flag": "flagged", "class": "class"
 #: categorical colours (plotly's D3 palette).
 CATEGORY_COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
                     "#bcbd22", "#17becf")
-#: columns of the two-run table shown.
-TABLE_COLUMNS = ("id", "container_class", "estimate_g_a", "estimate_g_b", "delta_estimate_g", "rel_error_a",
-                 "rel_error_b", "delta_rel_error", "n_patches_changed", "patches_dropped", "patches_added",
-                 "flags_appeared", "flags_gone")
+#: columns of the two-run table shown (``patches``: +added −dropped ↕re-ranked; ``flags``: +appeared −gone).
+TABLE_COLUMNS = {"id": "recording", "container_class": "class", "estimate_g_a": "A (g)",
+                 "estimate_g_b": "B (g)", "delta_estimate_g": "Δ (g)", "rel_error_a": "ε A",
+                 "rel_error_b": "ε B", "delta_rel_error": "Δ ε", "score_a": "score A", "score_b": "score B",
+                 "patches": "patches", "flags": "flags"}
+FORMATS = {"estimate_g_a": "{:.2f}", "estimate_g_b": "{:.2f}", "delta_estimate_g": "{:+.2f}", "rel_error_a": "{:.3f}",
+           "rel_error_b": "{:.3f}", "delta_rel_error": "{:+.3f}", "score_a": "{:.3f}", "score_b": "{:.3f}"}
+TABLE_STYLE = ("<style>.massviz-runs-table{border-collapse:collapse;font-size:12px;line-height:1.3}"
+               ".massviz-runs-table td,.massviz-runs-table th{padding:2px 6px;border-bottom:1px solid #ddd;"
+               "text-align:right;white-space:nowrap}.massviz-runs-table td:nth-child(-n+2){text-align:left}</style>")
+
+
+def _counts(table: pd.DataFrame) -> pd.DataFrame:
+    n = lambda col: table[col].fillna("").map(lambda s: len(str(s).split()))  # noqa: E731
+    return table.assign(patches=[f"+{a} −{d} ↕{r}" for a, d, r in zip(n("patches_added"), n("patches_dropped"),
+                                                                       n("patches_reranked"))],
+                        flags=[f"+{a} −{g}" for a, g in zip(table["n_flags_appeared"], table["n_flags_gone"])])
 
 
 class RunsTable:
@@ -50,7 +63,9 @@ class RunsTable:
         self.w_class = W.Dropdown(options=["any", *classes], value="any", description="class")
         self.count = W.HTML()
         self.out = W.HTML()
-        self.scores = W.HTML(scores.round(3).to_html() if scores is not None else "")
+        self.scores = W.HTML(TABLE_STYLE + "<b>score per class</b> (%; best: each recording's better run)" +
+                             scores.to_html(classes="massviz-runs-table", border=0, float_format="{:.2f}".format)
+                             if scores is not None else "")
         for w in (self.w_worse, self.w_use_worse, self.w_flag, self.w_changed, self.w_class):
             w.observe(lambda _: self.refresh(), names="value")
         self.widget = W.VBox([W.HBox([self.w_use_worse, self.w_worse, self.w_flag, self.w_changed, self.w_class]),
@@ -75,9 +90,11 @@ class RunsTable:
 
     def refresh(self) -> pd.DataFrame:
         shown = self.shown()
-        cols = [c for c in TABLE_COLUMNS if c in shown.columns]
-        self.out.value = shown[cols].head(self.max_rows).to_html(index=False, float_format=lambda v: f"{v:.4g}",
-                                                                 na_rep="–", classes="massviz-runs-table")
+        view = _counts(shown.head(self.max_rows))
+        cols = [c for c in TABLE_COLUMNS if c in view.columns]
+        fmt = {TABLE_COLUMNS[c]: (lambda v, f=f: "–" if pd.isna(v) else f.format(v)) for c, f in FORMATS.items()}
+        self.out.value = TABLE_STYLE + view[cols].rename(columns=TABLE_COLUMNS).to_html(
+            index=False, formatters=fmt, na_rep="–", classes="massviz-runs-table", border=0)
         self.count.value = (f"<span class='massviz-runs-count'>{len(shown)} of {len(self.table)} recordings"
                             "</span>")
         return shown
@@ -167,11 +184,12 @@ class PatchMapView:
 
         r = self.map.patches.iloc[i]
         image = W.Image(value=self.images(r), format="jpeg", layout=W.Layout(max_width="124px", max_height="124px"))
-        flag = f"<br><span style='color:{FLAGGED_HEX}'>⚑ {html.escape(str(r.cues) or 'flagged')}</span>" \
-            if r.flagged else ""
+        flag = f"<br><span style='color:{FLAGGED_HEX}'>⚑ {html.escape(str(r.cues).replace(',', ', ') or 'flagged')}" \
+            "</span>" if r.flagged else ""
         gt = f" · {html.escape(r.ground_truth)}" if r.ground_truth else ""
-        caption = W.HTML(f"<small><b>{html.escape(r.recording)}</b> ε {r.rel_error:.2f}<br>★{r['rank']} · "
-                         f"f{r.frame} · {r['class']}{gt}<br>{html.escape(str(r.run))}{extra}</small>{flag}")
+        caption = W.HTML(f"<div style='font-size:11px;line-height:1.3'><b>{html.escape(r.recording)}</b> "
+                         f"ε {r.rel_error:.2f}<br>★{r['rank']} · f{r.frame} · {r['class']}{gt}<br>run "
+                         f"{html.escape(str(r.run))}{extra}{flag}</div>")
         open_button = W.Button(description="open", layout=W.Layout(width="58px"),
                                tooltip=f"open {r.recording} at frame {r.frame}")
         similar = W.Button(description="similar", layout=W.Layout(width="66px"))

@@ -98,7 +98,8 @@ def two_runs_blueprint(k_a: int, k_b: int) -> rrb.Blueprint:
         name=f"{side}: best frame · detections", origin=f"{root}/camera",
         contents=[f"{root}/camera/rgb", f"{root}/camera/detections"])
     plot = rrb.TimeSeriesView(name="Predictions (g): A and B", origin="/",
-                              contents=["/predictions/**", f"{B_ROOT}/predictions/**"])
+                              contents=["/predictions/**", f"{B_ROOT}/predictions/**"],
+                              plot_legend=rrb.PlotLegend(visible=False))  # (a legend covers the small plot)
     text = rrb.Tabs(rrb.TextDocumentView(name="A vs B", origin="/compare"),
                     rrb.TextDocumentView(name="A: summary", origin="/summary"),
                     rrb.TextDocumentView(name="B: summary", origin=f"{B_ROOT}/summary"),
