@@ -90,3 +90,22 @@ def test_settings_text_and_table_files(tmp_path, two_runs):
     with pytest.raises(MassvizError, match=".csv or .parquet"):
         write_table(table, tmp_path / "t.txt")
     assert not (tmp_path / "t.txt").exists()
+
+
+def test_a_run_from_the_cache_indexes_equals_the_run_from_full_traces(two_runs, sample_cache, weights, samples_dir):
+    from massviz.evaluation.runs import run_from_indexes
+    from massviz.evaluation.tuning import index_recordings
+    from massviz.io.recording import collect_recordings
+
+    a, b = two_runs
+    indexes = index_recordings(collect_recordings([samples_dir]), detector="depth", weights=str(weights),
+                               cache=str(sample_cache), threshold=0.4, quiet=True)
+    ia, ib = run_from_indexes(indexes, k=5, threshold=0.4), run_from_indexes(indexes, k=3, threshold=0.4)
+    for full, light in ((a, ia), (b, ib)):
+        for tf, tl in zip(full.traces, light.traces):
+            assert list(tf.selection) == list(tl.selection) and tf.estimate == tl.estimate
+            assert [(p.detection, p.flagged, p.ground_truth) for p in tf.flags.patches] == \
+                [(p.detection, p.flagged, p.ground_truth) for p in tl.flags.patches]
+    pd.testing.assert_frame_equal(compare_runs(a, b), compare_runs(ia, ib))
+    with pytest.raises(MassvizError, match="below the threshold"):
+        run_from_indexes(indexes, k=5, threshold=0.3)

@@ -9,7 +9,8 @@ from
   ``patches.csv``; nothing is recomputed), or
 * traces (``run_from_traces``), e.g. those of the trace cache selected by their settings (``run_from_cache``:
   detector, threshold, K, stride, weights; cached detections are reused, a threshold or K the cache can serve runs
-  no detector, and a recording without a usable cache entry is processed once and cached).
+  no detector, and a recording without a usable cache entry is processed once and cached), or the cache's
+  selection indexes (``run_from_indexes``: no full trace read; the tables of the patches' images aside, the same).
 
 ``patch_changes(a, b)`` matches the chosen patches of each recording by frame and box (IoU >= ``iou`` in the same
 frame, one to one, as ``massviz.evaluation.compare`` matches detections): one row per patch, ``same``, ``re-ranked``,
@@ -106,6 +107,35 @@ def run_from_cache(recordings: Sequence, options=None, *, label: str | None = No
     recs = [r if not isinstance(r, (str, Path)) else open_recording(r) for r in recordings]
     traces = [pipeline.process(r, progress=progress) for r in recs]
     return run_from_traces(traces, label if label is not None else describe_settings(settings), recs)
+
+
+def trace_from_index(index, *, k: int, threshold: float) -> "Trace":
+    """A ``Trace`` of a selection index (``massviz.io.cache.TraceIndex``: every detection's columns, no patch or
+    mask) selected with ``k`` and ``threshold``: its selection, estimate and flags as ``reselect`` makes them on the
+    full trace (they read no patch or mask), in a fraction of the time of reading the full trace. The ground-truth
+    overlaps the index kept (``Detections.gt_iou`` ...) are those of the recording's ground truth when the trace
+    was cached."""
+    from massviz.core.flags import ground_truth_source
+    from massviz.core.selection import estimate_mass, select_k_nearest
+    from massviz.core.trace import Trace
+
+    if threshold < index.detect_threshold - 1e-9:
+        raise MassvizError(f"threshold {threshold} is below the threshold {index.detect_threshold} the cached trace "
+                           "was made at; run again with a lower --threshold first", index.trace_path)
+    dets = index.detections
+    selection = select_k_nearest(dets.d, dets.score, int(k), float(threshold), index.excluded)
+    return Trace(recording=index.recording, detector=dict(index.detector), detect_threshold=index.detect_threshold,
+                 threshold=float(threshold), k=int(k), stride=index.stride, frames=index.frames, detections=dets,
+                 selection=selection, estimate=estimate_mass(dets.pred, selection), weights_id=index.weights_id,
+                 excluded=index.excluded,
+                 ground_truth_source=ground_truth_source(index.recording) if np.isfinite(dets.gt_iou).any() else "")
+
+
+def run_from_indexes(indexes: Sequence, *, k: int, threshold: float, label: str = "") -> Run:
+    """The run of cached selection indexes (``massviz.evaluation.tuning.index_recordings``, or a warm command's
+    ``cached_indexes``) at ``k`` and ``threshold``: the tables of ``run_from_traces``, without reading any full
+    trace (what a comparison over a 1,140-recording dataset reads)."""
+    return run_from_traces([trace_from_index(i, k=k, threshold=threshold) for i in indexes], label)
 
 
 # ------------------------------------------------------------------------------------------------- comparison
@@ -288,5 +318,6 @@ def write_table(table: pd.DataFrame, path: str | Path) -> Path:
     return path
 
 
-__all__ = ["Run", "SETTINGS", "FIGURES", "CHANGES", "load_run", "run_from_traces", "run_from_cache", "parse_settings",
+__all__ = ["Run", "SETTINGS", "FIGURES", "CHANGES", "load_run", "run_from_traces", "run_from_cache",
+           "run_from_indexes", "trace_from_index", "parse_settings",
            "describe_settings", "patch_changes", "compare_runs", "filter_comparison", "run_scores", "write_table"]
