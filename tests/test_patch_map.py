@@ -32,9 +32,9 @@ class Counting:
     def __init__(self, model):
         self.model, self.weights_id, self.embedded = model, model.weights_id, 0
 
-    def pooled_features(self, patches):
+    def pooled_features(self, patches, **kw):
         self.embedded += len(patches)
-        return self.model.pooled_features(patches)
+        return self.model.pooled_features(patches, **kw)
 
 
 def test_a_pitcher_patch_finds_the_other_pitcher_patches_first(setup):

@@ -95,20 +95,39 @@ def embed_trace(trace, model, *, trace_path: str | Path | None = None, recording
     """detection → embedding (float32, L2-normalised) of ``detections`` (default: the chosen patches) of
     ``trace``, read from / added to the file beside ``trace_path`` (its trace-cache entry) when given. A patch the
     trace did not keep is cut from ``recording``'s frame; one with no image anywhere is left out."""
-    want = [int(i) for i in (trace.selection if detections is None else detections)]
-    path = embedding_path(trace_path, getattr(model, "weights_id", "") or "") if trace_path else None
-    known = _read_cached(path, Path(trace_path)) if path is not None and path.is_file() else {}
-    todo = [i for i in want if i not in known]
-    if todo:
-        images = _patch_images(trace, recording, todo)
-        todo = [i for i in todo if i in images]
-        if todo:
-            feats = model.pooled_features([images[i] for i in todo])
-            feats /= np.maximum(np.linalg.norm(feats, axis=1, keepdims=True), 1e-12)
-            known.update({i: f for i, f in zip(todo, feats.astype(np.float16).astype(np.float32))})
-            if path is not None:
-                _write_cached(path, Path(trace_path), known)
-    return {i: known[i] for i in want if i in known}
+    return embed_traces([trace], model, trace_paths=[trace_path], recordings=[recording],
+                        detections=None if detections is None else [detections])[0]
+
+
+def embed_traces(traces: Sequence, model, *, trace_paths: Sequence | None = None, recordings: Sequence | None = None,
+                 detections: Sequence | None = None, rows: int = 64) -> list[dict[int, np.ndarray]]:
+    """``embed_trace`` of each trace, the patches no file holds yet put through the model together (calls of
+    ``rows`` patches, not one call per recording)."""
+    n = len(traces)
+    trace_paths = list(trace_paths or [None] * n)
+    recordings = list(recordings or [None] * n)
+    wid = getattr(model, "weights_id", "") or ""
+    known, want, paths, todo = [], [], [], []
+    for k, trace in enumerate(traces):
+        sel = trace.selection if detections is None or detections[k] is None else detections[k]
+        want.append([int(i) for i in sel])
+        path = embedding_path(trace_paths[k], wid) if trace_paths[k] else None
+        paths.append(path)
+        known.append(_read_cached(path, Path(trace_paths[k])) if path is not None and path.is_file() else {})
+        missing = [i for i in want[k] if i not in known[k]]
+        if missing:
+            images = _patch_images(trace, recordings[k], missing)
+            todo += [(k, i, images[i]) for i in missing if i in images]
+    for start in range(0, len(todo), 16 * rows):
+        part = todo[start:start + 16 * rows]
+        feats = model.pooled_features([img for _, _, img in part], rows=rows)
+        feats /= np.maximum(np.linalg.norm(feats, axis=1, keepdims=True), 1e-12)
+        for (k, i, _), f in zip(part, feats.astype(np.float16).astype(np.float32)):
+            known[k][i] = f
+    for k in sorted({k for k, _, _ in todo}):
+        if paths[k] is not None:
+            _write_cached(paths[k], Path(trace_paths[k]), known[k])
+    return [{i: known[k][i] for i in want[k] if i in known[k]} for k in range(n)]
 
 
 def trace_paths(traces: Sequence, recordings: Sequence, cache) -> list[Path | None]:
@@ -206,8 +225,8 @@ def patch_map(runs: Sequence, model, *, cache=None, method: str = "auto", seed: 
         recs = list(run.recordings_of) or [None] * len(run.traces)
         paths = trace_paths(run.traces, recs, cache)
         table = run.recordings
-        for trace, recording, path in zip(run.traces, recs, paths):
-            emb = embed_trace(trace, model, trace_path=path, recording=recording)
+        embedded = embed_traces(run.traces, model, trace_paths=paths, recordings=recs)
+        for trace, emb in zip(run.traces, embedded):
             rid = trace.recording.id
             dets = trace.detections
             names = dets.class_names()
@@ -250,4 +269,4 @@ def patch_map(runs: Sequence, model, *, cache=None, method: str = "auto", seed: 
     return PatchMap(table, features, used)
 
 
-__all__ = ["PatchMap", "embedding_path", "embed_trace", "trace_paths", "layout_2d", "patch_map"]
+__all__ = ["PatchMap", "embedding_path", "embed_trace", "embed_traces", "trace_paths", "layout_2d", "patch_map"]

@@ -139,10 +139,6 @@ def run_from_indexes(indexes: Sequence, *, k: int, threshold: float, label: str 
 
 
 # ------------------------------------------------------------------------------------------------- comparison
-def _key(row) -> str:
-    return f"{int(row.frame)}:{int(row.x1)},{int(row.y1)},{int(row.x2)},{int(row.y2)}"
-
-
 def patch_changes(a: Run, b: Run, iou: float = DEFAULT_IOU) -> pd.DataFrame:
     """One row per chosen patch of either run, per recording both runs hold: ``recording``, ``patch``
     (``frame:x1,y1,x2,y2``, A's box where both), ``frame``, ``rank_a``, ``rank_b`` (-1: not chosen in that run),
@@ -151,43 +147,62 @@ def patch_changes(a: Run, b: Run, iou: float = DEFAULT_IOU) -> pd.DataFrame:
     if not 0.0 < iou <= 1.0:
         raise ValueError("iou must be in (0, 1]")
     common = sorted(set(a.recordings.index) & set(b.recordings.index))
-    pa, pb = (r.patches[r.patches["recording"].isin(common)] for r in (a, b))
-    ga, gb = dict(tuple(pa.groupby("recording"))), dict(tuple(pb.groupby("recording")))
-    empty = pa.iloc[:0]
-    rows = []
+    sa, sb = _PatchArrays(a.patches, common), _PatchArrays(b.patches, common)
+    cols = {c: [] for c in ("recording", "patch", "frame", "rank_a", "rank_b", "change", "flagged_a", "flagged_b",
+                            "cues_a", "cues_b", "pred_g_a", "pred_g_b", "iou")}
+
+    def add(rid, i, j, change, v):
+        ref, k = (sa, i) if i >= 0 else (sb, j)
+        box = ref.box[k]
+        cols["recording"].append(rid)
+        cols["patch"].append(f"{ref.frame[k]}:{box[0]},{box[1]},{box[2]},{box[3]}")
+        cols["frame"].append(int(ref.frame[k]))
+        for side, arr, idx in (("a", sa, i), ("b", sb, j)):
+            cols[f"rank_{side}"].append(int(arr.rank[idx]) if idx >= 0 else -1)
+            cols[f"flagged_{side}"].append(bool(arr.flagged[idx]) if idx >= 0 else False)
+            cols[f"cues_{side}"].append(arr.cues[idx] if idx >= 0 else "")
+            cols[f"pred_g_{side}"].append(float(arr.pred[idx]) if idx >= 0 else np.nan)
+        cols["change"].append(change)
+        cols["iou"].append(v)
+
     for rid in common:
-        ta, tb = ga.get(rid, empty), gb.get(rid, empty)
+        ia, ib = sa.rows.get(rid, _NONE), sb.rows.get(rid, _NONE)
         partner = {}
-        for frame in sorted(set(ta["frame"]) & set(tb["frame"])):
-            fa, fb = ta[ta["frame"] == frame], tb[tb["frame"] == frame]
-            box = lambda t: t[["x1", "y1", "x2", "y2"]].to_numpy(np.float64)  # noqa: E731
-            for i, j, v in match_boxes(box(fa), box(fb), iou):
-                partner[fa.index[i]] = (fb.index[j], v)
+        fa_all, fb_all = sa.frame[ia], sb.frame[ib]
+        for frame in np.intersect1d(fa_all, fb_all):
+            fa, fb = ia[fa_all == frame], ib[fb_all == frame]
+            for i, j, v in match_boxes(sa.box[fa].astype(np.float64), sb.box[fb].astype(np.float64), iou):
+                partner[int(fa[i])] = (int(fb[j]), v)
+        for i in ia:
+            hit = partner.get(int(i))
+            if hit is None:
+                add(rid, int(i), -1, "dropped", np.nan)
+            else:
+                add(rid, int(i), hit[0], "same" if sa.rank[i] == sb.rank[hit[0]] else "re-ranked", hit[1])
         matched_b = {j for j, _ in partner.values()}
-        for ia, ra in ta.iterrows():
-            jb = partner.get(ia)
-            rb = tb.loc[jb[0]] if jb else None
-            change = "dropped" if rb is None else ("same" if int(ra["rank"]) == int(rb["rank"]) else "re-ranked")
-            rows.append(_change_row(rid, ra, rb, change, jb[1] if jb else np.nan))
-        for jb, rb in tb.iterrows():
-            if jb not in matched_b:
-                rows.append(_change_row(rid, None, rb, "added", np.nan))
-    cols = ["recording", "patch", "frame", "rank_a", "rank_b", "change", "flagged_a", "flagged_b", "cues_a", "cues_b",
-            "pred_g_a", "pred_g_b", "iou"]
-    return pd.DataFrame(rows, columns=cols)
+        for j in ib:
+            if int(j) not in matched_b:
+                add(rid, -1, int(j), "added", np.nan)
+    return pd.DataFrame(cols)
 
 
-def _change_row(rid: str, ra, rb, change: str, iou: float) -> dict:
-    ref = ra if ra is not None else rb
+_NONE = np.zeros(0, np.int64)
 
-    def get(r, col, default):
-        return default if r is None else r[col]
 
-    return {"recording": rid, "patch": _key(ref), "frame": int(ref["frame"]),
-            "rank_a": int(get(ra, "rank", -1)), "rank_b": int(get(rb, "rank", -1)), "change": change,
-            "flagged_a": bool(get(ra, "flagged", False)), "flagged_b": bool(get(rb, "flagged", False)),
-            "cues_a": str(get(ra, "cues", "") or ""), "cues_b": str(get(rb, "cues", "") or ""),
-            "pred_g_a": float(get(ra, "pred_g", np.nan)), "pred_g_b": float(get(rb, "pred_g", np.nan)), "iou": iou}
+class _PatchArrays:
+    """A patch table's columns as arrays, and each recording's row positions (``rows``), for ``patch_changes``."""
+
+    def __init__(self, patches: pd.DataFrame, recordings):
+        p = patches[patches["recording"].isin(recordings)]
+        self.frame = p["frame"].to_numpy(np.int64)
+        self.rank = p["rank"].to_numpy(np.int64)
+        self.box = p[["x1", "y1", "x2", "y2"]].to_numpy(np.int64)
+        self.flagged = p["flagged"].to_numpy(bool)
+        self.cues = [c if isinstance(c, str) else "" for c in p["cues"]] if "cues" in p else [""] * len(p)
+        self.pred = p["pred_g"].to_numpy(np.float64) if "pred_g" in p else np.full(len(p), np.nan)
+        self.rows = {rid: np.asarray(ix, np.int64) for rid, ix in
+                     pd.Series(np.arange(len(p))).groupby(p["recording"].to_numpy()).groups.items()}
+        self.rows = {rid: np.sort(np.asarray(ix, np.int64)) for rid, ix in self.rows.items()}
 
 
 def _joined(values) -> str:
@@ -221,23 +236,21 @@ def compare_runs(a: Run, b: Run, iou: float = DEFAULT_IOU, changes: pd.DataFrame
     for col in SETTING_COLUMNS:
         out[f"{col}_a"] = ra[col].reindex(ids) if col in ra else np.nan
         out[f"{col}_b"] = rb[col].reindex(ids) if col in rb else np.nan
-    groups = dict(tuple(changes.groupby("recording"))) if len(changes) else {}
-    lists = {c: [] for c in ("patches_added", "patches_dropped", "patches_reranked", "flags_appeared", "flags_gone")}
-    for rid in ids:
-        g = groups.get(rid)
-        if g is None:
-            for v in lists.values():
-                v.append("")
-            continue
-        lists["patches_added"].append(_joined(g.loc[g["change"] == "added", "patch"]))
-        lists["patches_dropped"].append(_joined(g.loc[g["change"] == "dropped", "patch"]))
-        rr_ = g[g["change"] == "re-ranked"]
-        lists["patches_reranked"].append(_joined(f"{p}@{x}>{y}" for p, x, y in zip(rr_["patch"], rr_["rank_a"],
-                                                                                     rr_["rank_b"])))
-        lists["flags_appeared"].append(_joined(g.loc[g["flagged_b"] & ~g["flagged_a"], "patch"]))
-        lists["flags_gone"].append(_joined(g.loc[g["flagged_a"] & ~g["flagged_b"], "patch"]))
-    for col, values in lists.items():
-        out[col] = values
+    ch = changes
+
+    def joined(mask, values) -> pd.Series:
+        mask = np.asarray(mask, bool)
+        if not mask.any():
+            return pd.Series("", index=ids)
+        return values[mask].groupby(ch["recording"][mask]).agg(" ".join).reindex(ids).fillna("")
+
+    rr_ = ch["change"] == "re-ranked"
+    out["patches_added"] = joined(ch["change"] == "added", ch["patch"])
+    out["patches_dropped"] = joined(ch["change"] == "dropped", ch["patch"])
+    out["patches_reranked"] = joined(rr_, ch["patch"] + "@" + ch["rank_a"].astype(str) + ">" +
+                                     ch["rank_b"].astype(str))
+    out["flags_appeared"] = joined(ch["flagged_b"] & ~ch["flagged_a"], ch["patch"])
+    out["flags_gone"] = joined(ch["flagged_a"] & ~ch["flagged_b"], ch["patch"])
     count = lambda col: out[col].map(lambda s: len(s.split()) if s else 0)  # noqa: E731
     out["n_patches_changed"] = count("patches_added") + count("patches_dropped") + count("patches_reranked")
     out["n_flags_appeared"], out["n_flags_gone"] = count("flags_appeared"), count("flags_gone")
