@@ -175,7 +175,7 @@ def layout_2d(features: np.ndarray, method: str = "auto", seed: int = 0) -> tupl
     n = len(x)
     if n < 3:
         return np.zeros((n, 2), np.float32) if n < 2 else np.array([[0, 0], [1, 0]], np.float32), "none"
-    pca = _pca(x, min(50, n - 1, x.shape[1]))
+    pca = _pca(x, min(50, n - 1, x.shape[1]), seed)
     if method in ("auto", "umap"):
         try:
             import umap  # noqa: F401
@@ -200,9 +200,22 @@ def layout_2d(features: np.ndarray, method: str = "auto", seed: int = 0) -> tupl
     return pca[:, :2].astype(np.float32), "PCA"
 
 
-def _pca(x: np.ndarray, k: int) -> np.ndarray:
+def _pca(x: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
+    """The first ``k`` principal components' scores of ``x``: exact (SVD) for small inputs, else by a randomized
+    SVD (Halko et al. 2011: a random projection, two power iterations; deterministic for ``seed``), which takes a
+    second where the exact SVD of 5,700 × 6,272 features took minutes on two cores."""
     centred = x - x.mean(axis=0)
-    u, s, _ = np.linalg.svd(centred, full_matrices=False)
+    if min(centred.shape) <= 500:
+        u, s, _ = np.linalg.svd(centred, full_matrices=False)
+    else:
+        rng = np.random.default_rng(seed)
+        q = centred @ rng.standard_normal((centred.shape[1], k + 10)).astype(centred.dtype)
+        for _ in range(2):
+            q, _ = np.linalg.qr(q)
+            q = centred @ (centred.T @ q)
+        q, _ = np.linalg.qr(q)
+        ub, s, _ = np.linalg.svd(q.T @ centred, full_matrices=False)
+        u = q @ ub
     out = u[:, :k] * s[:k]
     return out if out.shape[1] >= 2 else np.pad(out, ((0, 0), (0, 2 - out.shape[1])))
 
