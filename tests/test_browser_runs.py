@@ -3,8 +3,8 @@ the patch map render, a box selection on the map fills the patch grid, a click o
 frame in the inline viewer, and a colour change redraws the map (timed in the page with ``performance.now()``).
 
 Screenshots: ``test-artifacts/screenshots/notebook05_table.png``, ``notebook05_map.png``, ``notebook05_selected.png``,
-``notebook05_open.png``; ``docs/two_runs.png`` and ``docs/patch_map.png`` must look like the first two (refresh
-them with ``MASSVIZ_REFRESH_DOCS=1``). The redraw times go to ``browser_timings.json`` (``patch_map_redraw_ms``).
+``notebook05_open.png``; ``docs/two_runs.png`` must look like the table's and ``docs/patch_map.png`` like the selected
+one's region from the colour menu to the grid's first row (refresh them with ``MASSVIZ_REFRESH_DOCS=1``). The redraw times go to ``browser_timings.json`` (``patch_map_redraw_ms``).
 """
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ import pytest
 from test_browser import (BENIGN, check_docs_picture, find, lab, offline_page, open_and_run, record_timing,  # noqa: F401
                           settle, shot)
 
-pytestmark = [pytest.mark.browser, pytest.mark.slow]  # ~60 s: JupyterLab, a kernel, the inline viewer
+pytestmark = [pytest.mark.browser, pytest.mark.slow]  # ~90 s on 2 cores: JupyterLab, a kernel, the inline viewer
 
 MAP = ".massviz-patch-map"
 POINTS = f"{MAP} .scatterlayer path.point"
