@@ -22,6 +22,7 @@ pairwise best (each recording's better run).
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -115,7 +116,7 @@ def trace_from_index(index, *, k: int, threshold: float) -> "Trace":
     full trace (they read no patch or mask), in a fraction of the time of reading the full trace. The ground-truth
     overlaps the index kept (``Detections.gt_iou`` ...) are those of the recording's ground truth when the trace
     was cached."""
-    from massviz.core.flags import ground_truth_source
+    from massviz.core.flags import analyse, ground_truth_source
     from massviz.core.selection import estimate_mass, select_k_nearest
     from massviz.core.trace import Trace
 
@@ -124,11 +125,14 @@ def trace_from_index(index, *, k: int, threshold: float) -> "Trace":
                            "was made at; run again with a lower --threshold first", index.trace_path)
     dets = index.detections
     selection = select_k_nearest(dets.d, dets.score, int(k), float(threshold), index.excluded)
-    return Trace(recording=index.recording, detector=dict(index.detector), detect_threshold=index.detect_threshold,
-                 threshold=float(threshold), k=int(k), stride=index.stride, frames=index.frames, detections=dets,
-                 selection=selection, estimate=estimate_mass(dets.pred, selection), weights_id=index.weights_id,
-                 excluded=index.excluded,
-                 ground_truth_source=ground_truth_source(index.recording) if np.isfinite(dets.gt_iou).any() else "")
+    trace = Trace(recording=index.recording, detector=dict(index.detector), detect_threshold=index.detect_threshold,
+                  threshold=float(threshold), k=int(k), stride=index.stride, frames=index.frames, detections=dets,
+                  selection=selection, estimate=estimate_mass(dets.pred, selection), weights_id=index.weights_id,
+                  excluded=index.excluded,
+                  ground_truth_source=ground_truth_source(index.recording) if np.isfinite(dets.gt_iou).any() else "")
+    if trace.flags is None or not trace.flags.describes(trace):  # the flags of this selection
+        trace = dataclasses.replace(trace, flags=analyse(trace))
+    return trace
 
 
 def run_from_indexes(indexes: Sequence, *, k: int, threshold: float, label: str = "") -> Run:
