@@ -64,7 +64,8 @@ def test_two_run_folders_give_the_same_table(compared, sample_cache, weights, sa
 
 
 def test_catalog_segment_table_holds_both_runs(compared):
-    from massviz.views.rerun_log import rrd_contents
+    from rerun.chunk import RrdReader
+
     from massviz.views.rerun_serve import catalog
 
     table = pd.read_csv(compared / "table.csv", dtype={"id": str}).set_index("id")
@@ -81,7 +82,10 @@ def test_catalog_segment_table_holds_both_runs(compared):
         digits = 2 if "_g" in c else 4
         assert got[c].astype(float).to_numpy() == pytest.approx(table.loc[got.index, c].round(digits), abs=1e-9), c
     assert list(got["k_a"]) == [5, 5, 5] and list(got["k_b"]) == [3, 3, 3]
-    contents = rrd_contents(both / "cup_handover.rrd")  # both runs in one recording
+    reader = RrdReader(both / "cup_handover.rrd")  # both runs in one recording
+    (entry,) = reader.recordings()
+    assert entry.recording_id == "cup_handover"
+    contents = {col.entity_path for col in reader.stream(store=entry).collect().schema().component_columns()}
     assert {"/camera/detections", "/patches/4", "/b/camera/detections", "/b/patches/2", "/compare",
             "/predictions/running_estimate", "/b/predictions/running_estimate"} <= set(contents)
     assert "/b/patches/3" not in contents

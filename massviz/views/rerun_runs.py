@@ -25,7 +25,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from massviz.io.atomic import atomic_path
-from massviz.views import rerun_log as rl
+from massviz.views.rerun.output import APPLICATION_ID
 from massviz.views.rerun_dataset import _patch_images, rrd_name, send_properties, source_markdown
 
 #: where run B's entities are (run A's are at the light recording's own paths).
@@ -118,7 +118,7 @@ def write_two_runs(trace_a, trace_b, recording, out_dir: str | Path, row: dict, 
     properties of its comparison ``row``. Returns the file."""
     out_dir = Path(out_dir)
     path = out_dir / rrd_name(trace_a.recording.id)
-    stream = rr.RecordingStream(rl.APPLICATION_ID, recording_id=trace_a.recording.id)
+    stream = rr.RecordingStream(APPLICATION_ID, recording_id=trace_a.recording.id)
     with atomic_path(path) as tmp:
         stream.save(tmp)
         try:
