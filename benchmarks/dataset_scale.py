@@ -142,7 +142,7 @@ def build(out: Path, cache: Path, n: int, env: dict, seed: int = 0) -> list[Path
                               num_frames=frames, fps=30.0, rgb=str(rec / "rgb.mp4"), intrinsics=None, meta=meta)
         stub = SimpleNamespace(path=rec, id=rec.name, kind="folder", config_id=str(j), num_frames=frames, notes=[],
                                input_files=lambda files=files: files, info=lambda rinfo=rinfo: rinfo,
-                               fingerprint=lambda hasher=None, j=j: f"synthetic-{seed}-{j:06d}")
+                               fingerprint=lambda hasher=None, j=j, **_: f"synthetic-{seed}-{j:06d}")
         remember(rec, stub, {"files": {str(rec / "meta.json"), str(rec / "intrinsics.json")},
                              "dirs": {str(rec / "depth")}}, cache, False)
         entry = tc.entry(stub, info, 1)

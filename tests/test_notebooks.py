@@ -19,7 +19,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 NOTEBOOKS = ROOT / "notebooks"
 NAMES = ["01_inspect_recording.ipynb", "02_tune_threshold_and_k.ipynb", "03_failure_cases.ipynb",
-         "04_failure_browser.ipynb"]
+         "04_failure_browser.ipynb", "05_two_runs_and_patch_map.ipynb"]
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -155,6 +155,17 @@ def test_notebook_04_browses_the_dataset(executed):
     assert "catalog and pandas agree: True (dataset folder), True (traces); flagged patches: pandas 3, catalog 3" in text
     assert "flagged only: 3 patches in 1 recording(s)" in text and "all: 15 patches" in text
     assert "cup_handover: 57.4 g -> 8.3 g without them (true 9.0 g); 0 unmatched" in text
+    assert "opened cup_handover at frame" in text
+
+
+def test_notebook_05_compares_two_runs_and_maps_the_patches(executed):
+    text = _outputs_text(executed["05_two_runs_and_patch_map.ipynb"])
+    assert "A: k=5 | B: k=10: 3 recordings, 3 with changed patches" in text
+    assert "got better by > 0.1: ['cup_handover']" in text and "all: 3 recordings" in text
+    assert "wrote 3 two-run recordings" in text
+    assert re.search(r"30 patches, 3 flagged, layout: (t-SNE|umap|PCA)", text), text[-1500:]
+    near = re.search(r"nearest to cup_handover/\S+: (.*)", text).group(1)
+    assert near.count("(pitcher,") == 2 and near.index("(pitcher,") < near.index("(container,"), near
     assert "opened cup_handover at frame" in text
 
 

@@ -1,4 +1,5 @@
-"""``massviz compare``: what another precision, detector, threshold or weights changes (or two recordings differ)."""
+"""``massviz compare``: what another precision, detector, threshold or weights changes (or two recordings differ); on
+datasets, two runs of every recording side by side (``massviz.commands._compare_runs``)."""
 from __future__ import annotations
 
 import argparse
@@ -7,6 +8,7 @@ import sys
 from pathlib import Path
 
 from massviz.commands._common import PIPELINE_HELP, add_pipeline_args
+from massviz.commands._compare_runs import HELP as RUNS_HELP
 from massviz.core.types import PRECISIONS
 
 #: side-B options: ``--b-NAME`` overrides pipeline option NAME for B.
@@ -27,15 +29,26 @@ def register(sub) -> None:
         epilog="examples:\n"
         "  massviz compare rec/ --detector maskrcnn --b-precision bf16\n"
         "  massviz compare rec/ --detector maskrcnn --b-detector depth --rrd both.rrd\n"
-        "  massviz compare a_trace.npz b_trace.npz --json diff.json\n" + PIPELINE_HELP)
-    p.add_argument("a", metavar="A", help="a trace file (.npz) or a recording (folder or CCM video)")
-    p.add_argument("b", metavar="B", nargs="?", help="the same for B (default: A again, with the --b-* options)")
+        "  massviz compare a_trace.npz b_trace.npz --json diff.json\n" + RUNS_HELP + PIPELINE_HELP)
+    p.add_argument("a", metavar="A", help="a trace file (.npz) or a recording (folder or CCM video); or a run folder "
+                   "('massviz log DATASET --rrd-dir'), or with --a/--b a dataset")
+    p.add_argument("b", metavar="B", nargs="?", help="the same for B (default: A again, with the --b-* options); or "
+                   "a second run folder")
     p.add_argument("--iou", type=float, default=0.5, metavar="X",
                    help="boxes of one frame with IoU >= X are the same detection (default: 0.5)")
     p.add_argument("--rrd", metavar="OUT.rrd", help="write both traces into one Rerun file as two recordings")
     p.add_argument("--json", metavar="OUT.json", help="also write the figures as JSON")
     p.add_argument("--video", choices=["auto", "asset", "images"], default="auto",
                    help="how an mp4 input is logged with --rrd (see 'massviz log --help')")
+    gr = p.add_argument_group("two runs of a dataset (see 'two runs of a dataset' below)")
+    gr.add_argument("--a", dest="a_settings", metavar="SETTINGS",
+                    help="run A of dataset A: NAME=VALUE,... over the pipeline options (detector, threshold, k, "
+                    "stride, weights, detector_weights, precision, replay)")
+    gr.add_argument("--b", dest="b_settings", metavar="SETTINGS", help="run B, the same (the --b-* options too)")
+    gr.add_argument("--out", metavar="TABLE", help="write the comparison table (.csv or .parquet)")
+    gr.add_argument("--rrd-dir", metavar="DIR", help="write one recording per input with both runs and their "
+                    "_a/_b/delta_ properties (for 'massviz serve DIR')")
+    gr.add_argument("--rows", type=int, default=20, metavar="N", help="rows of the table printed (default: 20)")
     add_pipeline_args(p)
     gb = p.add_argument_group("side B (override the pipeline options for B)")
     gb.add_argument("--b-detector", choices=["auto", "maskrcnn", "nanodet", "depth", "replay"], metavar="NAME",
@@ -86,9 +99,16 @@ def _recording_of(trace, rec, label: str):
 
 
 def run(args) -> int:
+    from massviz.commands import _compare_runs as compare_runs
     from massviz.errors import MassvizError
     from massviz.evaluation.compare import compare_traces
 
+    if compare_runs.wants_runs(args):
+        return compare_runs.run(args, B_OPTIONS)
+    for name in ("out", "rrd_dir"):
+        if getattr(args, name):
+            raise MassvizError(f"--{name.replace('_', '-')} is for two runs of a dataset (two run folders, or "
+                               "DATASET --a SETTINGS --b SETTINGS); for one recording use --rrd and --json")
     if not 0.0 < args.iou <= 1.0:
         raise MassvizError(f"--iou must be in (0, 1], got {args.iou}")
     overrides = {n: getattr(args, f"b_{n}") for n in B_OPTIONS if getattr(args, f"b_{n}") is not None}

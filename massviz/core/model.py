@@ -238,6 +238,23 @@ class MassNet(nn.Module):
             x = bn(F.relu_(v.mul_(s.view(1, -1, 1, 1).to(v.dtype))))  # ±1: exact in any dtype
         return x
 
+    @torch.no_grad()
+    def pooled_features(self, patches: Sequence[np.ndarray], rows: int = 64) -> np.ndarray:
+        """The pooled maps the head reads (128×7×7, flattened: float32, shape (N, 6272)) of N RGB crops, in eval
+        mode: the network's own description of what a patch looks like (the patch map's embedding). Calls of
+        ``rows`` patches."""
+        was_training = self.training
+        self.eval()
+        device = next(self.parameters()).device
+        out = []
+        try:
+            for start in range(0, len(patches), rows):
+                x = preprocess_patches(patches[start:start + rows]).to(device)
+                out.append(self._trunk_eval(x).flatten(1).float().cpu().numpy())
+        finally:
+            self.train(was_training)
+        return np.concatenate(out) if out else np.zeros((0, 128 * 7 * 7), np.float32)
+
     def set_precision(self, precision: str) -> "MassNet":
         """``"fp32"`` (default) or ``"bf16"`` for :meth:`predict` (bf16: CPUs with bfloat16 support or CUDA; the
         caller checks, as ``massviz.detect.maskrcnn.check_precision`` does). ``"fp16"`` keeps the mass CNN in fp32:
