@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +24,7 @@ from massviz.core.trace import Event, analyse_trace
 from massviz.core.types import PRECISIONS
 from massviz.errors import MassvizError
 
+_LOG = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -165,13 +167,24 @@ def process(recording, detector, model, *, selection: Selection | None = None, k
     if isinstance(recording, LocatedRecording):  # recognised from its files, not opened: only the cache serves it
         raise MassvizError("its cached trace was found when this run started but could not be read now (removed, or "
                            "damaged and dropped); run the command again to compute it", recording.path)
+    from massviz.io.identity import changed_inputs, input_identities
+
+    inputs = input_identities(recording)
     # the content key of the bytes the run reads (each frame file read once), not of a second read
     with cache.watch(recording) if cache is not None else contextlib.nullcontext() as read:
         # the cached trace holds every detection (no exclusions): they are applied to the trace returned
         trace = run(recording, detector, model, selection=selection.replace(exclude=()), progress=progress,
                     batch=batch, prefetch=prefetch, on_frame=on_frame, analyse=False)
     trace = analyse_trace(annotate(trace))  # the flags, once, with the ground truth's overlaps
-    if cache is not None:
+    changed = changed_inputs(inputs)
+    if changed:  # whatever the command and the cache: said once, and such a result is never cached
+        more = f" and {len(changed) - 1} more" if len(changed) > 1 else ""
+        _LOG.warning("massviz: warning: %s: %s%s changed while the run read it; the result may mix two versions of "
+                     "the recording and is not cached: run again", recording.path, changed[0], more)
+        trace = dataclasses.replace(trace, events=[*trace.events, Event(
+            -1, f"input files changed during the run ({changed[0]}{more}); the result may mix two versions",
+            "warning", "warn")])
+    elif cache is not None:
         cache.save(trace, recording, info, known=read)
     if exclude is not None:
         trace = trace.reselect(exclude=exclude)

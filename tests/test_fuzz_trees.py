@@ -1,5 +1,5 @@
 """Names and trees, and resources: Unicode names in NFC and NFD, 255-byte names, symlink loops in a dataset, a
-dataset of 50,000 recording folders; too few file descriptors, an address-space limit, no $HOME with an unwritable
+dataset of 50,000 recording folders, a recording whose files change while a run reads them; too few file descriptors, an address-space limit, no $HOME with an unwritable
 default cache, a read-only dataset, a full temporary folder. Each case: the command works, or says in one line what
 is wrong (exit 2), never a traceback, and leaves nothing behind."""
 from __future__ import annotations
@@ -181,3 +181,44 @@ def test_scarce_resources_are_one_line_or_work(name, base, tmp_path):
     assert not [p for p in work.rglob(".*") if "usercache" not in p.parts and "xdg" not in p.parts]
     if name == "read-only-dataset":
         shutil.rmtree(rec, onerror=lambda f, p, e: (os.chmod(os.path.dirname(p), 0o755), f(p)))
+
+
+#: how a recording's file changes while a run reads it (after the first frame's step: the file was already read)
+CHANGES = {
+    "depth-frame-rewritten": lambda rec: (rec / "depth" / "000000.png").write_bytes(
+        (rec / "depth" / "000001.png").read_bytes()),
+    "rgb-frame-rewritten": lambda rec: (rec / "rgb" / "000000.png").write_bytes((rec / "rgb" / "000001.png").read_bytes()),
+    "frame-replaced-by-a-copy": lambda rec: os.replace(shutil.copy(rec / "depth" / "000000.png", rec / "depth" / "x.png"),
+                                                       rec / "depth" / "000000.png"),
+    "rgb-frame-touched": lambda rec: os.utime(rec / "rgb" / "000000.png", ns=(1, 1)),
+}
+
+
+@pytest.mark.parametrize("command", ["estimate", pytest.param("log", marks=pytest.mark.slow),
+                                     pytest.param("cloud", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("change", [pytest.param(c, marks=() if i == 0 else pytest.mark.slow)
+                                    for i, c in enumerate(CHANGES)])
+def test_a_recording_whose_files_change_during_the_run_is_said_and_not_cached(change, command, base, tmp_path,
+                                                                              capsys, monkeypatch):
+    from massviz.core import pipeline as core_pipeline
+
+    rec = copy_sample(tmp_path / "rec")
+    step, calls = core_pipeline.FramePipeline.step, []
+
+    def step_then_change(self, *args, **kwargs):
+        result = step(self, *args, **kwargs)
+        calls.append(1)
+        if len(calls) == 1:
+            CHANGES[change](rec)
+        return result
+
+    monkeypatch.setattr(core_pipeline.FramePipeline, "step", step_then_change)
+    out = tmp_path / "out"
+    target = {"estimate": ["--out", out], "log": ["--rrd", out], "cloud": ["--out", out]}[command]
+    code, err = run_cli(pipeline(base, tmp_path, command, rec, *target), capsys)
+    assert code == 0 and len(calls) > 1, err
+    said = [e for e in err if "changed while the run read it" in e]
+    assert len(said) == 1 and str(rec / ("rgb" if "rgb" in change else "depth") / "000000.png") in said[0] \
+        and "not cached" in said[0], err
+    assert not list((tmp_path / "cache").rglob("*.npz")), "a result read from two versions of a file was cached"
+    assert not [p for p in tmp_path.rglob(".*")], "hidden temporaries left"

@@ -123,6 +123,33 @@ def _unchanged(recorded: dict) -> bool:
     return True
 
 
+# -- a run's inputs ---------------------------------------------------------------------------------------------------
+def input_identities(recording) -> dict[str, list[int] | None]:
+    """{path: identity} of every file ``recording``'s frames are read from (``input_files``; None for one that
+    cannot be stat'ed): taken before a run, compared after it by :func:`changed_inputs`."""
+    out = {}
+    for p in getattr(recording, "input_files", lambda: [])():
+        try:
+            out[str(p)] = identity(os.stat(p))
+        except OSError:
+            out[str(p)] = None
+    return out
+
+
+def changed_inputs(before: dict[str, list[int] | None]) -> list[str]:
+    """The files of ``before`` (``input_identities``) whose identity (size, times, inode) is not the same now:
+    edited, replaced or removed while a run read them."""
+    changed = []
+    for p, ident in before.items():
+        try:
+            now = identity(os.stat(p))
+        except OSError:
+            now = None
+        if now != ident:
+            changed.append(p)
+    return changed
+
+
 # -- recordings ------------------------------------------------------------------------------------------------------
 @dataclass
 class LocatedRecording:
