@@ -1,7 +1,8 @@
 """Names and trees, and resources: Unicode names in NFC and NFD, 255-byte names, symlink loops in a dataset, a
-dataset of 50,000 recording folders, a recording whose files change while a run reads them; too few file descriptors, an address-space limit, no $HOME with an unwritable
-default cache, a read-only dataset, a full temporary folder. Each case: the command works, or says in one line what
-is wrong (exit 2), never a traceback, and leaves nothing behind."""
+dataset of 50,000 recording folders, a recording whose files change while a run reads them; too few file
+descriptors, an address-space limit, no $HOME with an unwritable default cache, a read-only dataset, a full temporary
+folder. Each case: the command works, or says in one line what is wrong (exit 2), never a traceback, and leaves
+nothing behind."""
 from __future__ import annotations
 
 import os
