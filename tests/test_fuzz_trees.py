@@ -188,9 +188,10 @@ def test_scarce_resources_are_one_line_or_work(name, base, tmp_path):
 CHANGES = {
     "depth-frame-rewritten": lambda rec: (rec / "depth" / "000000.png").write_bytes(
         (rec / "depth" / "000001.png").read_bytes()),
-    "rgb-frame-rewritten": lambda rec: (rec / "rgb" / "000000.png").write_bytes((rec / "rgb" / "000001.png").read_bytes()),
-    "frame-replaced-by-a-copy": lambda rec: os.replace(shutil.copy(rec / "depth" / "000000.png", rec / "depth" / "x.png"),
-                                                       rec / "depth" / "000000.png"),
+    "rgb-frame-rewritten": lambda rec: (rec / "rgb" / "000000.png").write_bytes(
+        (rec / "rgb" / "000001.png").read_bytes()),
+    "frame-replaced-by-a-copy": lambda rec: os.replace(
+        shutil.copy(rec / "depth" / "000000.png", rec / "depth" / "x.png"), rec / "depth" / "000000.png"),
     "rgb-frame-touched": lambda rec: os.utime(rec / "rgb" / "000000.png", ns=(1, 1)),
 }
 
