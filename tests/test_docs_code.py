@@ -183,22 +183,26 @@ def workdir(tmp_path_factory, shared_dir, samples_dir):
 
 @pytest.mark.slow
 def test_shell_blocks_run(workdir):
-    """The shell blocks' massviz commands, each distinct one once (README's quickstart repeats some), two at a time
-    (no documented command reads another's output)."""
+    """The shell blocks' massviz commands, each distinct one once (README's quickstart repeats some): a block's
+    commands in order (a later one may read an earlier one's output), two blocks at a time."""
     from concurrent.futures import ThreadPoolExecutor
 
     root, env = workdir
-    commands = {}
+    commands, seen = {}, set()
     for b in ALL:
         if b["lang"] in SHELL and not b["reason"]:
-            for command in shell_lines(b["code"]):
-                commands.setdefault(command, where(b))
+            todo = [c for c in shell_lines(b["code"]) if c not in seen]
+            seen.update(todo)
+            if todo:
+                commands[where(b)] = todo
 
-    def run(command: str) -> str | None:
-        done = subprocess.run([sys.executable, "-m", "massviz", *words(command)[1:]], cwd=root, env=env,
-                              capture_output=True, text=True, timeout=300)
-        return None if done.returncode == 0 else \
-            f"{commands[command]}: `{command}` exited {done.returncode}:\n{done.stderr[-1500:]}"
+    def run(at: str) -> str | None:
+        for command in commands[at]:
+            done = subprocess.run([sys.executable, "-m", "massviz", *words(command)[1:]], cwd=root, env=env,
+                                  capture_output=True, text=True, timeout=300)
+            if done.returncode != 0:
+                return f"{at}: `{command}` exited {done.returncode}:\n{done.stderr[-1500:]}"
+        return None
 
     assert commands, "no shell block to run"
     with ThreadPoolExecutor(2) as pool:

@@ -310,7 +310,7 @@ def test_replay_json_detections(rec, fast, tmp_path):
     cv2.imwrite(str(tmp_path / "small.png"), np.full((20, 20), 255, np.uint8))
     rows = [{"frame": 1, "box": [5, 10, 30, 40], "score": 0.9, "mask": "small.png"}]
     (tmp_path / "d.json").write_text(json.dumps({"detections": rows}))
-    with pytest.raises(DataError, match=r"detection 0: mask small.png is 20x20, neither the box's 25x30"):
+    with pytest.raises(DataError, match=r"detection 0: mask small.png declares 20x20 pixels, neither the box's 25x30"):
         ReplayDetector(tmp_path / "d.json")
 
 

@@ -322,6 +322,7 @@ def run_scores(table: pd.DataFrame) -> pd.DataFrame:
 def write_table(table: pd.DataFrame, path: str | Path) -> Path:
     """``table`` as CSV or Parquet (by the suffix: .csv, .parquet), atomically."""
     from massviz.io.atomic import atomic_path
+    from massviz.io.untrusted.tables import write_csv
 
     path = Path(path)
     suffix = path.suffix.lower()
@@ -329,7 +330,7 @@ def write_table(table: pd.DataFrame, path: str | Path) -> Path:
         raise MassvizError("the table's file must end in .csv or .parquet", path)
     with atomic_path(path) as tmp:
         if suffix == ".csv":
-            table.to_csv(tmp, index=False)
+            write_csv(table, tmp)
         else:
             table.to_parquet(tmp, index=False)
     return path

@@ -126,8 +126,9 @@ def write_realsense(recording: Recording, path: str | Path, *, pace: bool = True
 
 def pace_messages(path: str | Path, fps: float) -> None:
     """Re-stamp the per-frame messages (``.../image/...`` topics) of a ``.db3`` so that frame k is stamped k / fps
-    seconds after frame 0 (the messages of one frame keep their order and spacing): librealsense's real-time
-    playback waits on these stamps, so the file then plays like a camera at ``fps``."""
+    seconds after frame 0 (the messages of one frame keep their order, 1 µs apart: the writer's own delays, which grow
+    with the machine's load, are not kept): librealsense's real-time playback waits on these stamps, so the file
+    then plays like a camera at ``fps``."""
     import sqlite3
 
     period_ns = 1e9 / fps
@@ -138,8 +139,10 @@ def pace_messages(path: str | Path, fps: float) -> None:
         n = min((len(m) for m in per_topic), default=0)
         if n == 0:
             return
-        start = [min(m[k][1] for m in per_topic) for k in range(n)]  # when the recorder got frame k's first message
-        db.executemany("UPDATE messages SET timestamp = ? WHERE id = ?",
-                       [(start[0] + round(k * period_ns) + ts - start[k], mid)
-                        for m in per_topic for k, (mid, ts) in enumerate(m[:n])])
+        t0 = min(m[0][1] for m in per_topic)  # when the recorder got frame 0's first message
+        updates = []
+        for k in range(n):  # frame k's messages, in the order the recorder got them, 1 µs apart from k / fps
+            frame = sorted(((m[k][1], m[k][0]) for m in per_topic))
+            updates += [(t0 + round(k * period_ns) + 1000 * j, mid) for j, (_, mid) in enumerate(frame)]
+        db.executemany("UPDATE messages SET timestamp = ? WHERE id = ?", updates)
         db.commit()
