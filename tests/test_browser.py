@@ -128,6 +128,17 @@ def shot(page, name: str, locator=None) -> np.ndarray:
     return cv2.imread(str(path))
 
 
+def wait_for_image(page, name: str, locator, template: np.ndarray, scales, timeout: float, *,
+                   at_least: float = 0.6) -> float:
+    """Screenshot ``locator`` (saved as ``name``) every 2 s until ``template`` (BGR) is found in it with a
+    correlation of ``at_least`` (``find`` over ``scales``) or ``timeout`` seconds pass; returns the best last match."""
+    t0, match = time.monotonic(), -1.0
+    while time.monotonic() - t0 < timeout and match < at_least:
+        page.wait_for_timeout(2000)
+        match, _ = find(shot(page, name, locator), template, scales)
+    return match
+
+
 def find(image: np.ndarray, template: np.ndarray, scales, reduce: float = 1.0
          ) -> tuple[float, tuple[int, int, int, int]]:
     """Best normalised correlation of ``template`` (BGR) in ``image`` over ``scales`` (searched on both shrunk by

@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 import pytest
 from test_browser import (ARTIFACTS, BENIGN, check_docs_picture, find, lab, offline_page,  # noqa: F401
-                          open_and_run, settle, shot)
+                          open_and_run, settle, shot, wait_for_image)
 from test_dataset_catalog import env, logged  # noqa: F401
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]  # ~50 s: a dataset of 4 recordings, a server, JupyterLab
@@ -182,10 +182,7 @@ def test_notebook_04_grid_and_a_filter_in_the_browser(browser, lab, samples_dir)
         canvas.wait_for(state="visible", timeout=120_000)
         canvas.scroll_into_view_if_needed()
         rgb = cv2.cvtColor(open_recording(samples_dir / "cup_handover").read_frame(9).rgb, cv2.COLOR_RGB2BGR)
-        t0, match = time.monotonic(), -1.0
-        while time.monotonic() - t0 < 120 and match < 0.6:
-            page.wait_for_timeout(2000)
-            match, _ = find(shot(page, "notebook04_open", canvas), rgb, np.arange(0.3, 1.51, 0.02))
+        match = wait_for_image(page, "notebook04_open", canvas, rgb, np.arange(0.3, 1.51, 0.02), 120)
         # before the kernel (and its catalog server) goes: the viewer's stream breaking then is not an error here
         errors = [m for t, m in messages if t in ("error", "pageerror") and not BENIGN.search(m)]
     print(f"notebook 04 in the browser: {before} tiles, 'flagged' filter: {after} ({count}); 'open' on the first: "

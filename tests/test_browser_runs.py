@@ -15,8 +15,8 @@ import time
 import cv2
 import numpy as np
 import pytest
-from test_browser import (BENIGN, check_docs_picture, find, lab, offline_page, open_and_run, record_timing,  # noqa: F401
-                          settle, shot)
+from test_browser import (BENIGN, check_docs_picture, lab, offline_page, open_and_run, record_timing,  # noqa: F401
+                          settle, shot, wait_for_image)
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]  # ~90 s on 2 cores: JupyterLab, a kernel, the inline viewer
 
@@ -90,10 +90,7 @@ def test_notebook_05_map_selection_and_open_in_the_browser(browser, lab, samples
         canvas.wait_for(state="visible", timeout=120_000)
         canvas.scroll_into_view_if_needed()
         rgb = cv2.cvtColor(open_recording(samples_dir / "cup_handover").read_frame(9).rgb, cv2.COLOR_RGB2BGR)
-        t0, match = time.monotonic(), -1.0
-        while time.monotonic() - t0 < 90 and match < 0.6:
-            page.wait_for_timeout(2000)
-            match, _ = find(shot(page, "notebook05_open", canvas), rgb, np.arange(0.2, 1.01, 0.02))
+        match = wait_for_image(page, "notebook05_open", canvas, rgb, np.arange(0.2, 1.01, 0.02), 90)
 
         # a box over the left half of the plot: the grid shows the points inside it
         plot.scroll_into_view_if_needed()
