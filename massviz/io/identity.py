@@ -112,9 +112,8 @@ def _unchanged(recorded: dict) -> bool:
         files, dirs = recorded["files"], recorded["dirs"]
         if not isinstance(files, dict) or not isinstance(dirs, dict):
             return False
-        for p, ident in files.items():
-            if identity(os.stat(p)) != ident:
-                return False
+        if changed_inputs(files):
+            return False
         for p, ident in dirs.items():
             if identity(os.stat(p))[1:] != ident:
                 return False
