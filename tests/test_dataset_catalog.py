@@ -225,6 +225,49 @@ def test_the_open_links_take_the_best_frame_from_the_recordings_without_a_usable
         assert link.endswith(f"?segment_id={rec}#when=frame@{expected[rec]}"), link
 
 
+def registered_layouts(dataset) -> tuple[set, list, str]:
+    """What a viewer opening ``dataset`` gets from its registered defaults: the view origins of the recording layout,
+    the segment table layout's columns (in order) and the column it sorts by."""
+    table = dataset.blueprint_dataset().reader(index="log_time").to_pandas()
+
+    def values(segment: str, suffix: str) -> list:
+        rows = table[table["rerun_segment_id"] == segment]
+        return [v for c in rows.columns if c.endswith(suffix) for v in rows[c].dropna()]
+
+    recording, segments = dataset.default_blueprint(), dataset.default_segment_table_blueprint()
+    origins = {str(v[0]) for v in values(recording, ":ViewBlueprint:space_origin")}
+    (columns,) = values(segments, ":TableLayout:column_order")
+    (sort,) = values(segments, ":TableBlueprint:sort_by")
+    return origins, list(columns), sort[0]["column"]
+
+
+def test_serve_registers_the_layouts_that_suit_one_run_or_two(rrd_dir, sample_cache, weights, samples_dir, tmp_path):
+    """A folder of one run's recordings gets the light recording's layout and the table by relative error; a folder of
+    two-run recordings (``massviz compare ... --rrd-dir``) gets both runs side by side (A's and B's patch tiles: K 5
+    and 3) and the table of both runs' figures ranked by change_rank, with only the columns its recordings have."""
+    from massviz.views.rerun_serve import catalog
+
+    out, _ = rrd_dir
+    with catalog(out) as cat:
+        origins, columns, sort = registered_layouts(cat.dataset)
+    assert {"/camera", "/patches/0", "/patches/4"} <= origins and not any(o.startswith("/b") for o in origins)
+    assert sort == "property:massviz:rel_error" and columns[0] == "property:massviz:open"
+    both = tmp_path / "both"
+    massviz("compare", samples_dir, "--detector", "depth", "--weights", weights, "--cache", sample_cache, "--a",
+            "k=5", "--b", "threshold=0.5,k=3", "--rrd-dir", both, "--quiet")
+    with catalog(both) as cat:
+        origins, columns, sort = registered_layouts(cat.dataset)
+        present = set(cat.dataset.segment_table().schema().names)
+        ranks = cat.sql('SELECT rerun_segment_id AS id, "property:massviz:change_rank"[1] AS r, '
+                        '"property:massviz:best_frame"[1] AS f FROM segments').set_index("id")
+    assert {"/camera", "/patches/4", "/b/camera", "/b/patches/2", "/compare"} <= origins, origins
+    assert "/b/patches/3" not in origins and sort == "property:massviz:change_rank"
+    assert columns[0] == "property:massviz:open" and "property:massviz:delta_rel_error" in columns
+    assert set(columns) - {"rerun_segment_id", "recording link"} <= present, set(columns) - present
+    table = pd.read_csv(both / "comparison.csv", dtype={"id": str}).set_index("id")
+    assert list(ranks["r"].sort_values().index) == list(table.index) and ranks.loc["cup_handover", "f"] == 9
+
+
 def test_serve_refuses_a_folder_without_recordings(tmp_path):
     run = massviz("serve", tmp_path, check=False, timeout=120)
     assert run.returncode == 2 and run.stderr.count("\n") == 1 and "holds no .rrd file" in run.stderr, run.stderr

@@ -270,7 +270,9 @@ def compare_summaries(a: pd.DataFrame, b: pd.DataFrame, tol: float = 1e-9) -> pd
         x, y = a[c].astype(float).to_numpy(), b[c].astype(float).to_numpy()
         close = tol + (0.5 * 10.0 ** -SHOWN_DIGITS[c] if c in SHOWN_DIGITS else 0.0)  # within the rounding
         same &= (np.isnan(x) & np.isnan(y)) | (np.abs(x - y) <= close)
-    return pd.concat({"pandas": a, "catalog": b}, axis=1).assign(same=same)
+    both = pd.concat({"pandas": a, "catalog": b}, axis=1)
+    both[("same", "")] = same  # (both["same"] is that column)
+    return both
 
 
 def tagged_rows(patches: pd.DataFrame, keys: Iterable[tuple[str, int]]) -> pd.DataFrame:

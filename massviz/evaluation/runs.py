@@ -224,7 +224,8 @@ def compare_runs(a: Run, b: Run, iou: float = DEFAULT_IOU, changes: pd.DataFrame
     ``patches_dropped``, ``patches_reranked`` (``frame:x1,y1,x2,y2`` separated by spaces; re-ranked ones with
     ``@rankA>rankB``), ``n_patches_changed``, ``flags_appeared``/``flags_gone`` (flagged patches: ``frame:box``),
     ``n_flags_appeared``/``n_flags_gone``, ``cues_appeared``/``cues_gone``; ranked by how much the relative error
-    changed (``abs_delta_rel_error``, a recording estimated by one run only first as ∞, not comparable ones last)."""
+    changed (``abs_delta_rel_error``, a recording estimated by one run only first as ∞, not comparable ones last;
+    ``change_rank`` is that order, 1 first)."""
     changes = patch_changes(a, b, iou) if changes is None else changes
     ra, rb = a.recordings, b.recordings
     ids = sorted(set(ra.index) | set(rb.index), key=str)
@@ -270,6 +271,7 @@ def compare_runs(a: Run, b: Run, iou: float = DEFAULT_IOU, changes: pd.DataFrame
     out["abs_delta_rel_error"] = key
     out = out.sort_values(["abs_delta_rel_error", "id"], ascending=[False, True], na_position="last",
                           kind="stable")
+    out["change_rank"] = np.arange(1, len(out) + 1)
     return out
 
 

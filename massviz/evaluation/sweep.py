@@ -8,7 +8,6 @@ recording.
 from __future__ import annotations
 
 import math
-from pathlib import Path
 from typing import Sequence
 
 import numpy as np
@@ -17,7 +16,7 @@ import pandas as pd
 from massviz.errors import MassvizError
 from massviz.evaluation.metrics import default_class_of, recording_scores
 from massviz.io.ccm_annotations import ANN_CONTAINER, ANN_ID, ANN_MASS
-from massviz.core.selection import NearestOrder, estimate_mass
+from massviz.core.selection import NearestOrder
 from massviz.core.trace import Trace
 
 

@@ -12,8 +12,14 @@ with each run's boxes, each run's chosen patches, one plot of both runs' predict
 ``container_class``, ``gt_mass_g``, ``in_runs``; for each figure of ``massviz.evaluation.runs.FIGURES``
 (``estimate_g``, ``rel_error``, ``score``, ``n_flagged``) and setting (``detector``, ``k``, ``threshold``,
 ``stride``, ``weights_id``) ``<name>_a`` and ``<name>_b``, and ``delta_<figure>`` (B − A); ``n_patches_changed``,
-``n_flags_appeared``, ``n_flags_gone``, ``cues_appeared``, ``cues_gone``, ``label_a``, ``label_b``. Unknown values
-(no ground truth, not estimated) are left out. ``comparison.csv`` beside the recordings is the whole table.
+``n_flags_appeared``, ``n_flags_gone``, ``cues_appeared``, ``cues_gone``, ``label_a``, ``label_b``, ``change_rank``
+(the table's order: 1 is the largest change of the relative error) and ``best_frame`` (the frame the recording opens
+at: run A's, else B's). Unknown values (no ground truth, not estimated) are left out. ``comparison.csv`` beside the
+recordings is the whole table.
+
+``massviz serve OUT`` recognises such a folder by its recordings' ``label_b`` property and registers
+``two_runs_blueprint`` for its recordings and ``table_blueprint`` (``TABLE_COLUMNS``, ranked by ``change_rank``) for
+its segment table.
 """
 from __future__ import annotations
 
@@ -32,8 +38,14 @@ from massviz.views.rerun_dataset import _patch_images, rrd_name, send_properties
 B_ROOT = "/b"
 COMPARISON_NAME = "comparison.csv"
 #: the comparison table's columns sent as recording properties (besides the ``_a``/``_b``/``delta_`` ones).
-SHARED_PROPERTIES = ("id", "container_class", "gt_mass_g", "in_runs", "n_patches_changed", "n_flags_appeared",
-                     "n_flags_gone", "cues_appeared", "cues_gone")
+SHARED_PROPERTIES = ("id", "container_class", "gt_mass_g", "in_runs", "change_rank", "n_patches_changed",
+                     "n_flags_appeared", "n_flags_gone", "cues_appeared", "cues_gone")
+#: the columns of the catalog's segment table that the two-run table layout shows after the "recording" button (in
+#: this order), ranked by ``change_rank``.
+TABLE_COLUMNS = ("change_rank", "container_class", "rel_error_a", "rel_error_b", "delta_rel_error", "estimate_g_a",
+                 "estimate_g_b", "delta_estimate_g", "gt_mass_g", "n_patches_changed", "n_flags_appeared",
+                 "n_flags_gone", "cues_appeared", "cues_gone", "score_a", "score_b", "detector_a", "detector_b",
+                 "k_a", "k_b", "threshold_a", "threshold_b", "label_a", "label_b")
 
 
 class Prefixed:
@@ -64,7 +76,7 @@ def _rounded(name: str, value):
     if isinstance(value, (float, np.floating)):
         if not math.isfinite(float(value)):
             return None
-        return round(float(value), 2 if "_g" in name else 4)
+        return round(float(value), 2 if "_g" in name else 4) + 0.0  # (+ 0.0: no "-0" in a table)
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return None
     return str(value)
@@ -112,6 +124,35 @@ def two_runs_blueprint(k_a: int, k_b: int) -> rrb.Blueprint:
         rrb.TimePanel(timeline="frame"), collapse_panels=False)
 
 
+def table_blueprint(present=None):
+    """The two-run segment table's layout: the "recording" button (``massviz serve``'s ``open`` property: the
+    recording at its best frame), then ``TABLE_COLUMNS`` (those among the segment table's column names ``present``,
+    when given: a property no recording has, e.g. ``cues_gone``, is no column); the largest change of the relative
+    error first."""
+    from rerun.blueprint import table as rbt
+    from rerun.blueprint.encodings import SortBy
+
+    from massviz.views.rerun_dataset import OPEN, VIEWER_LINK_COLUMN, property_column
+
+    columns = [rbt.Column(property_column(OPEN), name="recording", column_type=rr.components.Url),
+               rbt.Column("rerun_segment_id", visible=False)]
+    columns += [rbt.Column(property_column(c), name=c) for c in TABLE_COLUMNS
+                if present is None or property_column(c) in present]
+    columns.append(rbt.Column(VIEWER_LINK_COLUMN, visible=False))
+    return rbt.TableBlueprint(table_layout=rbt.TableLayout(columns=columns),
+                              sort_by=SortBy(property_column("change_rank"), direction="ascending"))
+
+
+def save_blueprints(folder: str | Path, k_a: int = 5, k_b: int = 5, present=None) -> tuple[Path, Path]:
+    """Write the two-run recording layout (``k_a`` and ``k_b`` patch tiles) and segment-table layout (``present``:
+    see ``table_blueprint``) as ``.rbl`` files into ``folder``."""
+    folder = Path(folder)
+    recording, table = folder / "massviz_two_runs.rbl", folder / "massviz_two_runs_table.rbl"
+    two_runs_blueprint(k_a, k_b).save(APPLICATION_ID, recording)
+    table_blueprint(present).save(APPLICATION_ID, table)
+    return recording, table
+
+
 def write_two_runs(trace_a, trace_b, recording, out_dir: str | Path, row: dict, labels: tuple[str, str],
                    markdown: str = "") -> Path:
     """Write ``out_dir/<id>.rrd``: both traces of ``recording`` in one recording (module docstring), with the
@@ -123,7 +164,12 @@ def write_two_runs(trace_a, trace_b, recording, out_dir: str | Path, row: dict, 
         stream.save(tmp)
         try:
             stream.send_recording_name(f"massviz {trace_a.recording.id}: A {labels[0]} | B {labels[1]}")
-            send_properties(stream, run_properties(row, labels))
+            from massviz.evaluation.browser import best_frame
+
+            props = run_properties(row, labels)
+            props["best_frame"] = best_frame(trace_a if len(trace_a.selection) or not len(trace_b.selection)
+                                             else trace_b)
+            send_properties(stream, props)
             stream.send_blueprint(two_runs_blueprint(len(trace_a.selection), len(trace_b.selection)),
                                   make_active=True, make_default=True)
             from massviz.views.rerun_dataset import log_light
@@ -157,5 +203,6 @@ def row_markdown(row: dict, labels: tuple[str, str], report: str = "") -> str:
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["B_ROOT", "COMPARISON_NAME", "Prefixed", "run_properties", "two_runs_blueprint", "write_two_runs",
+__all__ = ["B_ROOT", "COMPARISON_NAME", "TABLE_COLUMNS", "Prefixed", "run_properties", "two_runs_blueprint",
+           "table_blueprint", "save_blueprints", "write_two_runs",
            "row_markdown"]

@@ -113,7 +113,6 @@ def open_catalog(folder: str | Path, *, name: str | None = None, port: int = 0, 
     import rerun as rr
 
     from massviz.evaluation.browser import INDEX_NAME
-    from massviz.views.rerun_dataset import save_blueprints
 
     folder = Path(folder).resolve()
     _rrd_files(folder)
@@ -121,7 +120,6 @@ def open_catalog(folder: str | Path, *, name: str | None = None, port: int = 0, 
     name = name or re.sub(r"[^A-Za-z0-9_.-]", "_", folder.name) or "massviz"
     tmp = tempfile.TemporaryDirectory(prefix="massviz-serve-")
     try:
-        rec_bp, table_bp = save_blueprints(tmp.name, k)
         try:
             server = rr.server.Server(host=HOST, port=port or None, datasets={name: str(folder)})
         except Exception as err:  # noqa: BLE001 - a busy port, an unreadable file: one line
@@ -129,6 +127,7 @@ def open_catalog(folder: str | Path, *, name: str | None = None, port: int = 0, 
         try:
             client = server.client()
             dataset = client.get_dataset(name)
+            rec_bp, table_bp = save_layouts(dataset, tmp.name, k)
             dataset.register_blueprint(rec_bp.as_uri())
             dataset.register_blueprint(table_bp.as_uri(), segment_table=True)
             register_links(dataset, Path(tmp.name), folder / INDEX_NAME)
@@ -140,6 +139,34 @@ def open_catalog(folder: str | Path, *, name: str | None = None, port: int = 0, 
         tmp.cleanup()
         raise
     return Catalog(server, name, dataset, client, tmp)
+
+
+def is_two_runs(dataset) -> bool:
+    """Whether ``dataset``'s recordings are two-run recordings (``massviz compare ... --rrd-dir``: they have the
+    ``label_b`` property) rather than one run's (``massviz log --rrd-dir``)."""
+    from massviz.views.rerun_dataset import property_column
+
+    return property_column("label_b") in dataset.segment_table().schema().names
+
+
+def save_layouts(dataset, folder: str | Path, k: int = 5) -> tuple[Path, Path]:
+    """Write the recording and segment-table layouts that suit ``dataset`` into ``folder`` as ``.rbl`` files: a
+    light recording's with ``k`` patch tiles and the one-run table (``massviz.views.rerun_dataset``), or for two-run
+    recordings both runs side by side with as many tiles as the most patches either run chose, and the two-run table
+    (``massviz.views.rerun_runs``)."""
+    from massviz.views import rerun_dataset, rerun_runs
+
+    if not is_two_runs(dataset):
+        return rerun_dataset.save_blueprints(folder, k)
+    cols = [rerun_dataset.property_column(f"k_{side}") for side in "ab"]
+    names = dataset.segment_table().schema().names
+    table = dataset.segment_table().select(*[c for c in cols if c in names]).to_pandas()
+
+    def most(col: str) -> int:
+        values = [int(v[0]) for v in table[col] if v is not None and len(v)] if col in table else []
+        return max(values, default=k)
+
+    return rerun_runs.save_blueprints(folder, most(cols[0]), most(cols[1]), present=names)
 
 
 def best_frames(dataset, index: Path | None = None) -> dict[str, int | None]:
@@ -415,4 +442,4 @@ def view(path: str | Path, *, port: int = 0, web_port: int = 0, out=None, ready=
     return _run_until_stopped("view", start)
 
 
-__all__ = ["Catalog", "open_catalog", "catalog", "best_frames", "register_links", "WebViewer", "serve", "check_rrd", "FileServer", "view", "HOST"]
+__all__ = ["Catalog", "open_catalog", "catalog", "is_two_runs", "save_layouts", "best_frames", "register_links", "WebViewer", "serve", "check_rrd", "FileServer", "view", "HOST"]

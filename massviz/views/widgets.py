@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import dataclasses
 import html
-import os
 import time
 from pathlib import Path
 from typing import Sequence

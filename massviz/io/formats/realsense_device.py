@@ -9,7 +9,7 @@ from pathlib import Path
 
 from massviz.core.types import Frame
 from massviz.errors import RecordingError
-from massviz.io.formats.realsense_decode import FrameDecoder, StreamInfo, _reason, import_rs, stream_info
+from massviz.io.formats.realsense_decode import FrameDecoder, _reason, import_rs, stream_info
 
 #: seconds without a frame, before the end of a file, after which its non-real-time playback counts as stalled.
 FILE_TIMEOUT_S = 10.0
