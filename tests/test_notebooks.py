@@ -87,7 +87,7 @@ class _Collect(logging.Handler):
 
 @pytest.fixture(scope="module")
 def executed(weights, sample_cache):
-    """Run the three notebooks once (in order, sharing one trace cache); returns {name: executed notebook}."""
+    """Run the notebooks once (in order, sharing one trace cache); returns {name: executed notebook}."""
     from jupyter_client.kernelspec import KernelSpecManager
     from nbclient import NotebookClient
 
