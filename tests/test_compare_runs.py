@@ -1,6 +1,8 @@
 """``massviz compare`` on datasets: DATASET --a/--b from the trace cache and two ``--rrd-dir`` run folders give the
 same table, whose deltas are those of per-recording ``compare``; ``--rrd-dir`` recordings hold both runs (A at the
-light recording's paths, B under /b, one timeline) and the catalog's segment table both runs' columns."""
+light recording's paths, B under /b, one timeline) and the catalog's segment table both runs' columns; two run
+folders write the same recordings as the settings they record, or one line when a folder's source, settings,
+weights or estimate cannot be reproduced."""
 from __future__ import annotations
 
 import json
@@ -140,17 +142,23 @@ def test_two_run_folders_bad_inputs_are_one_line(folders, sample_cache, weights,
     lost = _edited(k3, tmp_path / "lost", "glass_handover", "source", "nowhere/glass_handover")
     other = _edited(k3, tmp_path / "other_weights", "box_handover", "weights_id", "000000000123")
     estimate = _edited(k3, tmp_path / "estimate", "cup_handover", "estimate_g", "12.5")
+    detector = _edited(k3, tmp_path / "detector", "box_handover", "detector", "yolo")
+    precision = _edited(k3, tmp_path / "precision", "box_handover", "detector", "depth bf16")
+    twice = _edited(k3, tmp_path / "twice", None, "id", lambda ids: ["box_handover"] * len(ids))
     out = tmp_path / "out"
     for b, extra, says in (
+            (detector, (), [f"{detector / 'index.csv'}:", "'box_handover'", "'yolo'"]),
+            (precision, (), [f"{precision / 'index.csv'}:", "'box_handover'", "--precision bf16"]),
+            (twice, (), [f"{twice / 'index.csv'}:", "'box_handover' is there twice"]),
             (lost, (), [f"{lost / 'index.csv'}:", "'glass_handover'", "'nowhere/glass_handover'", "not found"]),
             (other, (), [f"{other}:", "'box_handover'", "'000000000123'", repr(weights_id)]),
             (estimate, (), [f"{estimate / 'index.csv'}:", "'cup_handover'", "12.5 g", "does not reproduce"]),
             (k3, ("--b-k", "2"), ["--b-k: two run folders record their settings"])):
         capsys.readouterr()
-        assert _compare_folders(k5, b, out, sample_cache, weights, *extra) == 2, b
+        assert _compare_folders(k5, b, out, sample_cache, weights, "--out", str(tmp_path / "t.csv"), *extra) == 2, b
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and all(s in err[0] for s in says), err
-        assert not out.exists()
+        assert not out.exists() and not (tmp_path / "t.csv").exists()
 
 
 def test_catalog_segment_table_holds_both_runs(compared):

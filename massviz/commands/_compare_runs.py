@@ -16,11 +16,12 @@ two runs of a dataset (one row per recording, ranked by how much the relative er
   massviz compare RUN_A/ RUN_B/ --out diff.csv --rrd-dir both/
       RUN_A and RUN_B are folders written by 'massviz log DATASET --rrd-dir': the table is made of their index.csv
       and patches.csv (nothing recomputed). --rrd-dir needs each run's traces: they come from the trace cache with
-      the settings index.csv records per recording (detector, threshold, k, stride; the recording at its source:
-      absolute, else from the current directory, else from the folder or a folder above it), the mass CNN of
-      --weights (B: --b-weights) of the folder's weights_id, and --detector-weights, --precision, --replay (B: the
-      --b-* ones); a recording the cache cannot serve is processed once and cached. Each trace's estimate must be
-      the folder's
+      the settings index.csv records per recording (detector, threshold, k, stride) for the recording at its
+      source (absolute, else from the current directory, else from the folder or a folder above it); --weights
+      (B: --b-weights) must be the checkpoint of the folder's weights_id; --detector-weights, --precision and
+      --replay (B: their --b-* options) as given. A recording the cache cannot serve is processed once and cached;
+      each trace's estimate must be the folder's estimate_g. The settings are the folders': --detector,
+      --threshold, --b-detector, --b-threshold, --b-k and --b-stride are refused
   massviz compare DATASET --detector depth --a "threshold=0.4" --b "threshold=0.5,k=3" --out diff.parquet \\
       --rrd-dir both/
       DATASET's recordings run twice with the pipeline options, --a and --b overriding them (NAME=VALUE,...:
