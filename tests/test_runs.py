@@ -1,5 +1,6 @@
 """Two runs of the samples side by side (``massviz.evaluation.runs``): the table agrees with the per-recording
-``compare``, patch changes are identified by frame and box, the scores of A, B and the pairwise best."""
+``compare``, patch changes are identified by frame and box, the scores of A, B and the pairwise best; a run
+folder's recording sources are found where that is unambiguous."""
 from __future__ import annotations
 
 import numpy as np
@@ -109,3 +110,24 @@ def test_a_run_from_the_cache_indexes_equals_the_run_from_full_traces(two_runs, 
     pd.testing.assert_frame_equal(compare_runs(a, b), compare_runs(ia, ib))
     with pytest.raises(MassvizError, match="below the threshold"):
         run_from_indexes(indexes, k=5, threshold=0.3)
+
+
+def test_a_run_folders_source_is_found_where_it_is_unambiguous(tmp_path, monkeypatch):
+    """``locate_source``: absolute; relative from the current directory; else from the folder or a folder above it,
+    every distinct place (two: ambiguous, for the caller to refuse)."""
+    from massviz.evaluation.runs import locate_source
+
+    folder = tmp_path / "work" / "runs" / "k5"
+    folder.mkdir(parents=True)
+    (tmp_path / "work" / "recs" / "cup").mkdir(parents=True)
+    (tmp_path / "elsewhere").mkdir()
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    found = tmp_path.resolve() / "work" / "recs" / "cup"
+    assert locate_source(str(found), folder) == [found]
+    assert locate_source(str(tmp_path / "gone"), folder) == []
+    assert locate_source("recs/cup", folder) == [found]  # from work/, the folder's grandparent
+    assert locate_source("cup", folder) == []
+    (tmp_path / "recs" / "cup").mkdir(parents=True)
+    assert locate_source("recs/cup", folder) == [found, tmp_path.resolve() / "recs" / "cup"]
+    monkeypatch.chdir(tmp_path / "work")
+    assert locate_source("recs/cup", folder) == [found]  # the current directory first

@@ -1,6 +1,7 @@
 """``massviz compare`` on datasets: two runs of every recording side by side (``massviz.evaluation.runs``).
 
     massviz compare RUN_A/ RUN_B/                               two folders of 'massviz log DATASET --rrd-dir'
+                                                                (--rrd-dir: their traces from the trace cache)
     massviz compare DATASET --a "threshold=0.4" --b "k=3"       one dataset, two settings, from the trace cache
 """
 from __future__ import annotations
@@ -12,9 +13,15 @@ from massviz.errors import MassvizError
 
 HELP = """
 two runs of a dataset (one row per recording, ranked by how much the relative error changed):
-  massviz compare RUN_A/ RUN_B/ --out diff.csv
-      RUN_A and RUN_B are folders written by 'massviz log DATASET --rrd-dir' (their index.csv and patches.csv;
-      nothing is recomputed)
+  massviz compare RUN_A/ RUN_B/ --out diff.csv --rrd-dir both/
+      RUN_A and RUN_B are folders written by 'massviz log DATASET --rrd-dir': the table is made of their index.csv
+      and patches.csv (nothing recomputed). --rrd-dir needs each run's traces: they come from the trace cache with
+      the settings index.csv records per recording (detector, threshold, k, stride) for the recording at its
+      source (absolute, else from the current directory, else from the folder or a folder above it); --weights
+      (B: --b-weights) must be the checkpoint of the folder's weights_id; --detector-weights, --precision and
+      --replay (B: their --b-* options) as given. A recording the cache cannot serve is processed once and cached;
+      each trace's estimate must be the folder's estimate_g. The settings are the folders': --detector,
+      --threshold, --b-detector, --b-threshold, --b-k and --b-stride are refused
   massviz compare DATASET --detector depth --a "threshold=0.4" --b "threshold=0.5,k=3" --out diff.parquet \\
       --rrd-dir both/
       DATASET's recordings run twice with the pipeline options, --a and --b overriding them (NAME=VALUE,...:
@@ -54,13 +61,10 @@ def _check(args) -> None:
 def _runs(args, b_options=()):
     """(run A, run B) from two folders or from DATASET with --a/--b (``b_options``: the names of compare's
     ``--b-NAME`` options, which B takes too)."""
-    from massviz.evaluation.runs import describe_settings, load_run, parse_settings, run_from_cache
+    from massviz.evaluation.runs import describe_settings, parse_settings, run_from_cache
 
     if not (args.a_settings or args.b_settings):
-        if args.rrd_dir:
-            raise MassvizError("--rrd-dir needs the runs' traces: compare DATASET --a SETTINGS --b SETTINGS (two "
-                               "run folders hold light recordings only)")
-        return load_run(args.a), load_run(args.b)
+        return _folder_runs(args, b_options)
     if args.b is not None:
         raise MassvizError(f"with --a/--b give one dataset, not two ({args.a}, {args.b})")
     from massviz.app import PipelineOptions
@@ -78,6 +82,36 @@ def _runs(args, b_options=()):
     run_a = run_from_cache(recordings, options, label=describe_settings(sa), progress=not args.quiet, **sa)
     run_b = run_from_cache(recordings, options, label=describe_settings(sb), progress=not args.quiet, **sb)
     return run_a, run_b
+
+
+#: the pipeline options B may change when two run folders are compared (their settings are the folders')
+FOLDER_B_OPTIONS = ("weights", "detector_weights", "precision", "replay")
+
+
+def _folder_runs(args, b_options=()):
+    """(run A, run B) of two run folders; with --rrd-dir each with the traces of the recordings both hold, made
+    with the settings the folder records per recording over the pipeline options (B: the ``--b-NAME`` options of
+    ``FOLDER_B_OPTIONS`` too), every input checked before any runs."""
+    from massviz.app import PipelineOptions
+    from massviz.evaluation.runs import load_run, plan_traces, with_traces
+
+    given = [f"--{n}" for n in ("detector", "threshold") if getattr(args, n, None) not in (None, "auto")]
+    given += [f"--b-{n}" for n in b_options if n not in FOLDER_B_OPTIONS and getattr(args, f"b_{n}") is not None]
+    if given:
+        raise MassvizError(f"{given[0].replace('_', '-')}: two run folders record their settings (detector, threshold, "
+                           "k, stride: their index.csv)")
+    a, b = load_run(args.a), load_run(args.b)
+    if not args.rrd_dir:
+        return a, b
+    ids = [i for i in a.recordings.index if i in b.recordings.index]
+    options_a = PipelineOptions.from_args(args)
+    options_b = PipelineOptions.from_args(args, **{n: getattr(args, f"b_{n}") for n in FOLDER_B_OPTIONS
+                                                   if n in b_options and getattr(args, f"b_{n}") is not None})
+    option_a = "--weights" if args.weights else "the default --weights"
+    option_b = "--b-weights" if getattr(args, "b_weights", None) else option_a
+    plans = [plan_traces(run, options, ids, weights_option=option, allow_partial=args.allow_partial)
+             for run, options, option in ((a, options_a, option_a), (b, options_b, option_b))]
+    return tuple(with_traces(plan, progress=not args.quiet) for plan in plans)
 
 
 def run(args, b_options=()) -> int:

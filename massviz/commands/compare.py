@@ -33,7 +33,8 @@ def register(sub) -> None:
     p.add_argument("a", metavar="A", help="a trace file (.npz) or a recording (folder or CCM video); or a run folder "
                    "('massviz log DATASET --rrd-dir'), or with --a/--b a dataset")
     p.add_argument("b", metavar="B", nargs="?", help="the same for B (default: A again, with the --b-* options); or "
-                   "a second run folder")
+                   "a second run folder (its settings are its own: of the --b-* options it takes --b-weights, "
+                   "--b-detector-weights, --b-precision, --b-replay)")
     p.add_argument("--iou", type=float, default=0.5, metavar="X",
                    help="boxes of one frame with IoU >= X are the same detection (default: 0.5)")
     p.add_argument("--rrd", metavar="OUT.rrd", help="write both traces into one Rerun file as two recordings")
@@ -47,7 +48,8 @@ def register(sub) -> None:
     gr.add_argument("--b", dest="b_settings", metavar="SETTINGS", help="run B, the same (the --b-* options too)")
     gr.add_argument("--out", metavar="TABLE", help="write the comparison table (.csv or .parquet)")
     gr.add_argument("--rrd-dir", metavar="DIR", help="write one recording per input with both runs and their "
-                    "_a/_b/delta_ properties (for 'massviz serve DIR')")
+                    "_a/_b/delta_ properties (for 'massviz serve DIR'); with two run folders, from the traces of "
+                    "the settings they record")
     gr.add_argument("--rows", type=int, default=20, metavar="N", help="rows of the table printed (default: 20)")
     add_pipeline_args(p)
     gb = p.add_argument_group("side B (override the pipeline options for B)")

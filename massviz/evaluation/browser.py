@@ -135,8 +135,9 @@ def tables_from_traces(traces: Sequence[Trace]) -> tuple[pd.DataFrame, pd.DataFr
 
 def read_dataset(folder: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]:
     """(recordings, patches) of a dataset folder written by ``massviz log DATASET --rrd-dir``; ``DataError`` naming
-    the file when one is missing or lacks a column, an id is not text, a thumbnail path leads out of the folder, a
-    flag is not True/False or a rank, frame or track is not an integer (the folder may come from someone else)."""
+    the file when one is missing or lacks a column, an id is not text or is there twice, a thumbnail path leads out
+    of the folder, a flag is not True/False or a rank, frame or track is not an integer (the folder may come from
+    someone else)."""
     folder = Path(folder)
     tables = []
     for name, key, required in ((INDEX_NAME, "id", ("id", "n_flagged", "rrd")),
@@ -145,7 +146,8 @@ def read_dataset(folder: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]:
         if not path.is_file():
             raise DataError(f"missing (make the dataset with: massviz log DATASET --rrd-dir {folder})", path)
         try:
-            table = pd.read_csv(path, dtype={key: str, "cues": str}, keep_default_na=True)
+            table = pd.read_csv(path, dtype={key: str, "cues": str, "weights_id": str, "source": str},
+                                keep_default_na=True)
         except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as err:
             raise DataError(f"not a readable CSV ({type(err).__name__})", path) from None
         if missing := [c for c in required if c not in table.columns]:
@@ -155,6 +157,9 @@ def read_dataset(folder: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]:
     index_path, patches_path = folder / INDEX_NAME, folder / PATCHES_NAME
     for i, rid in enumerate(tables[0]["id"]):  # ids are text from a data file
         text_id(rid if isinstance(rid, str) else "", f"row {i + 1}, column 'id'", index_path)
+    if tables[0]["id"].duplicated().any():
+        i = int(np.flatnonzero(tables[0]["id"].duplicated().to_numpy())[0])
+        raise DataError(f"row {i + 1}, column 'id': {tables[0]['id'].iloc[i]!r} is there twice", index_path)
     for i, (rid, thumb) in enumerate(zip(tables[1]["recording"], tables[1]["thumb"])):
         text_id(rid if isinstance(rid, str) else "", f"row {i + 1}, column 'recording'", patches_path)
         confined(folder, thumb if isinstance(thumb, str) else None, patches_path, f"row {i + 1}, column 'thumb'")
