@@ -97,6 +97,12 @@ def killing_server():
     server.close()
 
 
+def server_for(request) -> ForkServer | None:
+    """Where a case's runs are forked from: ``killing_server`` for a case marked slow; none (subprocesses) for the
+    first case of a test."""
+    return request.getfixturevalue("killing_server") if request.node.get_closest_marker("slow") else None
+
+
 def pipeline(b: Base, work: Path, command: str, *extra) -> list:
     return [command, *extra, "--detector", "replay", "--replay", b.replay, "--weights", b.weights,
             "--cache", work / "cache", "--quiet"]
@@ -170,7 +176,7 @@ def test_a_command_killed_at_a_commit_then_run_again_equals_a_clean_run(command,
     work = tmp_path / "w"
     work.mkdir()
     argv, out = command_case(command, work, base, patch_set)
-    forked = request.getfixturevalue("killing_server") if request.node.get_closest_marker("slow") else None
+    forked = server_for(request)
     # killed twice at a command's first commit (what the kills leave must not accumulate), once at a later one
     for _ in range(2 if nth == 1 else 1):
         killed = massviz(argv, work, kill_at=nth, when=when, forked=forked)
@@ -191,21 +197,23 @@ DAMAGE = {"truncated": lambda data: data[: len(data) // 2], "garbage": lambda da
 
 @pytest.mark.parametrize("damage", [pytest.param(d, marks=() if i == 0 else pytest.mark.slow)
                                     for i, d in enumerate(DAMAGE)])
-def test_a_damaged_cache_entry_is_detected_recomputed_and_said_once(damage, base, tmp_path):
+def test_a_damaged_cache_entry_is_detected_recomputed_and_said_once(damage, base, tmp_path, request):
+    """The first case's runs are subprocesses; the others' are forked from ``killing_server`` (no kill)."""
     work = tmp_path / "w"
     work.mkdir()
     argv, out = command_case("estimate", work, base, tmp_path)
-    first = massviz(argv, work)
+    forked = server_for(request)
+    first = massviz(argv, work, forked=forked)
     assert first.returncode == 0, first.stderr
     clean = result("estimate", out)
     (entry,) = (work / "cache").rglob("t*.npz")
     entry.write_bytes(DAMAGE[damage](entry.read_bytes()))
-    again = massviz(argv, work)
+    again = massviz(argv, work, forked=forked)
     warnings = [line for line in again.stderr.splitlines() if "warning" in line]
     assert again.returncode == 0 and len(warnings) == 1, again.stderr
     assert warnings[0].startswith(f"massviz: warning: {entry}: damaged trace cache entry (")
     assert result("estimate", out) == clean
-    third = massviz(argv, work)  # the entry was written again: no warning now
+    third = massviz(argv, work, forked=forked)  # the entry was written again: no warning now
     assert third.returncode == 0 and "warning" not in third.stderr, third.stderr
 
 
