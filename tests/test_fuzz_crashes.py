@@ -3,8 +3,9 @@ again, gives what a clean run gives; what the kill left (a temporary file, a hal
 detected, never used and never accumulated. Two processes writing the same output: one wins whole.
 
 The kill points are generated: the ``n``-th rename by which a command puts a finished file in place (its outputs and
-its cache entries alike), just before it or just after it, in a process of its own (``python -c`` with ``os.replace``
-wrapped; a real SIGKILL).
+its cache entries alike), just before it or just after it, in a process of its own with ``os.replace`` wrapped (a
+real SIGKILL): ``python -c`` for a test's first case, a child of a fork server that installed the wrapper
+(``killing_server``, ``tests/forkserver.py``) for the others. The clean runs compared with are ``python -m massviz``.
 """
 from __future__ import annotations
 
