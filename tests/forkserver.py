@@ -99,9 +99,11 @@ class ForkServer:
     """The test's side: ``start(argv, env, cwd, stdout, stderr)`` returns the command's pid once it runs,
     ``wait()`` its exit code (``os.waitstatus_to_exitcode``); one command at a time. ``close()`` ends the server."""
 
-    def __init__(self, env: dict | None = None):
-        self.proc = subprocess.Popen([sys.executable, __file__], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                     text=True, bufsize=1, cwd=ROOT, env=env)
+    def __init__(self, env: dict | None = None, argv: list[str] | None = None):
+        """``argv``: the server's command line, ``python forkserver.py`` unless given (another one ends by calling
+        :func:`serve`, e.g. ``python -c`` with code run before it)."""
+        self.proc = subprocess.Popen(argv or [sys.executable, __file__], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, text=True, bufsize=1, cwd=ROOT, env=env)
 
     def start(self, argv, env: dict, cwd: Path, stdout: Path, stderr: Path) -> int:
         request = {"argv": [str(a) for a in argv], "env": env, "cwd": str(cwd), "stdout": str(stdout),

@@ -3,53 +3,105 @@ again, gives what a clean run gives; what the kill left (a temporary file, a hal
 detected, never used and never accumulated. Two processes writing the same output: one wins whole.
 
 The kill points are generated: the ``n``-th rename by which a command puts a finished file in place (its outputs and
-its cache entries alike), just before it or just after it, in a process of its own (``python -c`` with ``os.replace``
-wrapped; a real SIGKILL).
+its cache entries alike), just before it or just after it, in a process of its own with ``os.replace`` wrapped (a
+real SIGKILL): ``python -c`` for a test's first case, a child of a fork server that installed the wrapper
+(``killing_server``, ``tests/forkserver.py``) for the others. The clean runs compared with are ``python -m massviz``.
 """
 from __future__ import annotations
 
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
+from forkserver import ForkServer
 from test_fuzz import Base, base, copy_sample  # noqa: F401
-from test_fuzz2 import clean_env, patch_set  # noqa: F401
+from test_fuzz2 import Watch, clean_env, patch_set  # noqa: F401
 
 ROOT = Path(__file__).resolve().parents[1]
 
-#: the command line of a run killed at its ``KILL_AT``-th ``os.replace`` (``KILL_WHEN``: before or after it).
-KILLED_RUN = """
-import os, signal, sys
-n, when, seen = int(os.environ["KILL_AT"]), os.environ["KILL_WHEN"], [0]
-real = os.replace
+#: ``os.replace`` wrapped: the process's ``KILL_AT``-th call (``KILL_WHEN``: just before or just after it) kills it
+#: (SIGKILL); without ``KILL_AT`` it only counts. Counted per process id: a fork server's child counts its own calls.
+KILL_HOOK = """
+import os, signal
+real, seen = os.replace, {}
 def replace(src, dst, *args, **kwargs):
-    seen[0] += 1
-    if seen[0] == n and when == "before":
-        os.kill(os.getpid(), signal.SIGKILL)
+    pid = os.getpid()
+    seen[pid] = seen.get(pid, 0) + 1
+    n, when = int(os.environ.get("KILL_AT", "0")), os.environ.get("KILL_WHEN")
+    if seen[pid] == n and when == "before":
+        os.kill(pid, signal.SIGKILL)
     out = real(src, dst, *args, **kwargs)
-    if seen[0] == n and when == "after":
-        os.kill(os.getpid(), signal.SIGKILL)
+    if seen[pid] == n and when == "after":
+        os.kill(pid, signal.SIGKILL)
     return out
 os.replace = replace
+"""
+#: the command line of a run killed at a commit, in a process of its own
+KILLED_RUN = KILL_HOOK + """
+import sys
 from massviz.cli import main
 sys.exit(main(sys.argv[1:]))
 """
+#: a fork server (``tests/forkserver.py``) whose children run with the hook: the same kills without each run's
+#: imports of torch and massviz (training's too: ``torch.use_deterministic_algorithms`` loads ``torch._dynamo``)
+KILLING_SERVER = KILL_HOOK + f"""
+import sys
+sys.path.insert(0, {str(Path(__file__).resolve().parent)!r})
+from massviz.cli import _quiet_native_logs
+_quiet_native_logs()  # before cv2 loads
+import massviz.training.train, torch._dynamo
+from forkserver import serve
+serve()
+"""
+#: seconds a command may run
+TIMEOUT_S = 300
 
 
-def massviz(argv, work: Path, kill_at: int | None = None, when: str = "before") -> subprocess.CompletedProcess:
+def massviz(argv, work: Path, kill_at: int | None = None, when: str = "before",
+            forked: ForkServer | None = None) -> subprocess.CompletedProcess:
+    """``massviz ARGV`` in ``work``, killed at its ``kill_at``-th commit when given; a subprocess, or a child of
+    ``forked`` (a ``killing_server``)."""
     env = {**clean_env(), "PYTHONPATH": str(ROOT), "TMPDIR": str(work / "tmpdir"), "HOME": str(work / "home"),
            "MASSVIZ_CACHE_DIR": str(work / "usercache"), "XDG_CACHE_HOME": str(work / "xdg"),
            "TORCHINDUCTOR_CACHE_DIR": str(work / "xdg" / "torchinductor")}
     for d in ("tmpdir", "home"):
         (work / d).mkdir(exist_ok=True)
+    if kill_at is not None:
+        env.update(KILL_AT=str(kill_at), KILL_WHEN=when)
+    if forked is not None:
+        return _forked_run(forked, argv, work, env)
     if kill_at is None:
         cmd = [sys.executable, "-m", "massviz", *map(str, argv)]
     else:
         cmd = [sys.executable, "-c", KILLED_RUN, *map(str, argv)]
-        env.update(KILL_AT=str(kill_at), KILL_WHEN=when)
-    return subprocess.run(cmd, cwd=work, env=env, capture_output=True, text=True, timeout=300)
+    return subprocess.run(cmd, cwd=work, env=env, capture_output=True, text=True, timeout=TIMEOUT_S)
+
+
+def _forked_run(server: ForkServer, argv, work: Path, env: dict) -> subprocess.CompletedProcess:
+    logs = work.parent / f"{work.name}.logs"  # beside ``work``: its checks see only what the command left
+    logs.mkdir(exist_ok=True)
+    watch = Watch(server.start(argv, env, work, logs / "out", logs / "err"), time.monotonic(), TIMEOUT_S)
+    code = server.wait()
+    watch.stop()
+    assert not watch.killed, f"massviz {' '.join(map(str, argv))} ran more than {TIMEOUT_S} s"
+    return subprocess.CompletedProcess(argv, code, (logs / "out").read_text(errors="replace"),
+                                       (logs / "err").read_text(errors="replace"))
+
+
+@pytest.fixture(scope="module")
+def killing_server():
+    server = ForkServer({**clean_env(), "PYTHONPATH": str(ROOT)}, [sys.executable, "-c", KILLING_SERVER])
+    yield server
+    server.close()
+
+
+def server_for(request) -> ForkServer | None:
+    """Where a case's runs are forked from: ``killing_server`` for a case marked slow; none (subprocesses) for the
+    first case of a test."""
+    return request.getfixturevalue("killing_server") if request.node.get_closest_marker("slow") else None
 
 
 def pipeline(b: Base, work: Path, command: str, *extra) -> list:
@@ -119,16 +171,20 @@ KILL_CASES = [(c, n, w) for c in ("estimate", "extract", "cloud", "train", "log"
     pytest.param(*case, id=f"sigkill-{case[0]}-at-commit-{case[1]}-{case[2]}",
                  marks=() if i == 0 else pytest.mark.slow) for i, case in enumerate(KILL_CASES)])
 def test_a_command_killed_at_a_commit_then_run_again_equals_a_clean_run(command, nth, when, base, patch_set,
-                                                                         clean_results, tmp_path):
+                                                                         clean_results, tmp_path, request):
+    """The first case's runs are ``python`` subprocesses; the others' (marked slow) are forked from
+    ``killing_server``. The clean runs they are compared with are subprocesses."""
     work = tmp_path / "w"
     work.mkdir()
     argv, out = command_case(command, work, base, patch_set)
-    for _ in range(2):  # killed twice at the same point: what the kills leave must not accumulate
-        killed = massviz(argv, work, kill_at=nth, when=when)
+    forked = server_for(request)
+    # killed twice at a command's first commit (what the kills leave must not accumulate), once at a later one
+    for _ in range(2 if nth == 1 else 1):
+        killed = massviz(argv, work, kill_at=nth, when=when, forked=forked)
         if killed.returncode == 0:  # fewer commits than nth: nothing to kill
             pytest.skip(f"{command} made fewer than {nth} commits")
         assert killed.returncode == -9, killed.stderr
-    again = massviz(argv, work)
+    again = massviz(argv, work, forked=forked)
     assert again.returncode == 0, again.stderr
     assert "Traceback" not in again.stderr
     assert result(command, out) == clean_results(command)
@@ -142,21 +198,23 @@ DAMAGE = {"truncated": lambda data: data[: len(data) // 2], "garbage": lambda da
 
 @pytest.mark.parametrize("damage", [pytest.param(d, marks=() if i == 0 else pytest.mark.slow)
                                     for i, d in enumerate(DAMAGE)])
-def test_a_damaged_cache_entry_is_detected_recomputed_and_said_once(damage, base, tmp_path):
+def test_a_damaged_cache_entry_is_detected_recomputed_and_said_once(damage, base, tmp_path, request):
+    """The first case's runs are subprocesses; the others' are forked from ``killing_server`` (no kill)."""
     work = tmp_path / "w"
     work.mkdir()
     argv, out = command_case("estimate", work, base, tmp_path)
-    first = massviz(argv, work)
+    forked = server_for(request)
+    first = massviz(argv, work, forked=forked)
     assert first.returncode == 0, first.stderr
     clean = result("estimate", out)
     (entry,) = (work / "cache").rglob("t*.npz")
     entry.write_bytes(DAMAGE[damage](entry.read_bytes()))
-    again = massviz(argv, work)
+    again = massviz(argv, work, forked=forked)
     warnings = [line for line in again.stderr.splitlines() if "warning" in line]
     assert again.returncode == 0 and len(warnings) == 1, again.stderr
     assert warnings[0].startswith(f"massviz: warning: {entry}: damaged trace cache entry (")
     assert result("estimate", out) == clean
-    third = massviz(argv, work)  # the entry was written again: no warning now
+    third = massviz(argv, work, forked=forked)  # the entry was written again: no warning now
     assert third.returncode == 0 and "warning" not in third.stderr, third.stderr
 
 
