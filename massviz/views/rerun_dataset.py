@@ -270,21 +270,24 @@ def dataset_blueprint(k: int = 5) -> rrb.Blueprint:
     return light_blueprint(k)
 
 
-def table_blueprint():
+def table_blueprint(columns=TABLE_COLUMNS, sort_by: str = "rel_error", direction: str = "descending",
+                    present=None):
     """The segment table's layout: first "recording", a button with the recording's id that opens it at its best
-    frame (the ``open`` property ``massviz serve`` adds, shown as a ``rerun.components.Url``), then massviz's columns
-    (``TABLE_COLUMNS``); the segment id and the viewer's own "recording link" (it opens a recording at its last
-    frame) hidden; the worst relative error first.
+    frame (the ``open`` property ``massviz serve`` adds, shown as a ``rerun.components.Url``), then the properties
+    ``columns`` (``id`` aside: the button shows it; with ``present``, the segment table's column names, only those it
+    has: a property no recording has is no column); the segment id and the viewer's own "recording link" (it opens a
+    recording at its last frame) hidden; sorted by property ``sort_by`` (default: the worst relative error first).
     (A ``PreviewCell`` of ``/thumbnail`` needs a column of recording URLs, which the segment table has not.)"""
     from rerun.blueprint import table as rbt
     from rerun.blueprint.encodings import SortBy
 
-    columns = [rbt.Column(property_column(OPEN), name="recording", column_type=rr.components.Url),
-               rbt.Column("rerun_segment_id", visible=False)]  # the button shows the id
-    columns += [rbt.Column(property_column(c), name=c) for c in TABLE_COLUMNS if c != "id"]
-    columns.append(rbt.Column(VIEWER_LINK_COLUMN, visible=False))
-    return rbt.TableBlueprint(table_layout=rbt.TableLayout(columns=columns),
-                              sort_by=SortBy(property_column("rel_error"), direction="descending"))
+    shown = [rbt.Column(property_column(OPEN), name="recording", column_type=rr.components.Url),
+             rbt.Column("rerun_segment_id", visible=False)]  # the button shows the id
+    shown += [rbt.Column(property_column(c), name=c) for c in columns
+              if c != "id" and (present is None or property_column(c) in present)]
+    shown.append(rbt.Column(VIEWER_LINK_COLUMN, visible=False))
+    return rbt.TableBlueprint(table_layout=rbt.TableLayout(columns=shown),
+                              sort_by=SortBy(property_column(sort_by), direction=direction))
 
 
 def write_link(path: str | Path, segment_id: str, url: str) -> Path:
@@ -302,13 +305,15 @@ def write_link(path: str | Path, segment_id: str, url: str) -> Path:
     return path
 
 
-def save_blueprints(folder: str | Path, k: int = 5) -> tuple[Path, Path]:
-    """Write the dataset's recording layout and segment-table layout as ``.rbl`` files into ``folder``."""
+def save_blueprints(folder: str | Path, recording: rrb.Blueprint | None = None,
+                    table=None) -> tuple[Path, Path]:
+    """Write a dataset's recording layout and segment-table layout as ``.rbl`` files into ``folder`` (default: a
+    light recording's with 5 patch tiles, ``dataset_blueprint``, and ``table_blueprint``)."""
     folder = Path(folder)
-    recording, table = folder / "massviz_recording.rbl", folder / "massviz_table.rbl"
-    dataset_blueprint(k).save(APPLICATION_ID, recording)
-    table_blueprint().save(APPLICATION_ID, table)
-    return recording, table
+    paths = folder / "massviz_recording.rbl", folder / "massviz_table.rbl"
+    (recording or dataset_blueprint()).save(APPLICATION_ID, paths[0])
+    (table or table_blueprint()).save(APPLICATION_ID, paths[1])
+    return paths
 
 
 __all__ = ["PROPERTY", "INDEX_NAME", "PATCHES_NAME", "TABLE_COLUMNS", "PATCH_COLUMNS", "property_column", "ccm_view",

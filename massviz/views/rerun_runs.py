@@ -125,32 +125,12 @@ def two_runs_blueprint(k_a: int, k_b: int) -> rrb.Blueprint:
 
 
 def table_blueprint(present=None):
-    """The two-run segment table's layout: the "recording" button (``massviz serve``'s ``open`` property: the
-    recording at its best frame), then ``TABLE_COLUMNS`` (those among the segment table's column names ``present``,
-    when given: a property no recording has, e.g. ``cues_gone``, is no column); the largest change of the relative
-    error first."""
-    from rerun.blueprint import table as rbt
-    from rerun.blueprint.encodings import SortBy
+    """The two-run segment table's layout: the "recording" button, then ``TABLE_COLUMNS`` (with ``present``, only
+    those the segment table has), the largest change of the relative error first
+    (``massviz.views.rerun_dataset.table_blueprint``)."""
+    from massviz.views.rerun_dataset import table_blueprint as one_run_table
 
-    from massviz.views.rerun_dataset import OPEN, VIEWER_LINK_COLUMN, property_column
-
-    columns = [rbt.Column(property_column(OPEN), name="recording", column_type=rr.components.Url),
-               rbt.Column("rerun_segment_id", visible=False)]
-    columns += [rbt.Column(property_column(c), name=c) for c in TABLE_COLUMNS
-                if present is None or property_column(c) in present]
-    columns.append(rbt.Column(VIEWER_LINK_COLUMN, visible=False))
-    return rbt.TableBlueprint(table_layout=rbt.TableLayout(columns=columns),
-                              sort_by=SortBy(property_column("change_rank"), direction="ascending"))
-
-
-def save_blueprints(folder: str | Path, k_a: int = 5, k_b: int = 5, present=None) -> tuple[Path, Path]:
-    """Write the two-run recording layout (``k_a`` and ``k_b`` patch tiles) and segment-table layout (``present``:
-    see ``table_blueprint``) as ``.rbl`` files into ``folder``."""
-    folder = Path(folder)
-    recording, table = folder / "massviz_two_runs.rbl", folder / "massviz_two_runs_table.rbl"
-    two_runs_blueprint(k_a, k_b).save(APPLICATION_ID, recording)
-    table_blueprint(present).save(APPLICATION_ID, table)
-    return recording, table
+    return one_run_table(TABLE_COLUMNS, sort_by="change_rank", direction="ascending", present=present)
 
 
 def write_two_runs(trace_a, trace_b, recording, out_dir: str | Path, row: dict, labels: tuple[str, str],
@@ -204,5 +184,5 @@ def row_markdown(row: dict, labels: tuple[str, str], report: str = "") -> str:
 
 
 __all__ = ["B_ROOT", "COMPARISON_NAME", "TABLE_COLUMNS", "Prefixed", "run_properties", "two_runs_blueprint",
-           "table_blueprint", "save_blueprints", "write_two_runs",
+           "table_blueprint", "write_two_runs",
            "row_markdown"]

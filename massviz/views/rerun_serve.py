@@ -141,32 +141,27 @@ def open_catalog(folder: str | Path, *, name: str | None = None, port: int = 0, 
     return Catalog(server, name, dataset, client, tmp)
 
 
-def is_two_runs(dataset) -> bool:
-    """Whether ``dataset``'s recordings are two-run recordings (``massviz compare ... --rrd-dir``: they have the
-    ``label_b`` property) rather than one run's (``massviz log --rrd-dir``)."""
-    from massviz.views.rerun_dataset import property_column
-
-    return property_column("label_b") in dataset.segment_table().schema().names
-
-
 def save_layouts(dataset, folder: str | Path, k: int = 5) -> tuple[Path, Path]:
     """Write the recording and segment-table layouts that suit ``dataset`` into ``folder`` as ``.rbl`` files: a
-    light recording's with ``k`` patch tiles and the one-run table (``massviz.views.rerun_dataset``), or for two-run
-    recordings both runs side by side with as many tiles as the most patches either run chose, and the two-run table
+    light recording's with ``k`` patch tiles and the one-run table (``massviz.views.rerun_dataset``), or, when its
+    recordings have the ``label_b`` property (two-run recordings of ``massviz compare ... --rrd-dir``), both runs
+    side by side with as many tiles as the most patches either run chose, and the two-run table
     (``massviz.views.rerun_runs``)."""
     from massviz.views import rerun_dataset, rerun_runs
 
-    if not is_two_runs(dataset):
-        return rerun_dataset.save_blueprints(folder, k)
+    segments = dataset.segment_table()
+    names = segments.schema().names
+    if rerun_dataset.property_column("label_b") not in names:
+        return rerun_dataset.save_blueprints(folder, rerun_dataset.dataset_blueprint(k))
     cols = [rerun_dataset.property_column(f"k_{side}") for side in "ab"]
-    names = dataset.segment_table().schema().names
-    table = dataset.segment_table().select(*[c for c in cols if c in names]).to_pandas()
+    table = segments.select(*[c for c in cols if c in names]).to_pandas()
 
     def most(col: str) -> int:
         values = [int(v[0]) for v in table[col] if v is not None and len(v)] if col in table else []
         return max(values, default=k)
 
-    return rerun_runs.save_blueprints(folder, most(cols[0]), most(cols[1]), present=names)
+    return rerun_dataset.save_blueprints(folder, rerun_runs.two_runs_blueprint(most(cols[0]), most(cols[1])),
+                                         rerun_runs.table_blueprint(present=names))
 
 
 def best_frames(dataset, index: Path | None = None) -> dict[str, int | None]:
@@ -442,4 +437,4 @@ def view(path: str | Path, *, port: int = 0, web_port: int = 0, out=None, ready=
     return _run_until_stopped("view", start)
 
 
-__all__ = ["Catalog", "open_catalog", "catalog", "is_two_runs", "save_layouts", "best_frames", "register_links", "WebViewer", "serve", "check_rrd", "FileServer", "view", "HOST"]
+__all__ = ["Catalog", "open_catalog", "catalog", "save_layouts", "best_frames", "register_links", "WebViewer", "serve", "check_rrd", "FileServer", "view", "HOST"]
