@@ -12,13 +12,12 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 from forkserver import ForkServer
 from test_fuzz import Base, base, copy_sample  # noqa: F401
-from test_fuzz2 import Watch, clean_env, patch_set  # noqa: F401
+from test_fuzz2 import _run_forked, clean_env, patch_set  # noqa: F401
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -83,12 +82,9 @@ def massviz(argv, work: Path, kill_at: int | None = None, when: str = "before",
 def _forked_run(server: ForkServer, argv, work: Path, env: dict) -> subprocess.CompletedProcess:
     logs = work.parent / f"{work.name}.logs"  # beside ``work``: its checks see only what the command left
     logs.mkdir(exist_ok=True)
-    watch = Watch(server.start(argv, env, work, logs / "out", logs / "err"), time.monotonic(), TIMEOUT_S)
-    code = server.wait()
-    watch.stop()
-    assert not watch.killed, f"massviz {' '.join(map(str, argv))} ran more than {TIMEOUT_S} s"
-    return subprocess.CompletedProcess(argv, code, (logs / "out").read_text(errors="replace"),
-                                       (logs / "err").read_text(errors="replace"))
+    run = _run_forked(server, argv, work, env, logs, TIMEOUT_S)
+    assert not run.killed, f"massviz {' '.join(map(str, argv))} ran more than {TIMEOUT_S} s"
+    return subprocess.CompletedProcess(argv, run.code, run.stdout, run.stderr)
 
 
 @pytest.fixture(scope="module")
