@@ -145,11 +145,15 @@ def test_two_run_folders_bad_inputs_are_one_line(folders, sample_cache, weights,
     detector = _edited(k3, tmp_path / "detector", "box_handover", "detector", "yolo")
     precision = _edited(k3, tmp_path / "precision", "box_handover", "detector", "depth bf16")
     twice = _edited(k3, tmp_path / "twice", None, "id", lambda ids: ["box_handover"] * len(ids))
+    k_half = _edited(k3, tmp_path / "k_half", "box_handover", "k", "2.5")
+    threshold = _edited(k3, tmp_path / "threshold", "box_handover", "threshold", "1.2")
     out = tmp_path / "out"
     for b, extra, says in (
             (detector, (), [f"{detector / 'index.csv'}:", "'box_handover'", "'yolo'"]),
             (precision, (), [f"{precision / 'index.csv'}:", "'box_handover'", "--precision bf16"]),
             (twice, (), [f"{twice / 'index.csv'}:", "'box_handover' is there twice"]),
+            (k_half, (), [f"{k_half / 'index.csv'}:", "'box_handover': column 'k' must be an integer, got 2.5"]),
+            (threshold, (), [f"{threshold / 'index.csv'}:", "column 'threshold' must be < 1, got 1.2"]),
             (lost, (), [f"{lost / 'index.csv'}:", "'glass_handover'", "'nowhere/glass_handover'", "not found"]),
             (other, (), [f"{other}:", "'box_handover'", "'000000000123'", repr(weights_id)]),
             (estimate, (), [f"{estimate / 'index.csv'}:", "'cup_handover'", "12.5 g", "does not reproduce"]),

@@ -155,15 +155,14 @@ def _row_settings(row, index_path: Path, rid: str) -> dict:
     out = {"detector": words[0]}
     if len(words) == 2:
         out["precision"] = words[1]
-    threshold = pd.to_numeric(pd.Series([row.get("threshold")]), errors="coerce").iloc[0]
-    if not (np.isfinite(threshold) and 0.0 <= threshold < 1.0):
-        raise _bad_row(index_path, rid, f"column 'threshold': {row.get('threshold')!r} is not a number in [0, 1)")
-    out["threshold"] = float(threshold)
+    from massviz.io.untrusted import number
+
+    what = lambda name: f"recording {rid!r}: column {name!r}"  # noqa: E731
+    out["threshold"] = number(row.get("threshold"), what("threshold"), index_path, lo=0.0, error=MassvizError)
+    if out["threshold"] >= 1.0:
+        raise MassvizError(f"{what('threshold')} must be < 1, got {out['threshold']:g}", index_path)
     for name in ("k", "stride"):
-        value = pd.to_numeric(pd.Series([row.get(name)]), errors="coerce").iloc[0]
-        if not (np.isfinite(value) and value == round(value) and value >= 1):
-            raise _bad_row(index_path, rid, f"column '{name}': {row.get(name)!r} is not an integer >= 1")
-        out[name] = int(value)
+        out[name] = number(row.get(name), what(name), index_path, lo=1, integral=True, error=MassvizError)
     return out
 
 

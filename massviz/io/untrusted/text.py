@@ -58,6 +58,8 @@ def safe_filename(text: str, max_chars: int = 100) -> str:
 
 
 def _short(value, n: int = 60) -> str:
+    if hasattr(value, "item") and getattr(value, "shape", None) == ():  # a numpy scalar: 2.5, not np.float64(2.5)
+        value = value.item()
     text = repr(value)
     return text if len(text) <= n else text[:n] + "..."
 
