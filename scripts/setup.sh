@@ -48,10 +48,14 @@ echo "setup: installing massviz into .venv (${pins[*]} pinned in pyproject.toml)
 .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test,notebooks]" 2>&1 \
   | { grep -v -e "^WARNING: Location" -e "is ignored: it is neither" || true; }
 
-# Weights of the mass CNN: $MASSVIZ_WEIGHTS, else the reference copy beside the repo when there is one,
-# else massviz downloads the published checkpoint once (sha256-checked) into the user cache.
+# Weights of the mass CNN: a reference copy beside the repo, when there is one, goes into the user cache
+# (sha256-checked), where every later massviz command finds it offline; else massviz downloads the published
+# checkpoint once into that cache on first use. $MASSVIZ_WEIGHTS or --weights still override it.
+# setup: cache the reference weights
 ref="../shared/weights/corsmal_visual/Encoder_pool_aug_158.torch"
-if [ -z "${MASSVIZ_WEIGHTS:-}" ] && [ -f "$ref" ]; then export MASSVIZ_WEIGHTS="$PWD/$ref"; fi
+if [ -f "$ref" ]; then
+  .venv/bin/python -c 'import sys; from massviz.io.weights import install_checkpoint as i; print("setup: mass CNN weights cached at", i(sys.argv[1]), file=sys.stderr)' "$ref"
+fi
 
 if [ "$job" = demo ]; then
   mkdir -p out

@@ -6,9 +6,11 @@ file's sha256 and the normalisation ranges it was trained with (the ranges are n
 keep them as commented-out constants in ``demo/generate_video_inference.py``), so a published file identifies itself
 by its hash wherever it lives.
 
-Resolution order of :func:`resolve_weights`: an explicit path, else ``$MASSVIZ_WEIGHTS``, else the cached download
-(``$MASSVIZ_CACHE_DIR`` or ``platformdirs.user_cache_dir("massviz")``, sub-folder ``weights/``), downloaded once from
-``$MASSVIZ_WEIGHTS_URL`` (default :data:`DEFAULT_URL_BASE`), sha256-checked and written atomically.
+Resolution order of :func:`resolve_weights`: an explicit path, else ``$MASSVIZ_WEIGHTS``, else the cached copy
+(``$MASSVIZ_CACHE_DIR`` or ``platformdirs.user_cache_dir("massviz")``, sub-folder ``weights/``: put there by
+:func:`install_checkpoint`, as ``scripts/setup.sh`` does with a reference copy it finds, or by the download), else
+downloaded once from ``$MASSVIZ_WEIGHTS_URL`` (default :data:`DEFAULT_URL_BASE`), sha256-checked and written
+atomically.
 
 Importing this module needs neither torch nor numpy (:func:`download` imports ``torch.hub`` when it runs).
 """
@@ -167,7 +169,35 @@ def resolve_weights(path: str | Path | None = None, *, name: str = DEFAULT_NAME)
     return download_published(name)
 
 
+def install_checkpoint(src: str | Path) -> Path:
+    """Copy a published checkpoint found on disk (e.g. a reference copy beside the repository) into the cache, where
+    :func:`resolve_weights` finds it without ``$MASSVIZ_WEIGHTS`` and without a download; return the cached path.
+
+    The file must be one of :data:`PUBLISHED` (recognised by its sha256), else :class:`WeightsError`; an identical
+    cached copy is kept as it is. The copy is written whole or not at all.
+    """
+    from massviz.io.atomic import atomic_path
+
+    src = Path(src).expanduser()
+    if not src.is_file():
+        raise WeightsError("weights file not found", src)
+    pub = published_by_sha256(sha256_file(src))
+    if pub is None:
+        raise WeightsError("not one of the published checkpoints (sha256 unknown); pass it with --weights instead",
+                           src)
+    cached = cache_dir() / pub.name
+    if cached.is_file() and sha256_file(cached) == pub.sha256:
+        return cached
+    try:
+        cached.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise WeightsError(f"cannot create the cache folder ({e.strerror or e})", cached.parent) from e
+    with atomic_path(cached) as tmp:
+        tmp.write_bytes(src.read_bytes())
+    return cached
+
+
 __all__ = [
     "PINNED_COMMIT", "DEFAULT_URL_BASE", "DEFAULT_NAME", "PublishedCheckpoint", "PUBLISHED",
     "published_by_sha256", "sha256_file", "cache_dir", "url_base", "download", "download_published",
-    "resolve_weights"]
+    "resolve_weights", "install_checkpoint"]
