@@ -4,7 +4,7 @@
 #   bash scripts/setup.sh test   install everything, run the test suite (what CI runs)
 # Installs Debian's libraries Open3D needs (libusb-1.0-0; offscreen rendering: libvulkan1 mesa-vulkan-drivers
 # libegl1 libgl1; the test job also Chromium for the browser tests), creates .venv with Python >= 3.11 and installs
-# massviz with its pinned torch/torchvision.
+# massviz with the torch/torchvision versions it is tested with (constraints.txt).
 # MASSVIZ_TORCH=cpu: torch/torchvision from PyTorch's CPU-only wheel index (no NVIDIA libraries, no triton: about
 # 4.6 GB less: 3.7 GB instead of 8.3 GB, README); default (unset): the wheels pip resolves from PyPI, with CUDA, what CI uses.
 set -euo pipefail
@@ -32,8 +32,8 @@ fi
 py="${PYTHON:-python3}"
 "$py" -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "massviz needs Python >= 3.11")'
 [ -x .venv/bin/python ] || "$py" -m venv .venv
-# the torch/torchvision pins of pyproject.toml
-pins=($(grep -oE '"(torch|torchvision)==[^"]+"' pyproject.toml | tr -d '"'))
+# the tested torch/torchvision pins (constraints.txt; pyproject.toml states the supported ranges)
+pins=($(grep -oE '^(torch|torchvision)==[^ #]+' constraints.txt))
 if [ "$torch_wheels" = cpu ]; then
   echo "setup: installing ${pins[*]} CPU-only wheels from $cpu_index" >&2
   .venv/bin/python -m pip install -q --disable-pip-version-check --index-url "$cpu_index" "${pins[@]}"
@@ -44,8 +44,8 @@ if [ "$torch_wheels" = cpu ]; then
       "reachable or pip's configuration preferred another index); massviz still works, on the CPU" >&2
   fi
 fi
-echo "setup: installing massviz into .venv (${pins[*]} pinned in pyproject.toml)" >&2
-.venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test,notebooks]" 2>&1 \
+echo "setup: installing massviz into .venv with the tested versions of constraints.txt (${pins[*]})" >&2
+.venv/bin/python -m pip install -q --disable-pip-version-check -c constraints.txt -e ".[test,notebooks]" 2>&1 \
   | { grep -v -e "^WARNING: Location" -e "is ignored: it is neither" || true; }
 
 # Weights of the mass CNN: a reference copy beside the repo, when there is one, goes into the user cache

@@ -212,7 +212,8 @@ def run_setup(tmp_path: Path, torch_kind: str | None, cuda: str = "") -> tuple[s
     repo = tmp_path / "repo"
     (repo / "scripts").mkdir(parents=True)
     (repo / "scripts" / "setup.sh").write_text((ROOT / "scripts" / "setup.sh").read_text())
-    (repo / "pyproject.toml").write_text((ROOT / "pyproject.toml").read_text())
+    for name in ("pyproject.toml", "constraints.txt"):
+        (repo / name).write_text((ROOT / name).read_text())
     bins = {repo / ".venv" / "bin" / "python": FAKE_PYTHON,
             repo / ".venv" / "bin" / "massviz": '#!/usr/bin/env bash\necho "massviz $*" >> "$FAKE_LOG"\n',
             tmp_path / "fakebin" / "dpkg": "#!/usr/bin/env bash\nexit 0\n"}
@@ -237,7 +238,7 @@ def test_setup_cpu_torch_comes_from_the_cpu_index_first(tmp_path):
     assert run.returncode == 0, run.stderr
     pip = [c for c in calls if " pip install " in c]
     assert "--index-url https://download.pytorch.org/whl/cpu torch==2.14.1 torchvision==0.29.1" in pip[0], pip
-    assert "-e .[test,notebooks]" in pip[1] and "--index-url" not in pip[1], pip
+    assert "-c constraints.txt -e .[test,notebooks]" in pip[1] and "--index-url" not in pip[1], pip
     assert "warning" not in run.stderr
 
 
@@ -245,7 +246,7 @@ def test_setup_default_is_what_ci_uses(tmp_path):
     run, calls = run_setup(tmp_path, None)
     assert run.returncode == 0, run.stderr
     pip = [c for c in calls if " pip install " in c]
-    assert len(pip) == 1 and "-e .[test,notebooks]" in pip[0] and "--index-url" not in pip[0], pip
+    assert len(pip) == 1 and "-c constraints.txt -e .[test,notebooks]" in pip[0] and "--index-url" not in pip[0], pip
 
 
 def test_setup_cpu_says_when_it_got_a_cuda_torch(tmp_path):

@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-#: the torchvision version the private helpers below were checked against (pyproject.toml pins it).
+#: the torchvision version the private helpers below were checked against (constraints.txt pins it).
 TESTED_TORCHVISION = "0.29.1"
 #: the private names of ``torchvision.ops.poolers`` this module calls.
 TORCHVISION_PRIVATES = ("_convert_to_roi_format", "_filter_input", "_setup_scales")
