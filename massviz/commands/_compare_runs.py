@@ -115,7 +115,7 @@ def _folder_runs(args, b_options=()):
 
 
 def run(args, b_options=()) -> int:
-    from massviz.evaluation.runs import compare_runs, run_scores, write_table
+    from massviz.evaluation.runs import TIE_G, compare_runs, run_scores, write_table
 
     _check(args)
     if not 0.0 < args.iou <= 1.0:
@@ -126,13 +126,19 @@ def run(args, b_options=()) -> int:
     out = sys.stdout
     out.write(f"A: {a.label}\nB: {b.label}\n{len(table)} recordings, ranked by the change of the relative error "
               "(B - A):\n")
-    cols = ["id", "container_class", "rel_error_a", "rel_error_b", "delta_rel_error", "delta_estimate_g",
-            "n_patches_changed", "n_flags_appeared", "n_flags_gone"]
-    out.write(table[cols].head(args.rows).to_string(index=False, float_format=lambda v: f"{v:.4g}") + "\n")
+    cols = ["id", "container_class", "estimate_g_a", "estimate_g_b", "delta_estimate_g", "rel_error_a", "rel_error_b",
+            "delta_rel_error", "outcome", "n_patches_changed", "n_flags_appeared", "n_flags_gone"]
+    grams, errors = _fixed(1), _fixed(4)
+    formats = {"estimate_g_a": grams, "estimate_g_b": grams, "delta_estimate_g": _fixed(1, sign=True),
+               "rel_error_a": errors, "rel_error_b": errors, "delta_rel_error": _fixed(4, sign=True)}
+    out.write(table[cols].head(args.rows).to_string(index=False, formatters=formats) + "\n")
     if len(table) > args.rows:
         out.write(f"... {len(table) - args.rows} more (--out writes them all)\n")
-    out.write("\nscore per class (%; best: each recording's better run):\n")
-    out.write(scores.to_string(float_format=lambda v: f"{v:.2f}") + "\n")
+    out.write(f"(a tie: both estimates within {TIE_G:g} g of each other; estimates in g, errors relative)\n")
+    out.write("\nscore per class (%; best: each recording's better run; b better / a better / ties: recordings):\n")
+    score_formats = {c: (_fixed(4) if c.startswith("mean") else _fixed(2)) for c in scores.columns
+                     if scores[c].dtype.kind == "f"}
+    out.write(scores.to_string(formatters=score_formats) + "\n")
     if args.out:
         write_table(table, args.out)
         print(f"wrote {args.out} ({len(table)} rows)", file=sys.stderr)
@@ -141,6 +147,16 @@ def run(args, b_options=()) -> int:
         print(f"wrote {n} recording(s) with both runs to {args.rrd_dir} (see them: massviz serve {args.rrd_dir})",
               file=sys.stderr)
     return 0
+
+
+def _fixed(places: int, sign: bool = False):
+    """A number with ``places`` decimals, as the estimates are printed: "-0.0" printed as "0.0", NaN as "-"."""
+    def fmt(v) -> str:
+        if v is None or v != v:
+            return "-"
+        v = round(float(v), places) + 0.0  # + 0.0: no negative zero
+        return f"{v:+.{places}f}" if sign and v != 0 else f"{v:.{places}f}"
+    return fmt
 
 
 def write_rrd_dir(a, b, table, out_dir, *, iou: float = 0.5) -> int:

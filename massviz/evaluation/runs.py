@@ -44,6 +44,12 @@ FIGURES = ("estimate_g", "rel_error", "score", "n_flagged")
 #: the settings columns of a recording row, shown per run.
 SETTING_COLUMNS = ("detector", "k", "threshold", "stride", "weights_id")
 CHANGES = ("same", "re-ranked", "added", "dropped")
+#: two estimates closer than this (grams) are a tie: neither run is better (the last printed digit of an estimate
+#: is 0.1 g; differences of ~1e-5 g are floating-point noise of the same patches, not a change)
+TIE_G = 0.05
+#: ``outcome`` of a recording in ``compare_runs``: which run is better, a tie, or not comparable (no ground truth, in
+#: one run only)
+OUTCOMES = ("b better", "a better", "tie", "")
 
 
 @dataclass
@@ -395,6 +401,7 @@ def compare_runs(a: Run, b: Run, iou: float = DEFAULT_IOU, changes: pd.DataFrame
     cues_b = rb["cues"].reindex(ids).map(_cue_set) if "cues" in rb else pd.Series([set()] * len(ids), index=ids)
     out["cues_appeared"] = [",".join(sorted(y - x)) for x, y in zip(cues_a, cues_b)]
     out["cues_gone"] = [",".join(sorted(x - y)) for x, y in zip(cues_a, cues_b)]
+    out["outcome"] = outcomes(out)
     ea, eb = out["rel_error_a"].to_numpy(float), out["rel_error_b"].to_numpy(float)
     key = np.abs(eb - ea)
     one_only = (np.isfinite(ea) != np.isfinite(eb)) & out["gt_mass_g"].notna().to_numpy() & \
@@ -405,6 +412,21 @@ def compare_runs(a: Run, b: Run, iou: float = DEFAULT_IOU, changes: pd.DataFrame
                           kind="stable")
     out["change_rank"] = np.arange(1, len(out) + 1)
     return out
+
+
+def outcomes(table: pd.DataFrame, tie_g: float = TIE_G) -> pd.Series:
+    """Per recording of a comparison: ``"tie"`` when both runs estimate it within ``tie_g`` grams of each other (or
+    neither estimates it), else ``"b better"`` / ``"a better"`` by the CORSMAL score (a run that estimates beats one
+    that does not); ``""`` without a ground truth or when one run lacks the recording."""
+    ga, gb = table["estimate_g_a"].to_numpy(float), table["estimate_g_b"].to_numpy(float)
+    sa = np.nan_to_num(table["score_a"].to_numpy(float), nan=0.0)
+    sb = np.nan_to_num(table["score_b"].to_numpy(float), nan=0.0)
+    estimated_a, estimated_b = np.isfinite(ga) & (ga >= 0), np.isfinite(gb) & (gb >= 0)
+    tie = (estimated_a & estimated_b & (np.abs(gb - ga) < tie_g)) | (~estimated_a & ~estimated_b) | (sa == sb)
+    result = np.where(tie, "tie", np.where(sb > sa, "b better", "a better")).astype(object)
+    comparable = table["gt_mass_g"].notna().to_numpy() & (table["in_runs"] == "both").to_numpy()
+    result[~comparable] = ""
+    return pd.Series(result, index=table.index, name="outcome")
 
 
 def filter_comparison(table: pd.DataFrame, *, worse_by: float | None = None, better_by: float | None = None,
@@ -435,18 +457,21 @@ def filter_comparison(table: pd.DataFrame, *, worse_by: float | None = None, bet
 def run_scores(table: pd.DataFrame) -> pd.DataFrame:
     """Per class and ``all`` (the recordings with a ground truth both runs hold): ``recordings``, ``score_a %``,
     ``score_b %``, ``best %`` (the mean of each recording's better score: the pairwise best), ``mean ε a``/``b``,
-    ``b better``/``a better`` (recordings whose score B improved / A had better). Scores are the CORSMAL per-recording
-    score exp(−ε) (0 when not estimated), averaged."""
+    ``b better``/``a better``/``ties`` (the recordings' ``outcome``: estimates within :data:`TIE_G` grams are a tie,
+    whatever their scores' last digits). Scores are the CORSMAL per-recording score exp(−ε) (0 when not estimated),
+    averaged."""
     t = table[(table["in_runs"] == "both") & table["gt_mass_g"].notna()].copy()
     t["score_a"] = t["score_a"].fillna(0.0)
     t["score_b"] = t["score_b"].fillna(0.0)
     t["best"] = np.maximum(t["score_a"], t["score_b"])
+    if "outcome" not in t:
+        t["outcome"] = outcomes(t)
 
     def summary(g: pd.DataFrame) -> dict:
         return {"recordings": len(g), "score_a %": 100 * g["score_a"].mean(), "score_b %": 100 * g["score_b"].mean(),
                 "best %": 100 * g["best"].mean(), "mean ε a": g["rel_error_a"].mean(),
-                "mean ε b": g["rel_error_b"].mean(), "b better": int((g["score_b"] > g["score_a"]).sum()),
-                "a better": int((g["score_a"] > g["score_b"]).sum())}
+                "mean ε b": g["rel_error_b"].mean(), "b better": int((g["outcome"] == "b better").sum()),
+                "a better": int((g["outcome"] == "a better").sum()), "ties": int((g["outcome"] == "tie").sum())}
 
     rows = {str(c): summary(g) for c, g in t.groupby("container_class", sort=True)}
     rows["all"] = summary(t)
@@ -470,7 +495,8 @@ def write_table(table: pd.DataFrame, path: str | Path) -> Path:
     return path
 
 
-__all__ = ["Run", "SETTINGS", "FIGURES", "CHANGES", "FOLDER_DETECTORS", "TracePlan", "load_run", "run_from_traces",
+__all__ = ["Run", "SETTINGS", "FIGURES", "CHANGES", "TIE_G", "OUTCOMES", "outcomes", "FOLDER_DETECTORS", "TracePlan",
+           "load_run", "run_from_traces",
            "run_from_cache", "locate_source", "plan_traces", "with_traces", "run_from_indexes", "trace_from_index",
            "parse_settings",
            "describe_settings", "patch_changes", "compare_runs", "filter_comparison", "run_scores", "write_table"]
