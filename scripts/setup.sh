@@ -48,6 +48,16 @@ echo "setup: installing massviz into .venv with the tested versions of constrain
 .venv/bin/python -m pip install -q --disable-pip-version-check -c constraints.txt -e ".[test,notebooks]" 2>&1 \
   | { grep -v -e "^WARNING: Location" -e "is ignored: it is neither" || true; }
 
+# setup: JupyterLab without the build check. dash (an Open3D dependency) ships a source extension that JupyterLab
+# would announce as "Build Recommended" on every start; its Build button needs yarn and the network, and the notebooks
+# need no build. The venv's own page config turns the check off for every `jupyter lab` of this venv.
+.venv/bin/python -c 'import json, pathlib, sys
+p = pathlib.Path(sys.prefix, "etc", "jupyter", "labconfig", "page_config.json")
+p.parent.mkdir(parents=True, exist_ok=True)
+c = json.loads(p.read_text()) if p.is_file() else {}
+c.update(buildCheck=False, buildAvailable=False)
+p.write_text(json.dumps(c, indent=2) + "\n")'
+
 # Weights of the mass CNN: a reference copy beside the repo, when there is one, goes into the user cache
 # (sha256-checked), where every later massviz command finds it offline; else massviz downloads the published
 # checkpoint once into that cache on first use. $MASSVIZ_WEIGHTS or --weights still override it.

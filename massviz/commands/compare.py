@@ -17,7 +17,8 @@ B_OPTIONS = ("detector", "threshold", "precision", "weights", "detector_weights"
 
 def register(sub) -> None:
     p = sub.add_parser(
-        "compare", help="compare two traces: matched detections, score/d/prediction deltas, chosen patches, estimate",
+        "compare", help="compare two runs: of one recording (traces: matched detections, score/d/prediction deltas, chosen "
+        "patches, estimate) or of a dataset (two run folders, or DATASET --a/--b: errors, ties, per-class scores)",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Compare two runs: A and B are each a saved trace (.npz) or a recording (run with the pipeline "
         "options below; for B the --b-* options override them). B defaults to A, so 'massviz compare REC "

@@ -139,7 +139,8 @@ class PatchMapView:
             data=[scatter(x=p["x"], y=p["y"], mode="markers", customdata=np.arange(len(p)), hovertext=hover,
                           hoverinfo="text", marker={"size": 11, "line": {"width": 1, "color": "#333"}},
                           selected={"marker": {"size": 14}}, unselected={"marker": {"opacity": 0.35}})],
-            layout=go.Layout(width=width, height=height, dragmode="select", margin={"l": 30, "r": 10, "t": 36, "b": 30},
+            layout=go.Layout(width=width, height=height, dragmode="select", margin={"l": 30, "r": 40, "t": 36, "b": 30},
+                             modebar={"orientation": "v"},  # a column at the right edge, clear of the title
                              title={"text": f"every chosen patch ({len(p)}), {pmap.method} of the mass CNN's pooled "
                                             "features", "font": {"size": 13}},
                              xaxis={"showticklabels": False}, yaxis={"showticklabels": False}))
