@@ -82,6 +82,8 @@ class Output:
         batcher = file_batcher() if (self.rrd is not None and not spawn and not connect) else None
         self.stream = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id or str(uuid.uuid4()),
                                          batcher_config=batcher)
+        if batcher is not None:  # a file's rows are placed by their own timelines (frame, time), not the wall clock
+            self.stream.set_log_time_enabled(False)
         sinks = []
         if self.rrd is not None:
             self._tmp = self._stack.enter_context(atomic_path(self.rrd))
