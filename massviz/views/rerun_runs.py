@@ -36,6 +36,9 @@ from massviz.views.rerun_dataset import _patch_images, rrd_name, send_properties
 
 #: where run B's entities are (run A's are at the light recording's own paths).
 B_ROOT = "/b"
+#: each run's colour (0..255) in the two-run layout: its predictions plot line and its patch tiles' captions;
+#: light enough to read on the viewer's dark background, and apart from the chosen, flagged and ground-truth colours.
+RUN_COLOURS = {"A": (86, 180, 255), "B": (255, 196, 0)}
 COMPARISON_NAME = "comparison.csv"
 #: the comparison table's columns sent as recording properties (besides the ``_a``/``_b``/``delta_`` ones).
 SHARED_PROPERTIES = ("id", "container_class", "gt_mass_g", "in_runs", "change_rank", "n_patches_changed",
@@ -98,20 +101,60 @@ def run_properties(row: dict, labels: tuple[str, str]) -> dict:
     return out
 
 
-def two_runs_blueprint(k_a: int, k_b: int) -> rrb.Blueprint:
-    """A and B side by side: the best frame with each run's boxes of every frame, each run's chosen patches, both
-    runs' predictions in one plot, the texts (comparison first)."""
+def style_run(stream, trace, side: str, label: str) -> None:
+    """Name and colour run ``side`` ("A" or "B") in a two-run recording (``stream``: the run's own stream or its
+    ``Prefixed`` one): its running estimate is the plot's one series of the run, named "``side``: ``label``" in the
+    run's colour (static, after the light recording's own style); every patch tile's caption starts with the run's
+    name, in the run's colour unless the patch is flagged."""
+    from massviz.views.palette import FLAGGED_COLOUR, rgb255
+
+    colour = RUN_COLOURS[side]
+    stream.log("/predictions/running_estimate", rr.SeriesLines.from_fields(names=f"{side}: {label}", colors=colour,
+                                                                           widths=3), static=True)
+    for rank, i in enumerate(trace.selection):
+        flag = trace.flags.of(int(i))
+        flagged = flag is not None and flag.flagged
+        stream.log(f"/patches/{rank}/outline", rr.Boxes2D.from_fields(
+            labels=[f"{side} ★{rank}" + (" ⚑" if flagged else "")],
+            colors=[rgb255(FLAGGED_COLOUR) if flagged else colour]), static=True)
+
+
+def flagged_ranks(trace) -> set[int]:
+    """The ranks of ``trace``'s chosen patches that are flagged."""
+    ranks = set()
+    for rank, i in enumerate(trace.selection):
+        flag = trace.flags.of(int(i))
+        if flag is not None and flag.flagged:
+            ranks.add(rank)
+    return ranks
+
+
+def two_runs_blueprint(k_a: int, k_b: int, labels: tuple[str, str] = ("", ""), flagged_a=(), flagged_b=()) -> \
+        rrb.Blueprint:
+    """A and B side by side: the best frame with each run's boxes of every frame, each run's chosen patches (tiles
+    named by run and rank, "⚑ flagged" on the flagged ranks), one plot of both runs' running estimates (one series
+    a run, in its colour, and the ground truth) with its legend, the texts (comparison first)."""
+    flagged = {"A": {int(r) for r in flagged_a}, "B": {int(r) for r in flagged_b}}
+    label_of = dict(zip("AB", labels))
+
     def grid(root: str, k: int, side: str):
-        return rrb.Grid(*[rrb.Spatial2DView(name=f"{side} ★{r}", origin=f"{root}/patches/{r}") for r in range(k)],
-                        name=f"{side}: chosen patches") if k else rrb.TextDocumentView(name=f"{side}: summary",
-                                                                                      origin=f"{root}/summary")
+        if not k:
+            return rrb.TextDocumentView(name=f"{side}: summary", origin=f"{root}/summary")
+        tiles = [rrb.Spatial2DView(name=f"{side} ★{r}" + (" ⚑ flagged" if r in flagged[side] else ""),
+                                   origin=f"{root}/patches/{r}") for r in range(k)]
+        title = f"{side}: chosen patches" + (f" ({label_of[side]})" if label_of[side] else "")
+        return rrb.Grid(*tiles, name=title)
 
     cam = lambda root, side: rrb.Spatial2DView(  # noqa: E731
         name=f"{side}: best frame · detections", origin=f"{root}/camera",
-        contents=[f"{root}/camera/rgb", f"{root}/camera/detections"])
-    plot = rrb.TimeSeriesView(name="Predictions (g): A and B", origin="/",
-                              contents=["/predictions/**", f"{B_ROOT}/predictions/**"],
-                              plot_legend=rrb.PlotLegend(visible=False))  # (a legend covers the small plot)
+        contents=[f"{root}/camera/rgb", f"{root}/camera/detections"],
+        # the boxes without their labels: side by side at a laptop's size the labels (in the boxes' colours) cover
+        # the frame and are hard to read; hovering a box shows them, the tiles hold each patch's numbers
+        overrides={f"{root}/camera/detections": rr.Boxes2D.from_fields(show_labels=False)})
+    plot = rrb.TimeSeriesView(name="Running estimate (g): A and B", origin="/",
+                              contents=["/predictions/running_estimate", f"{B_ROOT}/predictions/running_estimate",
+                                        "/predictions/ground_truth"],
+                              plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.LeftTop, visible=True))
     text = rrb.Tabs(rrb.TextDocumentView(name="A vs B", origin="/compare"),
                     rrb.TextDocumentView(name="A: summary", origin="/summary"),
                     rrb.TextDocumentView(name="B: summary", origin=f"{B_ROOT}/summary"),
@@ -121,7 +164,10 @@ def two_runs_blueprint(k_a: int, k_b: int) -> rrb.Blueprint:
         rrb.Horizontal(rrb.Vertical(rrb.Horizontal(cam("", "A"), cam(B_ROOT, "B")), text, row_shares=[3, 2]),
                        rrb.Vertical(grid("", k_a, "A"), grid(B_ROOT, k_b, "B"), plot, row_shares=[1, 1, 1]),
                        column_shares=[3, 2]),
-        rrb.TimePanel(timeline="frame"), collapse_panels=False)
+        # at a laptop's window size both runs need the width: the side panels start collapsed, the time panel as
+        # its one-line bar (each opens with a click)
+        rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(timeline="frame", state="collapsed"))
 
 
 def table_blueprint(present=None):
@@ -150,14 +196,17 @@ def write_two_runs(trace_a, trace_b, recording, out_dir: str | Path, row: dict, 
             props["best_frame"] = best_frame(trace_a if len(trace_a.selection) or not len(trace_b.selection)
                                              else trace_b)
             send_properties(stream, props)
-            stream.send_blueprint(two_runs_blueprint(len(trace_a.selection), len(trace_b.selection)),
+            stream.send_blueprint(two_runs_blueprint(len(trace_a.selection), len(trace_b.selection), labels,
+                                                     flagged_ranks(trace_a), flagged_ranks(trace_b)),
                                   make_active=True, make_default=True)
             from massviz.views.rerun_dataset import log_light
 
             source = source_markdown(trace_a, recording)
-            for side, trace in ((stream, trace_a), (Prefixed(stream, B_ROOT), trace_b)):
+            for side, run, trace, label in (("A", stream, trace_a, labels[0]),
+                                            ("B", Prefixed(stream, B_ROOT), trace_b, labels[1])):
                 patches, rgb_best = _patch_images(trace, recording)
-                log_light(side, trace, recording, patches, rgb_best, source)
+                log_light(run, trace, recording, patches, rgb_best, source)
+                style_run(run, trace, side, label)
             stream.log("/compare", rr.TextDocument(markdown or f"# A {labels[0]} | B {labels[1]}",
                                                    media_type=rr.MediaType.MARKDOWN), static=True)
             stream.flush()
@@ -183,6 +232,7 @@ def row_markdown(row: dict, labels: tuple[str, str], report: str = "") -> str:
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["B_ROOT", "COMPARISON_NAME", "TABLE_COLUMNS", "Prefixed", "run_properties", "two_runs_blueprint",
+__all__ = ["B_ROOT", "RUN_COLOURS", "COMPARISON_NAME", "TABLE_COLUMNS", "Prefixed", "run_properties", "style_run",
+           "flagged_ranks", "two_runs_blueprint",
            "table_blueprint", "write_two_runs",
            "row_markdown"]
