@@ -69,7 +69,7 @@ def session(frames, intr, *, seconds: float, points: bool, detector, model, out:
     from massviz.core.pipeline import FramePipeline
     from massviz.core.types import RecordingInfo
     from massviz.io.formats.realsense_live import SoftwareCamera, open_device_stream
-    from massviz.runners.live import run_live
+    from massviz.runners.camera_loop import run_live
     from massviz.views.rerun.live import LiveLogger
 
     cam = SoftwareCamera(frames, intr, fps=30, loops=1000, translation_m=(0.015, 0.0, 0.0))

@@ -9,7 +9,7 @@ them much: the box post-processing keeps few boxes either way) on fewer frames (
 
     .venv/bin/python benchmarks/nanodet.py [--rounds 3] [--maskrcnn-frames 3] [--threads N]
 
-NanoDet runs twice per size: with the 3D measure stage observing the run (``massviz.measure.stage.MeasureStage``,
+NanoDet runs twice per size: with the 3D measure stage observing the run (``massviz.measure3d.stage.MeasureStage``,
 Open3D: the chosen detections' measured sizes, once per recording, at its end: a fixed cost that 8 frames amortise
 poorly), as ``massviz log`` and ``cloud`` run it, and without it (the stages the goal names, as ``estimate`` runs). Prints frames/s per detector and size, the ratio, and ``uptime``
 (the machine is shared: every figure is inflated by other work on it).
@@ -60,7 +60,7 @@ def frames_per_second(folder: Path, detector, model, rounds: int, measure: bool 
     its end), or without it."""
     from massviz.core.pipeline import run
     from massviz.io.recording import open_recording
-    from massviz.measure.stage import MeasureStage
+    from massviz.measure3d.stage import MeasureStage
 
     def measured_run(rec):
         if not measure:

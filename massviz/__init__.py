@@ -7,10 +7,11 @@
     trace = mv.process(rec, mv.make_detector("depth"), mv.load_checkpoint(weights))
     mv.log_trace(trace, rec, rrd="cup.rrd")
 
-The packages: ``massviz.core`` (types, trace, selection, model, the per-frame step; no file I/O), ``massviz.app``
-(the builder and ``process``), ``massviz.detect``, ``massviz.io`` (recordings, trace files, cache, checkpoints,
-weights, CSV), ``massviz.views`` (Rerun, Open3D, figures, widgets),
-``massviz.evaluation``, ``massviz.training``, ``massviz.samples``, ``massviz.runners``, ``massviz.commands``.
+The packages: ``massviz.core`` (types, trace, features, selection, model, the per-frame step; no file I/O),
+``massviz.app`` (the builder and ``process``), ``massviz.detect``, ``massviz.io`` (recordings, trace files, cache,
+checkpoints, weights, CSV), ``massviz.measure3d`` (the optional 3D measure stage, Open3D), ``massviz.views`` (Rerun,
+Open3D, figures, widgets), ``massviz.evaluation``, ``massviz.training``, ``massviz.samples``, ``massviz.runners``,
+``massviz.commands``.
 """
 from __future__ import annotations
 
@@ -44,8 +45,8 @@ _API = {
     "RecordingInfo": "massviz.core.types",
     "TraceCache": "massviz.io.cache",
     "resolve_weights": "massviz.io.weights",
-    "log_trace": "massviz.runners.replay",
-    "show_in_notebook": "massviz.runners.replay",
+    "log_trace": "massviz.runners.trace_to_rerun",
+    "show_in_notebook": "massviz.runners.trace_to_rerun",
     "default_blueprint": "massviz.views.rerun",
     "score": "massviz.evaluation.metrics",
     "read_annotations": "massviz.io.ccm_annotations",

@@ -6,15 +6,17 @@ ones inside functions) and fail on an arrow that breaks it.
 * ``massviz.core`` does no file I/O: no ``open``, ``cv2.imread``, ``np.load``, ``Path.read_*``, ``torch.load`` ...
   (an AST scan of its calls);
 * ``massviz.core`` never imports Open3D, directly or through a module it imports (and importing every core module
-  leaves ``open3d`` out of ``sys.modules``): clouds and measured sizes are the measure stage's (``massviz.measure``);
+  leaves ``open3d`` out of ``sys.modules``): clouds and measured sizes are the measure stage's (``massviz.measure3d``);
 * no two modules import each other, directly or round a longer circle (imports inside functions count);
 * no stage (``core``, ``detect``, ``io``) imports a sink (``views``);
 * no view imports a stage module for its logic (the pipeline, the builder, a detector) or a runner or command;
-* no view calls the measure stage (``massviz.measure.stage``, or the geometry's cloud making and measuring): views
+* no view calls the measure stage (``massviz.measure3d.stage``, or the geometry's cloud making and measuring): views
   draw the clouds and measurements they are given;
 * no view imports a function that computes: the pipeline and its stage, the mass CNN, a detector, a measurement
   (a sink is given each frame's result and the trace; it draws them);
 * no command imports another command (only the private helpers ``commands/_*.py``);
+* no two modules of the package have the same file name (``__init__.py`` and the commands, which mirror the CLI's
+  verbs, aside): a module is named for its job, and a name means one job;
 * library code names no repository-relative path and never switches matplotlib's backend.
 
 Each check is a function of the graph (or of a file), and ``test_the_checks_catch_*`` feed it a bad one.
@@ -22,7 +24,7 @@ Each check is a function of the graph (or of a file), and ``test_the_checks_catc
 from __future__ import annotations
 
 import ast
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import pytest
 
@@ -129,7 +131,7 @@ def test_core_never_imports_open3d():
 
     core = sorted(m for m in MODULES if under(m, "core"))
     code = (f"import importlib, sys\nfor m in {core!r}:\n    importlib.import_module(m)\n"
-            "print('open3d' in sys.modules, any(m.startswith('massviz.measure') for m in sys.modules))")
+            "print('open3d' in sys.modules, any(m.startswith('massviz.measure3d') for m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          cwd=PKG.parent).stdout.strip()
     assert out == "False False"
@@ -238,9 +240,9 @@ def test_io_imports_no_evaluation_and_runners_no_command_line():
 def test_the_checks_catch_io_importing_evaluation_and_a_runner_importing_the_cli():
     graph = {m: set(t) for m, t in GRAPH.items()}
     graph["massviz.io.patch_set"].add("massviz.evaluation.metrics")
-    graph["massviz.runners.live"].add("massviz.cli")
+    graph["massviz.runners.camera_loop"].add("massviz.cli")
     assert layer_arrows(graph) == [("massviz.io.patch_set", "massviz.evaluation.metrics"),
-                                   ("massviz.runners.live", "massviz.cli")]
+                                   ("massviz.runners.camera_loop", "massviz.cli")]
 
 
 #: what a view may not import: the modules that compute (the per-frame step, the builder, detectors), runners,
@@ -265,20 +267,20 @@ VIEW_MAY_USE_OF_MEASURE = {"DEPTH_TRUNC_M", "BAND_M", "skip_reason", "require_in
 
 
 def view_measure_calls(path: Path) -> list[str]:
-    """What a view file takes from ``massviz.measure`` beyond ``VIEW_MAY_USE_OF_MEASURE``: ``line name`` for each
-    name imported from it and each whole-module import (``import massviz.measure.stage``, ``from massviz.measure
+    """What a view file takes from ``massviz.measure3d`` beyond ``VIEW_MAY_USE_OF_MEASURE``: ``line name`` for each
+    name imported from it and each whole-module import (``import massviz.measure3d.stage``, ``from massviz.measure3d
     import stage``: its functions would be called through it)."""
     tree = ast.parse(path.read_text(), filename=str(path))
     found = []
     for node in ast.walk(tree):
-        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("massviz.measure"):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("massviz.measure3d"):
             for a in node.names:
-                if f"{node.module}.{a.name}" in MODULES or node.module == "massviz.measure" or \
+                if f"{node.module}.{a.name}" in MODULES or node.module == "massviz.measure3d" or \
                         a.name not in VIEW_MAY_USE_OF_MEASURE:
                     found.append(f"{node.lineno} {node.module}.{a.name}")
         elif isinstance(node, ast.Import):
             for a in node.names:
-                if a.name.startswith("massviz.measure"):
+                if a.name.startswith("massviz.measure3d"):
                     found.append(f"{node.lineno} {a.name}")
     return found
 
@@ -286,15 +288,15 @@ def view_measure_calls(path: Path) -> list[str]:
 def test_views_call_no_measure_stage():
     bad = {str(p.relative_to(PKG)): view_measure_calls(p) for p in FILES if under(module_name(p), "views")}
     assert {f: calls for f, calls in bad.items() if calls} == {}
-    assert arrows(["views"], ["measure.stage"]) == []
-#: what computes and so is no view's to call: the per-frame step and its stage (``core.pipeline``, ``core.stage``),
-#: the mass CNN's predictions (``core.model``), the detectors (``detect``) and the measure stage (``measure.stage``
+    assert arrows(["views"], ["measure3d.stage"]) == []
+#: what computes and so is no view's to call: the per-frame step and its stage (``core.pipeline``, ``core.frame_stage``),
+#: the mass CNN's predictions (``core.model``), the detectors (``detect``) and the measure stage (``measure3d.stage``
 #: and the geometry's cloud making and measuring). A sink is given results and traces; it draws them.
-COMPUTE_FOR_VIEWS = {"massviz.core.pipeline": None, "massviz.core.stage": None, "massviz.core.model": None,
+COMPUTE_FOR_VIEWS = {"massviz.core.pipeline": None, "massviz.core.frame_stage": None, "massviz.core.model": None,
                      "massviz.detect": None,
-                     "massviz.measure.stage": None,
-                     "massviz.measure.geometry": {"measure_cloud", "measure_cloud_as", "measure_crop",
-                                                  "measure_detection", "detection_cloud", "masked_cloud"}}
+                     "massviz.measure3d.stage": None,
+                     "massviz.measure3d.geometry": {"measure_cloud", "measure_cloud_as", "measure_crop",
+                                                    "measure_detection", "detection_cloud", "masked_cloud"}}
 
 
 def view_calls(sources: dict[str, str]) -> list[tuple[str, str]]:
@@ -321,21 +323,50 @@ def test_views_call_no_pipeline_detector_or_measure_function():
 
 
 def test_the_checks_catch_a_view_calling_the_pipeline_a_detector_or_a_measurement():
-    bad = {"massviz.views.rerun.bad": "def f(trace):\n    from massviz.measure.geometry import measure_crop, measured_box\n"
+    bad = {"massviz.views.rerun.bad": "def f(trace):\n"
+                                      "    from massviz.measure3d.geometry import measure_crop, measured_box\n"
                                       "    from massviz.core.pipeline import run\n    import massviz.detect.depth\n"
                                       "    from massviz.detect.depth import DepthDetector\n",
-           "massviz.views.fine": "from massviz.measure.geometry import measured_box\nfrom massviz.core.trace import Trace\n",
+           "massviz.views.fine": "from massviz.measure3d.geometry import measured_box\n"
+                                 "from massviz.core.trace import Trace\n",
            "massviz.runners.logged": "from massviz.core.pipeline import run\n"}
     assert view_calls(bad) == [("massviz.views.rerun.bad", "massviz.core.pipeline.run"),
                                ("massviz.views.rerun.bad", "massviz.detect.depth"),
                                ("massviz.views.rerun.bad", "massviz.detect.depth.DepthDetector"),
-                               ("massviz.views.rerun.bad", "massviz.measure.geometry.measure_crop")]
+                               ("massviz.views.rerun.bad", "massviz.measure3d.geometry.measure_crop")]
 
 
 def test_no_command_imports_another_command():
     bad = [(m, t) for m, targets in GRAPH.items() if under(m, "commands") for t in targets
            if under(t, "commands") and t != m and not t.split(".")[-1].startswith("_") and t != "massviz.commands"]
     assert bad == []
+
+
+#: the package's folder whose modules mirror the CLI's verbs (``massviz/cli.py`` finds a command by its name): a
+#: command may have the file name of a library module (``commands/live.py`` runs ``massviz live``).
+CLI_VERBS = "commands"
+
+
+def same_file_names(paths) -> dict[str, list[str]]:
+    """{file name: the modules that have it} for every file name two modules have; ``paths``: the modules' paths
+    relative to ``massviz/`` (``core/trace.py``), ``__init__.py`` and the modules under ``CLI_VERBS`` left out."""
+    by_name: dict[str, list[str]] = {}
+    for path in map(PurePosixPath, paths):
+        if path.name != "__init__.py" and path.parts[0] != CLI_VERBS:
+            by_name.setdefault(path.name, []).append(str(path))
+    return {name: sorted(found) for name, found in sorted(by_name.items()) if len(found) > 1}
+
+
+def test_no_two_modules_have_the_same_file_name():
+    assert same_file_names(p.relative_to(PKG).as_posix() for p in FILES) == {}
+
+
+def test_the_checks_catch_two_modules_with_the_same_file_name():
+    real = [p.relative_to(PKG).as_posix() for p in FILES]
+    assert same_file_names([*real, "io/pipeline.py", "views/rerun/pipeline.py", "commands/pipeline.py"]) == {
+        "pipeline.py": ["core/pipeline.py", "io/pipeline.py", "views/rerun/pipeline.py"]}
+    assert same_file_names(["a/x.py", "b/c/x.py", "commands/x.py", "commands/_x.py", "__init__.py", "a/__init__.py",
+                            "b/y.py"]) == {"x.py": ["a/x.py", "b/c/x.py"]}
 
 
 @pytest.mark.parametrize("needle", ["../shared", "shared/weights", "matplotlib.use("])
@@ -388,21 +419,21 @@ def test_the_checks_catch_core_reaching_open3d():
     assert open3d_in_core({"massviz.core.x": {"massviz.core.y"}, "massviz.core.y": set()},
                           {"massviz.core.y": {"open3d"}}) == [("massviz.core.x", "massviz.core.y"),
                                                               ("massviz.core.y", "massviz.core.y")]
-    assert core_arrows({"massviz.core.x": {"massviz.measure.geometry"}}) == [("massviz.core.x",
-                                                                               "massviz.measure.geometry")]
+    assert core_arrows({"massviz.core.x": {"massviz.measure3d.geometry"}}) == [("massviz.core.x",
+                                                                               "massviz.measure3d.geometry")]
 
 
 def test_the_checks_catch_a_view_calling_the_measure_stage(tmp_path):
     bad = tmp_path / "bad.py"
-    bad.write_text("from massviz.measure.geometry import rgbd_cloud, detection_cloud\n"
-                   "def f(t, r):\n    from massviz.measure.stage import MeasureStage\n"
-                   "    from massviz.measure import stage\n    import massviz.measure.geometry as G\n"
+    bad.write_text("from massviz.measure3d.geometry import rgbd_cloud, detection_cloud\n"
+                   "def f(t, r):\n    from massviz.measure3d.stage import MeasureStage\n"
+                   "    from massviz.measure3d import stage\n    import massviz.measure3d.geometry as G\n"
                    "    return G.measure_cloud(MeasureStage(r).finish(t))\n")
     assert [c.split(" ", 1)[1] for c in view_measure_calls(bad)] == [
-        "massviz.measure.geometry.detection_cloud", "massviz.measure.stage.MeasureStage", "massviz.measure.stage",
-        "massviz.measure.geometry"]
+        "massviz.measure3d.geometry.detection_cloud", "massviz.measure3d.stage.MeasureStage", "massviz.measure3d.stage",
+        "massviz.measure3d.geometry"]
     fine = tmp_path / "fine.py"
-    fine.write_text("from massviz.measure.geometry import DEPTH_TRUNC_M, measured_box, rgbd_cloud\n")
+    fine.write_text("from massviz.measure3d.geometry import DEPTH_TRUNC_M, measured_box, rgbd_cloud\n")
     assert view_measure_calls(fine) == []
 
 
@@ -421,7 +452,7 @@ def test_one_selection_one_score_formula_one_ground_truth_reader():
         return sorted(str(p.relative_to(PKG)) for p in FILES if needle in p.read_text())
 
     assert files_with("argsort(d") == ["core/selection.py"]
-    assert [f for f in files_with("argsort(") if f != "core/selection.py"] == ["core/resample.py", "core/stage.py"]
+    assert [f for f in files_with("argsort(") if f != "core/selection.py"] == ["core/frame_stage.py", "core/resample.py"]
     assert files_with("np.exp(-") == ["evaluation/metrics.py"]  # the score's exp(-eps) (a softmax is no score)
     assert files_with('get("container")') == ["core/types.py", "io/meta.py"]
 

@@ -1,4 +1,4 @@
-"""The device path (``massviz.core.stage``, ``kernels="device"``): what runs on a GPU, run here on the CPU so that CI
+"""The device path (``massviz.core.frame_stage``, ``kernels="device"``): what runs on a GPU, run here on the CPU so that CI
 tests it, against the exact CPU path; ``--device``; and, where a CUDA GPU is at hand, the same checks on it plus what
 the faithful fp32 mode guarantees there (README, "GPU").
 

@@ -1,5 +1,5 @@
 """One ``Recording`` protocol, one module per format: every format implements the protocol of
-``massviz.core.recording``, the folder format's writer writes what its reader reads, ``read_depth`` reads one file
+``massviz.core.recording_protocol``, the folder format's writer writes what its reader reads, ``read_depth`` reads one file
 where the format allows, a .db3 is counted from its SQLite table (no playback), a recording is opened once per run,
 and a CCM root without the asked view says so."""
 from __future__ import annotations
@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from massviz.core.recording import Recording
+from massviz.core.recording_protocol import Recording
 from massviz.io.recording import open_recording
 from test_fuzz import copy_sample, run_cli, snapshot, visible_lines
 
@@ -29,7 +29,7 @@ def test_folder_and_ccm_implement_the_protocol(shared_dir):
 
 
 def test_protocol_is_pure_typing():
-    """core/recording.py declares exactly what sinks may use (the names the sinks helper relies on)."""
+    """core/recording_protocol.py declares exactly what sinks may use (the names the sinks helper relies on)."""
     members = {"frames", "read_frame", "read_depth", "intrinsics", "info", "id", "path", "fps", "num_frames",
                "width", "height", "notes", "input_files", "video_file", "source_description", "kind", "config_id",
                "meta", "fingerprint"}

@@ -175,7 +175,7 @@ def base(tmp_path_factory) -> Base:
     replay = root / "replay.json"
     replay.write_text(json.dumps({"detections": [{"frame": 1, "box": box, "score": 0.9, "class": "cup"}]}))
     from massviz.core.pipeline import run
-    from massviz.detect.replay import ReplayDetector
+    from massviz.detect.saved import ReplayDetector
     from massviz.io.recording import open_recording
     from massviz.io.trace_file import save_trace
 
@@ -939,7 +939,7 @@ def test_partial_video_is_reported_and_allowed_on_request(base, tmp_path):
     """A video cut in half (index at the front): an error naming both counts by default; with --allow-partial the
     decoded frames are processed and the counts are on stderr and among the trace's events (Rerun's /log)."""
     from massviz.app import process
-    from massviz.detect.replay import ReplayDetector
+    from massviz.detect.saved import ReplayDetector
     from massviz.io.checkpoint import load_checkpoint
     from massviz.io.recording import open_recording
 

@@ -1,4 +1,4 @@
-"""The measure stage (``massviz.measure``: geometry and ``MeasureStage``) and the cloud / render / view3d commands:
+"""The measure stage (``massviz.measure3d``: geometry and ``MeasureStage``) and the cloud / render / view3d commands:
 clouds, measured sizes, .ply files, headless render."""
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from massviz.measure import geometry as G
-from massviz.measure import stage as S
+from massviz.measure3d import geometry as G
+from massviz.measure3d import stage as S
 from massviz.views import open3d_view as O3
 from massviz.views.rerun import entities as RL
 from rrd_reader import rrd_contents

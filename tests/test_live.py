@@ -24,7 +24,7 @@ from massviz.core.types import Frame, Intrinsics, RecordingInfo
 from massviz.errors import MassvizError
 from massviz.io.recording import open_recording
 from massviz.io.trace_file import load_trace, save_trace
-from massviz.runners.live import LatestSlot
+from massviz.runners.camera_loop import LatestSlot
 from support import CLEARED_ENV, run_massviz as massviz
 from test_pipeline import DETECTIONS, scene
 from test_recording import write_recording
@@ -242,7 +242,7 @@ def test_slow_detector_drops_frames_counts_them_and_memory_stays_flat(rs, depth_
     """A 640x480 stand-in camera at 60 fps and a detector taking 0.15 s: most frames are dropped, each counted,
     and resident memory does not grow with the frames that arrived (a queue would hold ~1.5 MB per frame)."""
     from massviz.io.formats.realsense_live import SoftwareCamera, open_device_stream
-    from massviz.runners.live import run_live
+    from massviz.runners.camera_loop import run_live
     from massviz.views.rerun.live import LiveLogger
 
     sample = open_recording(SAMPLE)
@@ -356,7 +356,7 @@ def test_ctrl_c_ends_the_session_cleanly(rs, played, depth_detector, tmp_path):
     import threading
 
     from massviz.io.formats.realsense_live import SoftwareCamera, open_device_stream
-    from massviz.runners.live import run_live
+    from massviz.runners.camera_loop import run_live
     from massviz.views.rerun.live import LiveLogger
 
     rec = open_recording(played)

@@ -1,4 +1,4 @@
-"""The measure stage (``massviz.measure.stage.MeasureStage``): observing a run, it keeps the frames of the running K
+"""The measure stage (``massviz.measure3d.stage.MeasureStage``): observing a run, it keeps the frames of the running K
 nearest and measures the detections chosen at the end; the trace and its file carry the typed measurements,
 re-selection keeps those still chosen, and the views only read them (Rerun's 3D boxes, the Open3D render): no view
 measures. Each cloud is made once for the Rerun recording, the measurements and the .ply files, and neither
@@ -18,8 +18,8 @@ from massviz.core.pipeline import run
 from massviz.detect import make_detector
 from massviz.io.recording import open_recording
 from massviz.io.trace_file import load_trace, save_trace
-from massviz.measure import geometry as G
-from massviz.measure.stage import MeasureStage
+from massviz.measure3d import geometry as G
+from massviz.measure3d.stage import MeasureStage
 from test_selection import DistanceModel
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -177,7 +177,7 @@ def test_estimate_of_a_recording_never_loads_open3d(recording, shared_dir, weigh
     code = ("import sys\nfrom massviz.cli import main\n"
             f"rc = main(['estimate', {recording!r}, '--detector', 'depth', '--no-cache', '--quiet', "
             f"'--weights', {str(weights)!r}, '--out', {str(tmp_path / 'e.csv')!r}])\n"
-            "print(rc, 'open3d' in sys.modules, any(m.startswith('massviz.measure') for m in sys.modules))")
+            "print(rc, 'open3d' in sys.modules, any(m.startswith('massviz.measure3d') for m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
                          env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin", "HOME": str(tmp_path)})
     assert out.stdout.strip().splitlines()[-1:] == ["0 False False"], out.stderr

@@ -281,7 +281,7 @@ def test_cache_separates_detector_settings_and_stride(rec, fast, tmp_path):
 def test_replay_json_detections(rec, fast, tmp_path):
     import cv2
 
-    from massviz.detect.replay import ReplayDetector
+    from massviz.detect.saved import ReplayDetector
     from massviz.errors import DataError
 
     mask = np.zeros((H, W), np.uint8)
@@ -328,7 +328,7 @@ def test_cache_keeps_thresholds_exact(rec, fast, tmp_path):
 
 
 def test_mask_that_does_not_fit_its_box_is_refused():
-    from massviz.core.selection import mask_distance
+    from massviz.core.features import mask_distance
 
     depth = np.full((10, 10), 1000, np.uint16)
     assert mask_distance(depth, (2, 2, 6, 5), np.ones((3, 4), bool)) == 1000.0
@@ -371,8 +371,8 @@ def test_run_is_a_loop_over_the_step(rec, fast):
 
 
 def test_step_takes_what_a_frame_stage_computed_on_a_batch(rec, fast):
+    from massviz.core.frame_stage import FrameStage
     from massviz.core.pipeline import FramePipeline
-    from massviz.core.stage import FrameStage
 
     det = ListDetector(DETECTIONS, threshold=0.4)
     plain, given = (FramePipeline(det, fast, k=5, recording=rec.info()) for _ in range(2))

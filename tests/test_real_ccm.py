@@ -278,7 +278,7 @@ def _cup_silhouette(rgb: np.ndarray) -> np.ndarray:
 
 def _surface(frame, box, mask, intr):
     """(mean depth, depth spread p90 - p10, measured width, measured height) of a mask in a box, mm."""
-    from massviz.measure.geometry import Crop, measure_crop
+    from massviz.measure3d.geometry import Crop, measure_crop
 
     x1, y1, x2, y2 = (int(v) for v in box)
     z = frame.depth[y1:y2, x1:x2][mask].astype(float)

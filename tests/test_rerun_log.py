@@ -1,5 +1,5 @@
-"""massviz.views.rerun (through ``massviz.runners.replay.log_trace``, which gives it the measure stage's clouds):
-log traces of tiny synthetic recordings to .rrd files and read the files back.
+"""massviz.views.rerun (through ``massviz.runners.trace_to_rerun.log_trace``, which gives it the measure stage's
+clouds): log traces of tiny synthetic recordings to .rrd files and read the files back.
 
 Recordings are drawn in tmp_path in massviz's folder layout (rgb/*.png or rgb.mp4, depth/*.png uint16 mm,
 intrinsics.json, meta.json); traces come from ``massviz.core.pipeline.run`` with a fake detector (finds the red square)
@@ -27,8 +27,8 @@ from massviz.errors import MassvizError
 from massviz.core.pipeline import run
 from massviz.io.meta import write_intrinsics
 from massviz.io.recording import open_recording
-from massviz.measure.geometry import depth_to_points
-from massviz.runners.replay import log_trace
+from massviz.measure3d.geometry import depth_to_points
+from massviz.runners.trace_to_rerun import log_trace
 from rrd_reader import rrd_contents, rrd_entities
 from massviz.core.types import COCO_KEEP, Detections, Intrinsics
 
@@ -325,11 +325,11 @@ def test_points_option_logs_rgb_points_and_keeps_them_out_of_the_default(tmp_pat
 
 
 def test_depth_without_png_file_is_a_depth_image(tmp_path):
-    rec = rr.RecordingStream("massviz-test")
-    rec.save(tmp_path / "depth.rrd")
+    stream = rr.RecordingStream("massviz-test")
+    stream.save(tmp_path / "depth.rrd")
     depth = np.full((4, 5), 800, np.uint16)
-    E.log_depth(rec, depth, None)  # e.g. a recording type whose depth is not a PNG file
-    rec.disconnect()
+    E.log_depth(stream, depth, None)  # e.g. a recording type whose depth is not a PNG file
+    stream.disconnect()
     logged = components(rrd_contents(tmp_path / "depth.rrd"), "/camera/depth")
     assert {"DepthImage:buffer", "DepthImage:format", "DepthImage:meter"} <= logged
     assert not any(c.startswith("EncodedDepthImage:") for c in logged), logged

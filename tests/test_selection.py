@@ -1,4 +1,5 @@
-"""massviz.core.selection: the per-detection features (d, a, b) and the K-nearest selection, from first principles.
+"""massviz.core.features and massviz.core.selection: the per-detection features (d, a, b) and the K-nearest
+selection, from first principles.
 
 ``ListDetector`` and ``DistanceModel`` (a stand-in mass model whose prediction is a known function of the features)
 are also used by test_pipeline.
@@ -10,7 +11,8 @@ import pytest
 
 from massviz.core.pipeline import run
 from massviz.io.recording import open_recording
-from massviz.core.selection import box_ratios, compute_features, estimate_mass, mask_distance, select_k_nearest
+from massviz.core.features import box_ratios, compute_features, mask_distance
+from massviz.core.selection import estimate_mass, select_k_nearest
 from massviz.core.types import COCO_KEEP, Detections
 from test_recording import write_recording
 

@@ -167,11 +167,11 @@ def test_view_serves_on_localhost_only_and_ends_whole_on_sigterm(tmp_path):
     import rerun as rr
 
     rrd = tmp_path / "x.rrd"
-    rec = rr.RecordingStream("massviz")
-    rec.save(rrd)
-    rec.log("/a", rr.Scalars(1.0))
-    rec.flush()
-    rec.disconnect()
+    stream = rr.RecordingStream("massviz")
+    stream.save(rrd)
+    stream.log("/a", rr.Scalars(1.0))
+    stream.flush()
+    stream.disconnect()
     env = {k: v for k, v in os.environ.items() if k != "MASSVIZ_DEBUG"}
     proc = subprocess.Popen([sys.executable, "-m", "massviz", "view", str(rrd)], cwd=SAMPLES.parent,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)

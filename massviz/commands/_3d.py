@@ -17,8 +17,8 @@ def measured_trace(args, needs_intrinsics: str | None = None):
     measurements, or, for a command that cannot work without them (``needs_intrinsics``: its name), one error line
     before the pipeline runs."""
     from massviz.commands._common import build
-    from massviz.measure.settings import skip_reason
-    from massviz.measure.stage import with_measurements
+    from massviz.measure3d.settings import skip_reason
+    from massviz.measure3d.stage import with_measurements
     from massviz.io.recording import open_recording
 
     from massviz.errors import MassvizError

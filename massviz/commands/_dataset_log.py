@@ -18,7 +18,7 @@ OWN_DIRS = ("patches",)
 def collect_rrd(trace, recording, truth, *, out_dir: str, full: bool, view: int | None, video: str) -> dict:
     """What a worker does with one trace: write its .rrd (and patch thumbnails) and return the index row."""
     from massviz.commands._common import flag_warning
-    from massviz.measure.stage import measured_replay
+    from massviz.measure3d.stage import measured_replay
     from massviz.views.rerun_dataset import write_recording
 
     if truth is not None:  # --annotations: the CCM ground truth goes into the trace's meta, read by its properties

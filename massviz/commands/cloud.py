@@ -33,7 +33,7 @@ def register(sub) -> None:
 
 def measurement_rows(trace, gt: dict | None) -> list[dict]:
     """One flat row per measurement, with the annotated size and relative errors when known."""
-    from massviz.measure.geometry import compare
+    from massviz.measure3d.geometry import compare
 
     rows = []
     for m in trace.measurements:
@@ -54,13 +54,13 @@ def run(args) -> int:
 
     from massviz.io.atomic import atomic_path, staged_files
     from massviz.commands._3d import measured_trace
-    from massviz.measure.geometry import annotation_size, ground_truth_size
+    from massviz.measure3d.geometry import annotation_size, ground_truth_size
     from massviz.views.open3d_view import write_ply
 
     from massviz.io.atomic import check_output_dir
     from massviz.io.untrusted import json_safe, write_csv
 
-    from massviz.measure.settings import skip_reason
+    from massviz.measure3d.settings import skip_reason
     from massviz.errors import MassvizError
     from massviz.io.recording import open_recording
 

@@ -135,7 +135,7 @@ def run(args) -> int:
             tmp.write_text(json.dumps(result.summary(), indent=1, default=str) + "\n")
         print(f"wrote {args.json}", file=sys.stderr)
     if args.rrd:
-        from massviz.measure.stage import measured_replay
+        from massviz.measure3d.stage import measured_replay
         from massviz.views.rerun_compare import log_two_traces
 
         sides = [(f"A: {label_a}", trace_a, _recording_of(trace_a, rec_a, "A")),

@@ -157,7 +157,7 @@ def run_session(args, pipeline, stream, name: str) -> int:
     """The session itself (``massviz live`` after the source is open; tests call it with a stand-in camera)."""
     from massviz.commands._common import flag_warning
     from massviz.core.types import RecordingInfo
-    from massviz.runners.live import run_live
+    from massviz.runners.camera_loop import run_live
 
     info = stream.info
     rec_info = RecordingInfo(id=name, path=str(args.file or stream.description), kind="live", width=info.width,

@@ -63,7 +63,7 @@ def run(args) -> int:
     from massviz.commands._common import build, flag_warning
     from massviz.errors import MassvizError
     from massviz.io.recording import open_recording
-    from massviz.measure.stage import MeasureStage
+    from massviz.measure3d.stage import MeasureStage
     from massviz.runners.logged import log_run
 
     if args.rrd_dir:

@@ -9,7 +9,7 @@ from massviz.core.types import Detections, Frame
 PAPER_THRESHOLD = 0.4
 #: each detector's default score cut (``--threshold`` overrides it), chosen from measurements on CCM 618 (its 8 RGB-D
 #: frames and 77-frame video), CCM view1 and the samples (docs/detectors.md). A replay's default is
-#: the cut of the run it replays (``massviz.detect.replay``).
+#: the cut of the run it replays (``massviz.detect.saved``).
 DEFAULT_THRESHOLDS = {"maskrcnn": PAPER_THRESHOLD, "nanodet": 0.3, "depth": 0.4}
 
 

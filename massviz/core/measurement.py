@@ -1,4 +1,4 @@
-"""``Measurement``: the measured size of one chosen detection, as the measure stage (``massviz.measure``) makes it
+"""``Measurement``: the measured size of one chosen detection, as the measure stage (``massviz.measure3d``) makes it
 and a ``Trace`` carries it (``Trace.measurements``). Plain data: building or reading one needs no Open3D."""
 from __future__ import annotations
 

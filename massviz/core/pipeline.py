@@ -37,9 +37,9 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from massviz.core.detector import Detector
+from massviz.core.frame_stage import FramePatches, FrameStage, StagedFrame, predictable
 from massviz.core.prefetch import Prefetcher
 from massviz.core.selection import REJECTED_PREFIX, Selection, estimate_mass, select_k_nearest
-from massviz.core.stage import FramePatches, FrameStage, StagedFrame, predictable
 from massviz.core.trace import Event, FrameResult, Trace, analyse_trace, describe_detection, describe_selection
 from massviz.core.tracks import Tracker
 from massviz.core.types import Detections, Frame, RecordingInfo, Rejection
@@ -50,7 +50,7 @@ KEEP_PATCHES = 32
 
 def predict_detections(model, rgb: np.ndarray, dets: Detections) -> tuple[np.ndarray, FramePatches]:
     """Mass prediction (g) for every detection with a finite d and a non-empty box; NaN for the others."""
-    from massviz.core.stage import _check_finite
+    from massviz.core.frame_stage import _check_finite
 
     pred = np.full(len(dets), np.nan, dtype=np.float32)
     patches = FramePatches(rgb, dets.xyxy)
@@ -97,7 +97,7 @@ class FramePipeline:
     score cut; one below it is refused (those detections were never kept).
 
     Measured sizes (point clouds, Open3D) are not a step of this pipeline: the optional measure stage
-    (``massviz.measure.stage.MeasureStage``) observes the steps' results and fills ``Trace.measurements``.
+    (``massviz.measure3d.stage.MeasureStage``) observes the steps' results and fills ``Trace.measurements``.
     """
 
     def __init__(self, detector: Detector, model, *, selection: Selection | None = None, k: int | None = None,
@@ -214,7 +214,7 @@ def run(recording, detector: Detector, model, *, selection: Selection | None = N
     (``k=``/``stride=``: shorthand, see ``FramePipeline``).
 
     ``batch``: frames per detector call, their patches predicted by the mass CNN together
-    (``massviz.core.stage.FrameStage``); ``kernels``: the stage's kernels (``auto``: ``device`` when the mass CNN is
+    (``massviz.core.frame_stage.FrameStage``); ``kernels``: the stage's kernels (``auto``: ``device`` when the mass CNN is
     on a CUDA GPU, else ``exact``). ``prefetch``: frames read ahead in a background thread
     (``massviz.core.prefetch.Prefetcher``, at least ``batch``; 0 reads in this thread); it never changes the result;
     the ``read`` timing is then the time spent waiting for frames. ``overlap``: the stage in a thread of its own, a
@@ -223,7 +223,7 @@ def run(recording, detector: Detector, model, *, selection: Selection | None = N
     ``on_frame(frame, result)``: a read-only observer called after each frame's step with the ``Frame`` (its arrays
     and, when the format has them, the bytes the reader read) and the ``FrameResult``, e.g. a sink logging each frame
     as it is processed so that no frame is read twice (``massviz log``). It must not change either; its time is not
-    charged to any stage (the measure stage, ``massviz.measure.stage.MeasureStage``, is such an observer).
+    charged to any stage (the measure stage, ``massviz.measure3d.stage.MeasureStage``, is such an observer).
     ``analyse``: the flags (``FramePipeline.finish``).
     """
     stage = FrameStage(detector, model, batch=batch, kernels=kernels, overlap=overlap)

@@ -28,10 +28,10 @@ import numpy as np
 from massviz.errors import MassvizError
 from massviz.core.detector import describe_cut
 from massviz.core.flags import Flags, analyse
+from massviz.core.frame_stage import FramePatches
 from massviz.core.measurement import Measurement, ranked_measurements
 from massviz.core.selection import NearestOrder, Selection, estimate_mass, not_estimated_reason, select_k_nearest
 from massviz.core.tracks import assign_tracks
-from massviz.core.stage import FramePatches
 from massviz.core.types import Detections, Frame, GroundTruth, RecordingInfo, class_name
 
 
@@ -41,7 +41,7 @@ class FrameResult:
     trace holds of it (``frame_results``): what a sink is given for each frame.
 
     - ``frame``: the frame; ``detections``: its detections with d, a, b and ``pred`` (their indices in the trace are
-      ``offset + i``); ``patches``: their RGB crops (``massviz.core.stage.FramePatches``, cut when read).
+      ``offset + i``); ``patches``: their RGB crops (``massviz.core.frame_stage.FramePatches``, cut when read).
     - ``selection``: the K nearest detections *so far* (indices into the trace's detections, nearest first) and
       ``running_estimate`` the mean of their predictions (-1 while nothing is selected).
     - ``active``: indices into ``detections`` of those above the selection's score threshold.
@@ -109,7 +109,7 @@ class Trace:
     - ``excluded``: detection indices the user excluded (never selected).
     - ``timings``: wall time per stage in seconds; ``events``: typed ``Event`` decisions worth reading.
     - ``measurements``: the measured size of each chosen detection (``massviz.core.measurement.Measurement``),
-      filled by the measure stage (``massviz.measure``, recordings with intrinsics; empty when it did not run);
+      filled by the measure stage (``massviz.measure3d``, recordings with intrinsics; empty when it did not run);
       views only read them. ``reselect`` keeps those of the detections still chosen, re-ranked.
     - ``frame_timings``: seconds per stage for each processed frame (stage -> array aligned with ``frames``; empty
       for traces made before massviz recorded them).

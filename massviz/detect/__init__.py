@@ -98,7 +98,7 @@ def make_detector(name: str = "auto", threshold: float | None = None, *, detecto
         return DepthDetector(threshold=threshold)
     if replay is None:
         raise MassvizError("--detector replay needs --replay PATH (a saved trace .npz or a detections JSON file)")
-    from massviz.detect.replay import ReplayDetector
+    from massviz.detect.saved import ReplayDetector
 
     return ReplayDetector(replay, threshold=threshold)
 

@@ -189,7 +189,7 @@ def paste_mask_crops(masks: torch.Tensor, boxes: torch.Tensor, im_h: int, im_w: 
 
 class MaskWindows:
     """Mask R-CNN's masks of a batch of detections kept on the device, pasted only inside their integer boxes when
-    asked (``massviz.core.stage``'s device path): ``windows(index, xyxy, height, width)`` is, for each detection
+    asked (``massviz.core.frame_stage``'s device path): ``windows(index, xyxy, height, width)`` is, for each detection
     ``index``, ``paste_mask_crops``' mask as a (height, width) window of a bool tensor (top-left aligned; False past
     its box), for many detections in one set of tensor operations.
 

@@ -207,10 +207,10 @@ def filter_patches(patches: pd.DataFrame, recordings: pd.DataFrame, *, flagged: 
     patch's cues), ``cls`` (the recording's container class), ``track`` (the patch's object track), ``min_error``
     (the recording's relative error above it; not-estimated recordings pass). Ordered by the recording's error
     (worst first), then rank."""
-    rec = recordings.set_index("id") if "id" in recordings.columns else recordings
-    err = rec["rel_error"].where(rec["estimate_g"].notna(), np.inf) if "estimate_g" in rec else rec["rel_error"]
+    by_id = recordings.set_index("id") if "id" in recordings.columns else recordings
+    err = by_id["rel_error"].where(by_id["estimate_g"].notna(), np.inf) if "estimate_g" in by_id else by_id["rel_error"]
     p = patches.assign(rec_error=patches["recording"].map(err), rec_class=patches["recording"].map(
-        rec["container_class"]))
+        by_id["container_class"]))
     keep = np.ones(len(p), bool)
     if flagged is not None:
         keep &= p["flagged"].to_numpy() == bool(flagged)
@@ -243,9 +243,9 @@ def patch_exclusions(patches: pd.DataFrame, tags: dict | None = None) -> list[Ex
 def pandas_summary(recordings: pd.DataFrame, patches: pd.DataFrame) -> pd.DataFrame:
     """Per recording: flagged chosen patches counted in the patch table, and error, score and estimate — pandas."""
     n = patches.groupby("recording")["flagged"].sum().astype(int)
-    rec = recordings.set_index("id") if "id" in recordings.columns else recordings
-    out = pd.DataFrame({"n_flagged": n.reindex(rec.index).fillna(0).astype(int),
-                        "rel_error": rec["rel_error"], "score": rec["score"], "estimate_g": rec["estimate_g"]})
+    by_id = recordings.set_index("id") if "id" in recordings.columns else recordings
+    out = pd.DataFrame({"n_flagged": n.reindex(by_id.index).fillna(0).astype(int),
+                        "rel_error": by_id["rel_error"], "score": by_id["score"], "estimate_g": by_id["estimate_g"]})
     return out.sort_index().rename_axis("recording")
 
 

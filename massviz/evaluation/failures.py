@@ -113,10 +113,10 @@ def load_exclusions(path: str | Path) -> list[Exclusion]:
         where = f"exclusion {n}"
         if not isinstance(e, dict):
             raise DataError(f"{where}: expected an object with recording, frame and box", path)
-        rec, frame, box = e.get("recording"), e.get("frame"), e.get("box")
-        if not isinstance(rec, str) or not rec:
+        recording_id, frame, box = e.get("recording"), e.get("frame"), e.get("box")
+        if not isinstance(recording_id, str) or not recording_id:
             raise DataError(f'{where}: "recording" must be a non-empty string (the recording id)', path)
-        text_id(rec, f'{where}: "recording"', path)
+        text_id(recording_id, f'{where}: "recording"', path)
         if not isinstance(frame, int) or isinstance(frame, bool) or not 0 <= frame <= MAX_INDEX:
             raise DataError(f'{where}: "frame" must be an integer >= 0 and <= {MAX_INDEX}, got {frame!r}'[:300], path)
         if (not isinstance(box, list) or len(box) != 4
@@ -129,7 +129,7 @@ def load_exclusions(path: str | Path) -> list[Exclusion]:
             raise DataError(f'{where}: "note" must be a string of at most 2000 characters', path)
         if _CONTROL.search(note.replace("\n", "").replace("\t", "")):
             raise DataError(f'{where}: "note" contains control characters', path)
-        out.append(Exclusion(rec, frame, tuple(box), note))
+        out.append(Exclusion(recording_id, frame, tuple(box), note))
     return out
 
 

@@ -74,7 +74,7 @@ class SweepTable:
         excluded = [t.excluded for t in self.traces] if excluded is None else list(excluded)
         orders = [NearestOrder(t.detections.d, t.detections.score, ex) for t, ex in zip(self.traces, excluded)]
         n = np.array([len(o.order) for o in orders], dtype=np.int64)
-        self._rec = np.repeat(np.arange(len(orders), dtype=np.int64), n)
+        self._trace_of = np.repeat(np.arange(len(orders), dtype=np.int64), n)
         self._start = np.concatenate([[0], np.cumsum(n)])[:-1]
         cat = (lambda parts, dtype: np.concatenate(parts).astype(dtype, copy=False) if len(parts) else
                np.zeros(0, dtype))
@@ -99,13 +99,13 @@ class SweepTable:
             keep = self._score > threshold
             if stride != 1:
                 keep &= self._frame % int(stride) == 0
-            rec = self._rec[keep]
-            counts = np.bincount(rec, minlength=len(self.traces))
+            trace_of = self._trace_of[keep]
+            counts = np.bincount(trace_of, minlength=len(self.traces))
             first = np.concatenate([[0], np.cumsum(counts)])[:-1]
-            rank = np.arange(len(rec), dtype=np.int64) - first[rec]
+            rank = np.arange(len(trace_of), dtype=np.int64) - first[trace_of]
             if len(self._by_threshold) > 64:
                 self._by_threshold.clear()
-            self._by_threshold[key] = (rec, rank, self._pred[keep])
+            self._by_threshold[key] = (trace_of, rank, self._pred[keep])
         return self._by_threshold[key]
 
     def chosen(self, threshold: float, k: int, stride: int = 1) -> np.ndarray:
@@ -114,8 +114,8 @@ class SweepTable:
         self._check(threshold)
         if int(k) < 1:
             raise ValueError("k must be >= 1")
-        rec, _, _ = self._ranked(threshold, stride)
-        return np.minimum(np.bincount(rec, minlength=len(self.traces)), int(k))
+        trace_of, _, _ = self._ranked(threshold, stride)
+        return np.minimum(np.bincount(trace_of, minlength=len(self.traces)), int(k))
 
     def estimates(self, threshold: float, k: int, stride: int = 1) -> np.ndarray:
         """Estimate per trace (grams, -1 when not estimated) — equal to ``trace.reselect(k, threshold).estimate``
@@ -124,16 +124,16 @@ class SweepTable:
         k = int(k)
         if k < 1:
             raise ValueError("k must be >= 1")
-        rec, rank, pred = self._ranked(threshold, stride)
+        trace_of, rank, pred = self._ranked(threshold, stride)
         chosen = rank < k
-        rec, rank, pred = rec[chosen], rank[chosen], pred[chosen]
-        counts = np.bincount(rec, minlength=len(self.traces))
+        trace_of, rank, pred = trace_of[chosen], rank[chosen], pred[chosen]
+        counts = np.bincount(trace_of, minlength=len(self.traces))
         out = np.full(len(self.traces), -1.0)
-        if not len(rec):
+        if not len(trace_of):
             return out
         width = int(counts.max())
         table = np.zeros((len(self.traces), width))
-        table[rec, rank] = pred
+        table[trace_of, rank] = pred
         for c in np.unique(counts[counts > 0]):  # rows of c values: np.mean over exactly those, as estimate_mass
             rows = np.flatnonzero(counts == c)
             out[rows] = table[rows, :c].mean(axis=1)

@@ -88,22 +88,22 @@ def flag_columns(trace, detection: int) -> dict:
 
 def patch_rows(trace, annotation: Annotation) -> list[tuple[str, np.ndarray, dict]]:
     """(image file name, RGB patch, index row) for each of a trace's selected patches, nearest first."""
-    rec = trace.recording
+    info = trace.recording
     selected = trace.selected
     out = []
     for rank in range(len(selected)):
         patch = selected.patches[rank]
         if patch is None:
-            raise MassvizError(f"recording {rec.id}: the trace kept no patch for its rank-{rank} detection "
+            raise MassvizError(f"recording {info.id}: the trace kept no patch for its rank-{rank} detection "
                                "(K larger than the patches a cached trace keeps); rerun with --no-cache")
-        name = f"{IMAGES_DIR}/{safe_filename(rec.id)}_{rank}.png"  # an id from meta.json is text, not a path
+        name = f"{IMAGES_DIR}/{safe_filename(info.id)}_{rank}.png"  # an id from meta.json is text, not a path
         x1, y1, x2, y2 = (int(v) for v in selected.xyxy[rank])
-        row = {"file": name, "recording": rec.id, "config_id": rec.config_id, "rank": rank,
+        row = {"file": name, "recording": info.id, "config_id": info.config_id, "rank": rank,
                "frame": int(selected.frame[rank]), "a": float(selected.a[rank]), "b": float(selected.b[rank]),
                "d": float(selected.d[rank]), "mass_g": annotation.mass_g, "container_id": annotation.container_id,
                **dict(annotation.dims), "class": selected.class_names()[rank],
                "score": round(float(selected.score[rank]), 4), "x1": x1, "y1": y1, "x2": x2, "y2": y2,
-               "source": rec.path, **flag_columns(trace, int(trace.selection[rank]))}
+               "source": info.path, **flag_columns(trace, int(trace.selection[rank]))}
         out.append((name, patch, row))
     return out
 
@@ -211,8 +211,8 @@ def read_index(patches: str | Path) -> pd.DataFrame:
         table["flagged"] = flagged.astype(bool)
     else:
         table["flagged"] = False
-    for i, rec in enumerate(table["recording"]):
-        text_id(rec if isinstance(rec, str) else "", f"row {i + 1}, column 'recording'", path)
+    for i, recording_id in enumerate(table["recording"]):
+        text_id(recording_id if isinstance(recording_id, str) else "", f"row {i + 1}, column 'recording'", path)
     for i, name in enumerate(table["file"]):  # a path from a data file: it must stay inside the patch set
         image = confined(patches, name if isinstance(name, str) else None, path, f"row {i + 1}, column 'file'")
         if not image.is_file():

@@ -1,5 +1,5 @@
 """Opening RGB-D recordings: the dispatcher over the formats of ``massviz.io.formats`` (one module per format, each
-owning its reader and its writer; the ``Recording`` protocol they implement is ``massviz.core.recording``):
+owning its reader and its writer; the ``Recording`` protocol they implement is ``massviz.core.recording_protocol``):
 
 * **massviz folders** (``formats.folder``)::
 
@@ -35,7 +35,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from massviz.core.recording import Recording
+from massviz.core.recording_protocol import Recording
 from massviz.errors import RecordingError
 from massviz.io.formats.ccm import CCMRecording, ccm_videos, is_ccm_root, open_ccm
 from massviz.io.formats.common import (IMAGE_SUFFIXES, MAX_FRAME_FILE_BYTES, MAX_JSON_BYTES, RecordingBase,

@@ -254,23 +254,23 @@ def check_trace_header(header: dict, data: dict) -> None:
             num(event[4], f"events[{i}] detection", lo=-1, hi=MAX_INDEX, integral=True)
         if len(event) > 5:
             text(event[5], f"events[{i}] reason")
-    rec = header["recording"]
+    info = header["recording"]
     try:
-        text_id(rec.get("id"), "header recording.id", None)
+        text_id(info.get("id"), "header recording.id", None)
     except DataError as err:
         raise ValueError(str(err)) from None
     for name in ("path", "config_id", "kind", "rgb"):
-        if name in rec:
-            text(rec[name] if not isinstance(rec[name], int) or isinstance(rec[name], bool) else str(rec[name]),
+        if name in info:
+            text(info[name] if not isinstance(info[name], int) or isinstance(info[name], bool) else str(info[name]),
                  f"recording.{name}")
     for name in ("width", "height", "num_frames"):
-        if name in rec:
-            num(rec[name], f"recording.{name}", lo=0, hi=MAX_INDEX, integral=True)
-    if "fps" in rec:
-        num(rec["fps"], "recording.fps", lo=0, hi=1000)
-    if "meta" in rec and not isinstance(rec["meta"], dict):
+        if name in info:
+            num(info[name], f"recording.{name}", lo=0, hi=MAX_INDEX, integral=True)
+    if "fps" in info:
+        num(info["fps"], "recording.fps", lo=0, hi=1000)
+    if "meta" in info and not isinstance(info["meta"], dict):
         raise ValueError("header recording.meta must be an object")
-    intr = rec.get("intrinsics")
+    intr = info.get("intrinsics")
     if intr is not None:
         if not isinstance(intr, dict) or not {"fx", "fy", "cx", "cy", "width", "height"} <= set(intr):
             raise ValueError("header recording.intrinsics must be an object with fx, fy, cx, cy, width, height")

@@ -20,7 +20,7 @@ def log_run(pipeline, recording, *, rrd: str | Path | None = None, spawn: bool =
     the cache (no frame processed) is given to the sink frame by frame from the recording, read once
     (``trace_frames``). The selection is the pipeline's (``Pipeline.selection``, resolved once): its K shapes the
     first layout, sent before the frames; the final one comes from the trace. Outputs and options as
-    ``massviz.views.rerun.replay.log_trace``. ``measure``: the measure stage (``massviz.measure.stage.MeasureStage``,
+    ``massviz.views.rerun.replay.log_trace``. ``measure``: the measure stage (``massviz.measure3d.stage.MeasureStage``,
     made with ``clouds="active"``) observing the same steps (or the replay): its clouds of each frame go to the sink,
     and the trace is measured (``MeasureStage.finish``) before what needs the whole trace is logged; None: no cloud,
     no measurement. ``before_close(trace)``: more output made from the trace

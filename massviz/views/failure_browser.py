@@ -54,8 +54,8 @@ class BrowserState:
 
 
 def tile_caption(row, recordings: pd.DataFrame) -> str:
-    rec = recordings.loc[row.recording] if row.recording in recordings.index else None
-    err = "" if rec is None or pd.isna(rec.get("rel_error")) else f" · ε {rec['rel_error']:.2f}"
+    summary = recordings.loc[row.recording] if row.recording in recordings.index else None
+    err = "" if summary is None or pd.isna(summary.get("rel_error")) else f" · ε {summary['rel_error']:.2f}"
     flag = (f"<br><span style='color:{FLAGGED_HEX}'>⚑ {html.escape(str(row.cues) or 'flagged')}</span>"
             if row.flagged else "")
     return (f"<small><b>{html.escape(str(row.recording))}</b>{err}<br>★{int(row.rank)} · f{int(row.frame)} · "

@@ -1,6 +1,6 @@
 """Open3D as a sink: .ply files, the offscreen renderer and the interactive window, all drawn from a trace.
 
-The clouds and measured boxes come from the measure stage (``massviz.measure.stage.MeasureStage``): this module only
+The clouds and measured boxes come from the measure stage (``massviz.measure3d.stage.MeasureStage``): this module only
 writes and draws them (the scene around them is back-projected here, for the picture).
 Axes are the camera frame (RDF: x right, y down, z forward); Open3D's viewers look down -z with y up, so the renderers
 set their cameras accordingly.
@@ -18,7 +18,7 @@ import numpy as np
 from massviz._open3d import o3d
 
 from massviz.core.types import Intrinsics
-from massviz.measure.geometry import DEPTH_TRUNC_M, measured_box, require_intrinsics, rgbd_cloud
+from massviz.measure3d.geometry import DEPTH_TRUNC_M, measured_box, require_intrinsics, rgbd_cloud
 from massviz.errors import MassvizError
 from massviz.io.atomic import atomic_path, native_stderr
 from massviz.views.palette import BOX_COLOUR, CHOSEN_COLOUR, FLAGGED_COLOUR, rgb255

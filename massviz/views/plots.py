@@ -88,7 +88,7 @@ def point_cloud_figure(trace: Trace, frame: Frame, intrinsics: Intrinsics, step:
     than ``max_depth_m`` (the room's wall) left out. A matplotlib 3D scatter, seen from above left."""
     from matplotlib.ticker import MaxNLocator
 
-    from massviz.measure.geometry import depth_to_points
+    from massviz.measure3d.geometry import depth_to_points
 
     points, colours = depth_to_points(frame.depth, intrinsics, frame.rgb, step)
     sub = frame.depth[::step, ::step] > 0

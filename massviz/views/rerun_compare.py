@@ -27,7 +27,7 @@ def log_two_traces(sides, rrd: str | Path, *, markdown: str | None = None, progr
                    video: str = "auto", replay=None) -> list[str]:
     """Write ``sides`` — ``[(name, trace, recording), (name, trace, recording)]`` — into one .rrd at ``rrd``, one
     Rerun recording per side; returns their recording ids (in order). ``replay(trace, recording)``: (the trace
-    measured, its frames with their clouds), ``massviz.measure.stage.measured_replay``; without it no cloud is
+    measured, its frames with their clouds), ``massviz.measure3d.stage.measured_replay``; without it no cloud is
     logged."""
     rrd = Path(rrd)
     ids = []

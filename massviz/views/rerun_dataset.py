@@ -205,7 +205,7 @@ def write_recording(trace: Trace, recording, out_dir: str | Path, *, full: bool 
                     video: str = "auto", replay=None) -> dict:
     """Write ``out_dir/<id>.rrd`` for ``trace`` (light, or ``full``) with its properties, and the patch thumbnails.
     ``replay(trace, recording)``: (the trace measured, its frames with each detection's cloud), the measure stage's
-    ``massviz.measure.stage.measured_replay``; without it the trace is logged as it is, a full one without clouds.
+    ``massviz.measure3d.stage.measured_replay``; without it the trace is logged as it is, a full one without clouds.
     Returns what ``write_index`` needs: ``properties``, ``rrd`` (file name), ``rrd_bytes``, ``patches`` (rows)."""
     frames = None
     if replay is not None:

@@ -30,7 +30,7 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 class RecordingBase:
     """The fields every format fills and what follows from them (identity, content key, trace info). A format adds
     its own fields and implements ``frames``, ``read_depth``, ``input_files``, ``video_file`` and
-    ``source_description`` (``massviz.core.recording.Recording``)."""
+    ``source_description`` (``massviz.core.recording_protocol.Recording``)."""
 
     path: Path
     kind: str

@@ -5,7 +5,6 @@ for the file format, ``realsense_live`` for cameras."""
 from __future__ import annotations
 
 import math
-import unicodedata
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -14,7 +13,7 @@ import numpy as np
 
 from massviz.core.types import Frame, Intrinsics
 from massviz.errors import MassvizError, RecordingError
-from massviz.io.untrusted import MAX_IMAGE_SIDE
+from massviz.io.untrusted import MAX_ID_CHARS, MAX_IMAGE_SIDE, printable
 
 SUFFIXES = (".db3", ".bag")
 INSTALL_HINT = "RealSense support needs pyrealsense2: pip install 'massviz[realsense]' (or pip install pyrealsense2)"
@@ -124,7 +123,7 @@ def stream_info(rs, device, profiles, source) -> StreamInfo:
     for key, name in (("name", "name"), ("serial", "serial_number"), ("firmware", "firmware_version")):
         try:
             if device.supports(getattr(rs.camera_info, name)):
-                info[key] = printable(device.get_info(getattr(rs.camera_info, name)))
+                info[key] = printable(device.get_info(getattr(rs.camera_info, name)), max_chars=MAX_ID_CHARS)
         except (RuntimeError, AttributeError):
             pass
     return StreamInfo(intrinsics=_intrinsics_of(c), fps=float(c.fps()), depth_scale=scale, colour_format=fmt,
@@ -134,13 +133,6 @@ def stream_info(rs, device, profiles, source) -> StreamInfo:
 
 #: largest depth-to-colour translation accepted (metres): RealSense baselines are a few centimetres.
 MAX_BASELINE_M = 0.5
-
-
-def printable(text) -> str:
-    """A name read from a RealSense file or device with every control character escaped (``\\x1b``, ``\\n``):
-    safe to print on a terminal and to write in a CSV cell."""
-    return "".join(c if unicodedata.category(c)[0] != "C" else c.encode("unicode_escape").decode("ascii")
-                   for c in str(text)[:200])
 
 
 def _check_intrinsics(i, which: str, source) -> None:

@@ -9,10 +9,11 @@ from pathlib import Path
 
 from massviz.core.types import Frame, Intrinsics
 from massviz.errors import MassvizError
-from massviz.io.formats.realsense_decode import StreamInfo, import_rs, printable
+from massviz.io.formats.realsense_decode import StreamInfo, import_rs
 from massviz.io.formats.realsense_device import DeviceReader, playback_device
 from massviz.io.formats.realsense_file import open_realsense
 from massviz.io.formats.realsense_write import SoftwareRig
+from massviz.io.untrusted import MAX_ID_CHARS, printable
 
 
 class LiveStream:
@@ -76,7 +77,7 @@ def list_cameras() -> list[dict]:
         info = {}
         for key, name in (("name", "name"), ("serial", "serial_number")):
             if dev.supports(getattr(rs.camera_info, name)):
-                info[key] = printable(dev.get_info(getattr(rs.camera_info, name)))
+                info[key] = printable(dev.get_info(getattr(rs.camera_info, name)), max_chars=MAX_ID_CHARS)
         out.append(info)
     return out
 
@@ -108,9 +109,9 @@ def open_camera(serial: str | None = None, width: int = 640, height: int = 480, 
     elif serial in serials:
         device = devices[serials.index(serial)]
     else:
-        raise MassvizError(f"no RealSense camera with serial {printable(serial)} "
-                           f"(connected: {', '.join(map(printable, serials))})")
-    serial = printable(serial)  # from the device: printed in messages and descriptions
+        raise MassvizError(f"no RealSense camera with serial {printable(serial, max_chars=MAX_ID_CHARS)} (connected: "
+                           f"{', '.join(printable(s, max_chars=MAX_ID_CHARS) for s in serials)})")
+    serial = printable(serial, max_chars=MAX_ID_CHARS)  # from the device: printed in messages and descriptions
     profiles = []
     for stream, formats in ((rs.stream.color, [rs.format.rgb8, rs.format.bgr8, rs.format.yuyv]),
                             (rs.stream.depth, [rs.format.z16])):

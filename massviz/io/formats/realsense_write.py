@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
+from massviz.core.recording_protocol import Recording
 from massviz.core.types import Frame, Intrinsics
 from massviz.errors import MassvizError, RecordingError
-from massviz.core.recording import Recording
 from massviz.io.formats.realsense_decode import import_rs
 
 

@@ -31,19 +31,32 @@ def text_id(value, what: str, source, error=DataError) -> str:
     return text
 
 
-def printable(text, keep: str = "") -> str:
-    """``text`` safe to print on a terminal: every control, C1 or bidirectional-override character except those in
-    ``keep`` (e.g. ``"\\n\\r\\t"`` for whole progress output) is written as its escape (``\\x1b``, ``\\u202e``), so
-    a name from a data file cannot move the cursor, retitle the window or clear the screen."""
-    text = str(text)
+#: every character that is not printable ASCII: those ``printable`` looks at
+_NOT_ASCII_PRINTABLE = re.compile(r"[^\x20-\x7e]")
+
+
+def _unprintable(c: str) -> bool:
+    """A control (C0, DEL, C1), format (bidirectional marks and overrides, zero-width), surrogate, private-use or
+    unassigned character, or a line or paragraph separator."""
+    category = unicodedata.category(c)
+    return category[0] == "C" or category in ("Zl", "Zp")
+
+
+def printable(text, keep: str = "", max_chars: int | None = None) -> str:
+    """``text`` (its first ``max_chars`` characters, when given) safe to print on a terminal and to write in a CSV
+    cell: every control, format (bidirectional override, zero-width), surrogate, private-use, unassigned, line- or
+    paragraph-separator character except those in ``keep`` (e.g. ``"\\n\\r\\t"`` for whole progress output) is
+    written as its escape (``\\n``, ``\\x1b``, ``\\u202e``), so a name from a data file or a device cannot move
+    the cursor, retitle the window or clear the screen."""
+    text = str(text) if max_chars is None else str(text)[:max_chars]
 
     def escape(m: re.Match) -> str:
         c = m.group()
-        if c in keep:
+        if c in keep or not _unprintable(c):
             return c
-        return f"\\x{ord(c):02x}" if ord(c) < 0x100 else f"\\u{ord(c):04x}"
+        return c.encode("unicode_escape").decode("ascii")
 
-    return _CONTROL.sub(escape, text)
+    return _NOT_ASCII_PRINTABLE.sub(escape, text)
 
 
 def safe_filename(text: str, max_chars: int = 100) -> str:

@@ -162,7 +162,7 @@ def scene_depth_m(depth: np.ndarray) -> float:
 def log_points(rec: rr.RecordingStream, depth: np.ndarray, rgb: np.ndarray, intr: Intrinsics, step: int,
                max_points: int) -> int:
     """``/world/points`` of one frame (at most ``max_points``, evenly subsampled); returns the number logged."""
-    from massviz.measure.geometry import depth_to_points  # Open3D: imported only with --points
+    from massviz.measure3d.geometry import depth_to_points  # Open3D: imported only with --points
 
     points, colours = depth_to_points(depth, intr, rgb, step)
     if max_points > 0 and len(points) > max_points:

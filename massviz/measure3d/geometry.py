@@ -1,5 +1,5 @@
 """The measure stage's geometry, through Open3D: back-projected clouds, each detection's masked cloud, its measured
-size. ``massviz.measure.stage`` runs it on a recording; nothing in ``massviz.core`` imports it, so a run that does
+size. ``massviz.measure3d.stage`` runs it on a recording; nothing in ``massviz.core`` imports it, so a run that does
 not measure never loads Open3D.
 
 **Axes.** Every cloud is in metres in the *camera frame* of the recording's RGB camera, OpenCV convention (RDF):
@@ -47,7 +47,7 @@ from massviz._open3d import o3d
 from massviz.core.measurement import Measurement
 from massviz.core.types import Detections, Frame, GroundTruth, Intrinsics
 from massviz.io.ccm_annotations import annotation_of
-from massviz.measure.settings import BAND_M, DEPTH_TRUNC_M, require_intrinsics, skip_reason
+from massviz.measure3d.settings import BAND_M, DEPTH_TRUNC_M, require_intrinsics, skip_reason
 
 #: ``remove_statistical_outlier`` settings: neighbours, standard-deviation ratio.
 SOR_NEIGHBOURS = 20

@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from massviz.core.features import box_ratios, compute_features
 from massviz.core.patches import crop
-from massviz.core.selection import box_ratios, compute_features
 from massviz.core.types import Detections, Frame, PackedMask
 
 KERNELS = ("auto", "exact", "device")

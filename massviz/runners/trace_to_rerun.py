@@ -1,10 +1,10 @@
-"""A finished trace logged to Rerun with its clouds: the measure stage (``massviz.measure.stage``) measures the
+"""A finished trace logged to Rerun with its clouds: the measure stage (``massviz.measure3d.stage``) measures the
 chosen detections and replays the processed frames with each detection's cloud, the Rerun sink
 (``massviz.views.rerun.log_trace``) logs them. What ``mv.log_trace`` and the notebooks call; ``massviz log`` runs
 the pipeline with the same two instead (one pass, ``massviz.commands.log``)."""
 from __future__ import annotations
 
-from massviz.measure.stage import measured_replay
+from massviz.measure3d.stage import measured_replay
 from massviz.views.rerun import replay as sink
 from massviz.views.rerun.blueprint import blueprint_for
 from massviz.views.rerun.output import notebook_stream

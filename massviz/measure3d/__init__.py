@@ -1,4 +1,5 @@
-"""The measure stage (Open3D): each chosen detection's point cloud and its measured size.
+"""The optional 3D measure stage (Open3D): each chosen detection's point cloud and its measured size (not the
+paper's features d, a and b: ``massviz.core.features``).
 
 ``geometry``: back-projection, a detection's cleaned cloud and its measured box; ``stage``: ``MeasureStage``, which
 makes each cloud once while a run or a replay is observed and hands the same clouds to the sinks (Rerun, .ply) and

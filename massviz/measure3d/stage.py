@@ -1,4 +1,4 @@
-"""The measure stage: each detection's cleaned cloud (``massviz.measure.geometry``), computed once, and the measured
+"""The measure stage: each detection's cleaned cloud (``massviz.measure3d.geometry``), computed once, and the measured
 size of every chosen detection (``massviz.core.measurement.Measurement``), for a recording with intrinsics.
 
 The stage observes a run of the pipeline (``on_frame(frame, result)``, the read-only per-frame observer of
@@ -27,7 +27,7 @@ import numpy as np
 from massviz.core.measurement import Measurement, ranked_measurements
 from massviz.core.trace import Event
 from massviz.core.types import Detections, Frame
-from massviz.measure.settings import BAND_M, DEPTH_TRUNC_M, skip_reason
+from massviz.measure3d.settings import BAND_M, DEPTH_TRUNC_M, skip_reason
 
 CLOUDS = ("chosen", "active")
 
@@ -73,7 +73,7 @@ class MeasureStage:
         return self.intr is not None
 
     def _cloud(self, frame: Frame, dets: Detections, j: int):
-        from massviz.measure.geometry import detection_cloud
+        from massviz.measure3d.geometry import detection_cloud
 
         return detection_cloud(frame, dets, j, self.intr, depth_trunc=self.depth_trunc, band_m=self.band_m)
 
@@ -169,7 +169,7 @@ class MeasureStage:
         done = {m.detection for m in have}
         clouds = self.clouds_of(trace, [int(i) for i in trace.selection if int(i) not in done])
         if clouds:
-            from massviz.measure.geometry import measure_cloud_as
+            from massviz.measure3d.geometry import measure_cloud_as
         out = list(have)
         for i, pcd in clouds.items():
             m = measure_cloud_as(pcd, rank=rank_of[i], detection=i, frame=int(trace.detections.frame[i]))
@@ -197,7 +197,7 @@ class MeasureStage:
     def _ply_clouds(self, trace, frames) -> Iterator[tuple[str, object]]:
         dets = trace.detections
         rank_of = {int(i): r for r, i in enumerate(trace.selection)}
-        from massviz.measure.geometry import scene_cloud
+        from massviz.measure3d.geometry import scene_cloud
 
         if frames is None:
             frames = sorted({int(dets.frame[i]) for i in trace.selection})
