@@ -70,7 +70,7 @@ def session(frames, intr, *, seconds: float, points: bool, detector, model, out:
     from massviz.core.types import RecordingInfo
     from massviz.io.formats.realsense_live import SoftwareCamera, open_device_stream
     from massviz.runners.camera_loop import run_live
-    from massviz.views.rerun.live import LiveLogger
+    from massviz.views.rerun.live_logger import LiveLogger
 
     cam = SoftwareCamera(frames, intr, fps=30, loops=1000, translation_m=(0.015, 0.0, 0.0))
     stream = open_device_stream(cam.device, "software camera", on_stop=cam.stop)

@@ -69,10 +69,10 @@ def arrows(source_packages, target_packages, allowed=()):
 
 def test_the_graph_is_read():
     # the reader itself can fail: the CLI imports its commands' package, the pipeline its detector protocol
-    assert "massviz.core.pipeline" in MODULES and "massviz.views.rerun.replay" in MODULES
+    assert "massviz.core.pipeline" in MODULES and "massviz.views.rerun.trace_logger" in MODULES
     assert "massviz.core.detector" in GRAPH["massviz.core.pipeline"]
     assert "massviz.core.detector" in GRAPH["massviz.detect"]
-    assert "massviz.core.trace" in GRAPH["massviz.views.rerun.replay"]
+    assert "massviz.core.trace" in GRAPH["massviz.views.rerun.trace_logger"]
     assert "massviz.io.ground_truth" in GRAPH["massviz.app"]  # an import inside a function
 
 
@@ -523,11 +523,24 @@ ONE_PATH = {"log_predictions", "log_running", "log_events", "log_flags", "log_de
 
 def test_one_path_from_a_finished_trace_to_rerun():
     # massviz log, the dataset's light recordings and massviz live log a finished trace's overlays, predictions,
-    # decisions and flags through views/rerun/replay.py (log_overlays, log_conclusion); the live sink's per-frame
+    # decisions and flags through views/rerun/trace_logger.py (log_overlays, log_conclusion); the live sink's per-frame
     # overlays of a FrameResult are its own
     callers = {str(p.relative_to(PKG)): sorted(calls_of(p.read_text(), ONE_PATH)) for p in FILES}
     assert {f: c for f, c in callers.items() if c} == {
-        "views/rerun/replay.py": sorted(ONE_PATH),
-        "views/rerun/live.py": ["detection_class_ids", "log_detections"]}
+        "views/rerun/trace_logger.py": sorted(ONE_PATH),
+        "views/rerun/live_logger.py": ["detection_class_ids", "log_detections"]}
     assert calls_of("def f(s, t):\n    rl.log_flags(s, t)\n    log_predictions(s, t)\n", ONE_PATH) == {
         "log_flags", "log_predictions"}
+
+
+#: what only the one per-frame mapping calls: a processed frame's camera frustum, RGB, depth and points
+PER_FRAME = {"frustum_depth", "log_frame", "log_depth", "log_points"}
+
+
+def test_one_per_frame_mapping_for_log_and_live():
+    # massviz log (TraceLogger) and massviz live (LiveLogger) log each processed frame's time, camera, RGB, depth and
+    # points through views/rerun/frame_logger.py (FrameLogger)
+    callers = {str(p.relative_to(PKG)): sorted(calls_of(p.read_text(), PER_FRAME)) for p in FILES}
+    assert {f: c for f, c in callers.items() if c} == {"views/rerun/frame_logger.py": sorted(PER_FRAME)}
+    assert calls_of("def f(s, r, fr):\n    log_depth(s, fr.depth)\n    r.log_frame(s, fr)\n", PER_FRAME) == {
+        "log_depth", "log_frame"}

@@ -13,7 +13,7 @@ import pytest
 from massviz.measure3d import geometry as G
 from massviz.measure3d import stage as S
 from massviz.views import open3d_view as O3
-from massviz.views.rerun import entities as RL
+from massviz.views.rerun import log_trace_with_clouds
 from rrd_reader import rrd_contents
 from massviz.cli import main
 from massviz.errors import MassvizError
@@ -303,18 +303,14 @@ def test_view3d_without_display_is_one_line(monkeypatch, capsys):
 
 
 # ----------------------------------------------------------------------------------------------------- Rerun
-def test_log_clouds_entities(ccm_real, tmp_path):
-    import rerun as rr
+def test_detection_clouds_in_the_recording(ccm_real, tmp_path):
     from rerun.chunk import RrdReader
 
     trace = make_trace(ccm_real, ccm_box_detection(ccm_real.read_frame(1)), k=1)
     trace = with_measurements(trace, ccm_real)
-    stream = rr.RecordingStream("massviz_test_geometry3d")
-    stream.save(tmp_path / "t.rrd")
     frames = S.MeasureStage(ccm_real, clouds="active").replay_frames(trace)
-    assert RL.log_clouds(trace, frames, stream) == 1
-    stream.flush()
-    del stream
+    stats = log_trace_with_clouds(trace, ccm_real, rrd=tmp_path / "t.rrd", frames=frames)
+    assert stats["clouds"] == 1
     paths = {c.entity_path for c in RrdReader(tmp_path / "t.rrd").stream()}
     assert {"/world/detections/0", "/world/detections/0/box", "/world/detections/0/measurement"} <= paths
     # the measured box's rotation travels as a Transform3D (the measured R), its size as Boxes3D half sizes

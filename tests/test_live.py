@@ -243,7 +243,7 @@ def test_slow_detector_drops_frames_counts_them_and_memory_stays_flat(rs, depth_
     and resident memory does not grow with the frames that arrived (a queue would hold ~1.5 MB per frame)."""
     from massviz.io.formats.realsense_live import SoftwareCamera, open_device_stream
     from massviz.runners.camera_loop import run_live
-    from massviz.views.rerun.live import LiveLogger
+    from massviz.views.rerun.live_logger import LiveLogger
 
     sample = open_recording(SAMPLE)
     i = sample.intrinsics
@@ -357,7 +357,7 @@ def test_ctrl_c_ends_the_session_cleanly(rs, played, depth_detector, tmp_path):
 
     from massviz.io.formats.realsense_live import SoftwareCamera, open_device_stream
     from massviz.runners.camera_loop import run_live
-    from massviz.views.rerun.live import LiveLogger
+    from massviz.views.rerun.live_logger import LiveLogger
 
     rec = open_recording(played)
     cam = SoftwareCamera(list(rec.frames()), rec.intrinsics, fps=15, loops=100)

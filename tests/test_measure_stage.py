@@ -118,7 +118,7 @@ def test_no_measurement_without_intrinsics_or_without_the_stage(cup):
 
 
 def test_views_never_measure(cup, traced, tmp_path, monkeypatch):
-    from massviz.views.rerun import log_trace
+    from massviz.views.rerun import log_trace_with_clouds
     from rrd_reader import rrd_contents
 
     def refuse(*args, **kwargs):
@@ -127,17 +127,19 @@ def test_views_never_measure(cup, traced, tmp_path, monkeypatch):
     monkeypatch.setattr(G, "measure_cloud", refuse)
     monkeypatch.setattr(G, "measure_detection", refuse)
     monkeypatch.setattr(G, "measure_cloud_as", refuse)
-    log_trace(traced, cup, rrd=tmp_path / "a.rrd", frames=MeasureStage(cup, clouds="active").replay_frames(traced))
+    log_trace_with_clouds(traced, cup, rrd=tmp_path / "a.rrd",
+                          frames=MeasureStage(cup, clouds="active").replay_frames(traced))
     boxes = {e for e in rrd_contents(tmp_path / "a.rrd") if e.endswith("/box")}
     assert boxes == {f"/world/detections/{int(i)}/box" for i in traced.selection}
     # a trace without measurements: clouds, but no box (the view does not make one up)
     bare = dataclasses.replace(traced, measurements=[])
-    log_trace(bare, cup, rrd=tmp_path / "b.rrd", frames=MeasureStage(cup, clouds="active").replay_frames(bare))
+    log_trace_with_clouds(bare, cup, rrd=tmp_path / "b.rrd",
+                          frames=MeasureStage(cup, clouds="active").replay_frames(bare))
     contents = rrd_contents(tmp_path / "b.rrd")
     assert any(e.startswith("/world/detections/") for e in contents)
     assert not any(e.endswith("/box") for e in contents)
     # without the stage's clouds the view makes none
-    log_trace(traced, cup, rrd=tmp_path / "c.rrd")
+    log_trace_with_clouds(traced, cup, rrd=tmp_path / "c.rrd")
     assert not any(e.startswith("/world/detections/") for e in rrd_contents(tmp_path / "c.rrd"))
 
 

@@ -241,7 +241,7 @@ def test_failure_half_way_leaves_no_file(tmp_path, monkeypatch):
         if len(calls) == 2:
             raise RuntimeError("disk on fire")
 
-    monkeypatch.setattr("massviz.views.rerun.replay.log_masks", broken_masks)
+    monkeypatch.setattr("massviz.views.rerun.trace_logger.log_masks", broken_masks)
     with pytest.raises(RuntimeError, match="disk on fire"):
         log_trace(trace, recording, rrd=out_dir / "new.rrd")
     with pytest.raises(RuntimeError, match="disk on fire"):

@@ -14,7 +14,7 @@ import pytest
 from massviz.core.pipeline import run
 from massviz.detect import make_detector
 from massviz.io.recording import open_recording
-from massviz.views.rerun import log_trace
+from massviz.views.rerun import log_trace_with_clouds
 from rrd_reader import rrd_rows
 from test_selection import DistanceModel
 
@@ -26,7 +26,7 @@ def logged(tmp_path_factory):
     rec = open_recording(ROOT / "data_samples" / "cup_handover")
     trace = run(rec, make_detector("depth"), DistanceModel(), k=4, stride=2)
     out = tmp_path_factory.mktemp("layout") / "cup.rrd"
-    log_trace(trace, rec, rrd=out)
+    log_trace_with_clouds(trace, rec, rrd=out)
     return rec, trace, out
 
 

@@ -174,7 +174,7 @@ def run_session(args, pipeline, stream, name: str) -> int:
                 connect = connect or web.grpc
                 print(f"massviz live: web viewer at {web.url}", file=sys.stderr)
             if args.rrd or args.spawn or connect:
-                from massviz.views.rerun.live import LiveLogger
+                from massviz.views.rerun.live_logger import LiveLogger
 
                 logger = LiveLogger(name=name, k=fp.selection.k,
                                     intrinsics=info.intrinsics, rrd=args.rrd, spawn=args.spawn, connect=connect)

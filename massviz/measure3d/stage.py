@@ -236,8 +236,8 @@ def with_measurements(trace, recording, **kw):
 
 def measured_replay(trace, recording):
     """(``trace`` measured, its processed frames with each detection's cloud): what a sink that logs a finished trace
-    with its clouds is given (``massviz.views.rerun.log_trace``'s ``frames``). The chosen frames are read first (to
-    measure), then every processed frame once; no cloud is made twice."""
+    with its clouds is given (``massviz.views.rerun.log_trace_with_clouds``' ``frames``). The chosen frames are read
+    first (to measure), then every processed frame once; no cloud is made twice."""
     stage = MeasureStage(recording, clouds="active")
     trace = stage.finish(trace)
     return trace, (stage.replay_frames(trace) if stage.enabled else None)

@@ -1,15 +1,14 @@
-"""``massviz log``'s run: the pipeline over one recording with a Rerun sink (``massviz.views.rerun.replay.TraceLogger``)
-given each frame's result as it is processed and the final trace. The runner owns the loop; the sink only draws."""
+"""``massviz log``'s run: the pipeline over one recording with a Rerun sink
+(``massviz.views.rerun.trace_logger.TraceLogger``) given each frame's result as it is processed and the final trace.
+The runner owns the loop; the sink only draws."""
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 from massviz.core.trace import Trace
 from massviz.views.rerun.blueprint import default_blueprint
-from massviz.views.rerun.entities import log_timings
 from massviz.views.rerun.output import Output
-from massviz.views.rerun.replay import TraceLogger, trace_frames
+from massviz.views.rerun.trace_logger import TraceLogger, trace_frames
 
 
 def log_run(pipeline, recording, *, rrd: str | Path | None = None, spawn: bool = False, progress: bool = False,
@@ -20,18 +19,17 @@ def log_run(pipeline, recording, *, rrd: str | Path | None = None, spawn: bool =
     the cache (no frame processed) is given to the sink frame by frame from the recording, read once
     (``trace_frames``). The selection is the pipeline's (``Pipeline.selection``, resolved once): its K shapes the
     first layout, sent before the frames; the final one comes from the trace. Outputs and options as
-    ``massviz.views.rerun.replay.log_trace``. ``measure``: the measure stage (``massviz.measure3d.stage.MeasureStage``,
-    made with ``clouds="active"``) observing the same steps (or the replay): its clouds of each frame go to the sink,
-    and the trace is measured (``MeasureStage.finish``) before what needs the whole trace is logged; None: no cloud,
-    no measurement. ``before_close(trace)``: more output made from the trace
-    (``log --ply``), run before the .rrd is renamed into place, so that when it fails no .rrd is left either.
-    Returns (trace, stats)."""
-    t0 = time.perf_counter()
-    out = Output(rrd=rrd, spawn=spawn)
-    try:
+    ``massviz.views.rerun.trace_logger.log_trace_with_clouds``. ``measure``: the measure stage
+    (``massviz.measure3d.stage.MeasureStage``, made with ``clouds="active"``) observing the same steps (or the replay):
+    its clouds of each frame go to the sink, and the trace is measured (``MeasureStage.finish``) before what needs
+    the whole trace is logged; None: no cloud, no measurement. ``before_close(trace)``: more output made from the
+    trace (``log --ply``), run once the recording is delivered and before the .rrd is renamed into place, so that
+    when it fails no .rrd is left either. Returns (trace, stats)."""
+    with Output(rrd=rrd, spawn=spawn) as out:
         layout = default_blueprint(pipeline.selection.k, has_3d=recording.intrinsics is not None,
                                    image_size=(recording.width, recording.height))
         logger = TraceLogger(recording, out.stream, video=video, points=points, clouds=clouds, blueprint=layout)
+
         def on_frame(frame, result):
             logger.on_frame(frame, result, None if measure is None else measure.on_frame(frame, result))
 
@@ -43,16 +41,10 @@ def log_run(pipeline, recording, *, rrd: str | Path | None = None, spawn: bool =
         if measure is not None:
             trace = measure.finish(trace)
         stats = logger.finish(trace, points=points)
-        log_timings(out.stream, {**trace.timings, "log": logger.seconds}, stats["frames"])
-        out.flush()
         if before_close is not None:
+            out.flush()
             before_close(trace)
-    except BaseException as err:
-        out.close(err)
-        raise
-    out.close()
-    stats.update(recording_id=out.stream.get_recording_id(), rrd=None if out.rrd is None else str(out.rrd),
-                 log_seconds=logger.seconds, seconds=time.perf_counter() - t0)
+    stats.update(out.stats(), log_seconds=logger.seconds, seconds=out.seconds)
     return trace, stats
 
 

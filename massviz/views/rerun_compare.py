@@ -1,9 +1,9 @@
 """Two traces in one Rerun file, as two recordings of application ``massviz`` (``massviz compare --rrd``).
 
-Each trace is logged exactly as ``massviz log`` logs it (``log_trace``: the entity tree in docs/entity-tree.md), on its own
-recording named after its side ("A: ...", "B: ..."), plus ``/compare`` (static ``TextDocument``, markdown): the
-comparison report. The viewer lists both recordings; switch between them in its recording panel, the layout (the
-default blueprint) is the same for both. The two recordings are written to temporary files and merged into one
+Each trace is logged exactly as ``massviz log`` logs it (``log_trace_with_clouds``: the entity tree in
+docs/entity-tree.md), on its own recording named after its side ("A: ...", "B: ..."), plus ``/compare`` (static
+``TextDocument``, markdown): the comparison report. The viewer lists both recordings; switch between them in its
+recording panel, the layout (the default blueprint) is the same for both. The two recordings are written to temporary files and merged into one
 with Rerun's own ``rerun rrd merge``; the output file appears only when everything succeeded.
 """
 from __future__ import annotations
@@ -20,7 +20,7 @@ import rerun as rr
 from massviz.errors import MassvizError
 from massviz.io.atomic import atomic_path
 from massviz.views.rerun.output import APPLICATION_ID
-from massviz.views.rerun.replay import log_trace
+from massviz.views.rerun.trace_logger import log_trace_with_clouds
 
 
 def log_two_traces(sides, rrd: str | Path, *, markdown: str | None = None, progress: bool = False,
@@ -42,7 +42,8 @@ def log_two_traces(sides, rrd: str | Path, *, markdown: str | None = None, progr
                 frames = None
                 if replay is not None:
                     trace, frames = replay(trace, recording)
-                log_trace(trace, recording, stream=stream, progress=progress, video=video, frames=frames)
+                log_trace_with_clouds(trace, recording, stream=stream, progress=progress, video=video,
+                                      frames=frames)
                 if markdown is not None:
                     stream.log("/compare", rr.TextDocument(markdown, media_type=rr.MediaType.MARKDOWN), static=True)
                 stream.flush()

@@ -8,7 +8,8 @@ local or Ray) and ``write_index`` at the end. OUT then holds:
   (``/patches/<rank>``, static: shown whatever the time cursor), the predictions, decisions and summary, a JPEG of the best frame (the frame of the nearest
   chosen patch, at ``/camera/rgb``, and a small ``/thumbnail``) and ``/source`` (a ``TextDocument`` naming the source
   frames, which are *referenced*, not copied: the path is also the ``source`` property). ``full=True`` logs
-  everything ``massviz log`` logs (``massviz.views.rerun.log_trace``: every frame, depth, masks, 3D clouds).
+  everything ``massviz log`` logs (``massviz.views.rerun.log_trace_with_clouds``: every frame, depth, masks, 3D
+  clouds).
 * ``index.csv`` — one row per recording: the properties, the .rrd file and its bytes, the input bytes.
 * ``patches.csv`` and ``patches/<id>_<rank>.jpg`` — one row and one thumbnail per chosen patch (rank, frame, track,
   class, d, prediction, flag, cues, box), what the failure browser (notebook 04) shows without opening a recording.
@@ -45,7 +46,7 @@ from massviz.io.atomic import atomic_path
 from massviz.io.untrusted import safe_filename, write_csv
 from massviz.views.rerun import entities as rl
 from massviz.views.rerun.output import APPLICATION_ID
-from massviz.views.rerun.replay import log_conclusion, log_opening, log_overlays, log_trace
+from massviz.views.rerun.trace_logger import log_conclusion, log_opening, log_overlays, log_trace_with_clouds
 
 PROPERTY = "massviz"
 PATCHES_DIR = "patches"
@@ -226,7 +227,7 @@ def write_recording(trace: Trace, recording, out_dir: str | Path, *, full: bool 
             stream.send_recording_name(f"massviz {trace.recording.id}")
             send_properties(stream, rounded_properties(props))
             if full:
-                log_trace(trace, recording, stream=stream, video=video, frames=frames)
+                log_trace_with_clouds(trace, recording, stream=stream, video=video, frames=frames)
                 log_thumbnail(stream, rgb_best)
             else:
                 stream.send_blueprint(light_blueprint(len(trace.selection), [p.rank for p in trace.flags.flagged]),

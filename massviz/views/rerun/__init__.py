@@ -1,11 +1,13 @@
 """massviz in Rerun: every stage of one estimate on a ``frame`` timeline, with a default layout.
 
 The package: ``entities`` (one small ``log_*`` function per kind of data, in the style of Rerun's ``rgbd`` and
-``detect_and_track_objects`` examples), ``blueprint`` (the default layout), ``replay`` (a trace -> a recording
-stream: ``log_trace``), ``live`` (``LiveLogger``: a live session frame by frame), ``output`` (where a stream goes:
-.rrd file, spawned or running viewer, a caller's stream, the notebook's inline viewer). Sinks only read: they log
-results (traces, frames, step results, the measure stage's clouds) and never run a stage or measure
-(``massviz.runners.replay.log_trace`` gives ``log_trace`` the measure stage's clouds).
+``detect_and_track_objects`` examples), ``blueprint`` (the default layout), ``frame_logger`` (``FrameLogger``: one
+processed frame and its ``FrameResult``, as ``massviz log`` and ``massviz live`` both log it), ``trace_logger`` (a
+trace -> a recording stream: the sink ``TraceLogger`` and ``log_trace_with_clouds``), ``live_logger``
+(``LiveLogger``: a live session frame by frame), ``output`` (where a stream goes: .rrd file, spawned or running
+viewer, a caller's stream, the notebook's inline viewer; ``Output``, the one context-managed output). Sinks only
+read: they log results (traces, frames, step results, the measure stage's clouds) and never run a stage or measure
+(``massviz.runners.trace_to_rerun.log_trace`` gives ``log_trace_with_clouds`` the measure stage's clouds).
 
 Entity tree (a public contract; docs/entity-tree.md copies it). Everything temporal is on the ``frame`` timeline (sequence =
 frame index in the recording); a video asset's frames are also on ``video_time``.
@@ -44,7 +46,9 @@ entity                         what is logged
                                the first and the last processed frame (absent when unknown)
 ``/world/detections/<id>``     ``Points3D``: detection ``id``'s cleaned Open3D cloud (chosen ones highlighted), with
                                ``/box`` (``Boxes3D``, measured box of a chosen one) and ``/measurement`` (AnyValues);
-                               see ``log_frame_clouds`` (clouds from the measure stage, ``massviz.measure.stage``) (only with intrinsics; ``clouds=False`` skips)
+                               logged at each processed frame (``TraceLogger.on_frame``; clouds from the measure
+                               stage, ``massviz.measure3d.stage``, thinned to ``CLOUD_VOXEL_M``), cleared at the next
+                               (only with intrinsics; ``clouds=False`` skips)
 ``/log``                       ``TextLog`` of the decisions (trace events, missing intrinsics, video fallback) with
                                levels, at their frames; one WARN per flagged patch at its frame and the flags'
                                summary line ("3 of 5 chosen patches look like another object ...") at the last
@@ -63,11 +67,11 @@ Class ids (``AnnotationContext`` at ``/camera``): 0 background, 1 cup, 2 book, 3
 from __future__ import annotations
 
 from massviz.views.rerun.blueprint import blueprint_for, default_blueprint
-from massviz.views.rerun.entities import CHOSEN_ID, CLASS_IDS, FLAGGED_ID, MAX_POINTS, POINT_STEP, RgbLogger
-from massviz.views.rerun.entities import log_clouds, log_flags, log_frame_clouds
+from massviz.views.rerun.entities import (CHOSEN_ID, CLASS_IDS, CLOUD_VOXEL_M, FLAGGED_ID, MAX_POINTS, POINT_STEP,
+                                          RgbLogger, log_flags)
 from massviz.views.rerun.output import APPLICATION_ID, use_local_notebook_assets
-from massviz.views.rerun.replay import log_trace
+from massviz.views.rerun.trace_logger import log_trace_with_clouds
 
-__all__ = ["log_trace", "log_flags", "default_blueprint", "log_clouds", "log_frame_clouds", "RgbLogger", "CLASS_IDS",
-           "CHOSEN_ID", "FLAGGED_ID", "POINT_STEP", "MAX_POINTS", "blueprint_for",
-           "use_local_notebook_assets", "APPLICATION_ID"]
+__all__ = ["log_trace_with_clouds", "log_flags", "default_blueprint", "RgbLogger", "CLASS_IDS", "CHOSEN_ID",
+           "FLAGGED_ID", "POINT_STEP", "MAX_POINTS", "CLOUD_VOXEL_M", "blueprint_for", "use_local_notebook_assets",
+           "APPLICATION_ID"]

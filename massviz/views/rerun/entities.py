@@ -19,7 +19,6 @@ from massviz.views.labels import short_reason
 from massviz.views.palette import (BELOW_THRESHOLD_COLOUR, BOX_COLOUR, CHOSEN_COLOUR, FLAGGED_COLOUR,
                                     WITHOUT_FLAGGED_COLOUR, rgb255, track_colour)
 
-APPLICATION_ID = "massviz"
 #: every ``POINT_STEP``-th pixel (in x and y) of the depth image becomes a point of ``/world/points``.
 POINT_STEP = 4
 #: at most this many points per frame in ``/world/points``.
@@ -39,7 +38,7 @@ def class_id_of(name: str) -> int:
     return CLASS_IDS.get(name, OTHER_ID)
 
 
-def log_annotation_context(rec: rr.RecordingStream, k: int) -> None:
+def log_annotation_context(stream: rr.RecordingStream, k: int) -> None:
     """Names and colours of the class ids of ``/camera/detections`` and ``/camera/masks`` (static, at /camera)."""
     infos = [rr.AnnotationInfo(id=BACKGROUND_ID, label="background", color=(0, 0, 0))]
     infos += [rr.AnnotationInfo(id=cid, label=name, color=_CLASS_COLOURS[cid]) for name, cid in CLASS_IDS.items()]
@@ -50,16 +49,16 @@ def log_annotation_context(rec: rr.RecordingStream, k: int) -> None:
     infos += [rr.AnnotationInfo(id=CHOSEN_ID + r, label=f"chosen ★{r}", color=rgb255(CHOSEN_COLOUR)) for r in ranks]
     infos += [rr.AnnotationInfo(id=FLAGGED_ID + r, label=f"flagged ★{r}", color=rgb255(FLAGGED_COLOUR))
               for r in ranks]
-    rec.log("/camera", rr.AnnotationContext(infos), static=True)
+    stream.log("/camera", rr.AnnotationContext(infos), static=True)
 
 
 # ---------------------------------------------------------------------------------------------------------- camera
-def log_pinhole(rec: rr.RecordingStream, intr: Intrinsics, image_plane_distance: float) -> None:
+def log_pinhole(stream: rr.RecordingStream, intr: Intrinsics, image_plane_distance: float) -> None:
     """The RGB camera (depth is aligned to it), right-down-forward, static."""
-    rec.log("/camera", rr.Pinhole(focal_length=[intr.fx, intr.fy], principal_point=[intr.cx, intr.cy],
-                                  width=intr.width, height=intr.height, camera_xyz=rr.ViewCoordinates.RDF,
-                                  image_plane_distance=image_plane_distance), static=True)
-    rec.log("/world", rr.ViewCoordinates.RDF, static=True)
+    stream.log("/camera", rr.Pinhole(focal_length=[intr.fx, intr.fy], principal_point=[intr.cx, intr.cy],
+                                     width=intr.width, height=intr.height, camera_xyz=rr.ViewCoordinates.RDF,
+                                     image_plane_distance=image_plane_distance), static=True)
+    stream.log("/world", rr.ViewCoordinates.RDF, static=True)
 
 
 def frustum_depth(depth: np.ndarray) -> float:
@@ -72,7 +71,8 @@ def frustum_depth(depth: np.ndarray) -> float:
 class RgbLogger:
     """Logs ``/camera/rgb``: the recording's video file (``Recording.video_file()``) as one asset + frame references,
     else each frame's own bytes (``Frame.rgb_encoded``, a PNG/JPEG frame file as read), else a JPEG of the decoded
-    frame (formats without per-frame files, e.g. RealSense recordings).
+    frame (formats without per-frame files, e.g. RealSense recordings, and a live camera's frames: ``recording``
+    None).
 
     ``video``: ``"auto"`` (asset when Rerun can decode the codec, else JPEG frames), ``"asset"`` (always the asset,
     even if the viewer cannot decode it) or ``"images"`` (always JPEG frames). ``mode`` is what was chosen
@@ -85,7 +85,7 @@ class RgbLogger:
             raise ValueError(f"video must be 'auto', 'asset' or 'images', not {video!r}")
         self.recording, self.warning, self.timestamps_ns = recording, None, None
         self.asset, self.quality = None, int(jpeg_quality)
-        video_file = recording.video_file()
+        video_file = None if recording is None else recording.video_file()
         self.mode = "images" if video_file is None or video == "images" else "asset"
         if self.mode == "images":
             return
@@ -100,9 +100,9 @@ class RgbLogger:
             else:
                 self.warning = f"{reason}: the video asset is logged but the viewer will not show its frames"
 
-    def log_static(self, rec: rr.RecordingStream) -> None:
+    def log_static(self, stream: rr.RecordingStream) -> None:
         if self.asset is not None:
-            rec.log("/camera/rgb", self.asset, static=True)
+            stream.log("/camera/rgb", self.asset, static=True)
 
     def video_time_ns(self, index: int) -> int | None:
         """Presentation time of video frame ``index`` (from the container, else index / fps); None without asset."""
@@ -112,16 +112,17 @@ class RgbLogger:
             return int(self.timestamps_ns[index])
         return int(round(index / (self.recording.fps or 30.0) * 1e9))
 
-    def log_frame(self, rec: rr.RecordingStream, frame: Frame) -> None:
+    def log_frame(self, stream: rr.RecordingStream, frame: Frame) -> None:
         """``/camera/rgb`` of one frame (the stream's time already set to it)."""
         if self.mode == "asset":
-            rec.log("/camera/rgb", rr.VideoFrameReference(nanoseconds=self.video_time_ns(frame.index)))
+            stream.log("/camera/rgb", rr.VideoFrameReference(nanoseconds=self.video_time_ns(frame.index)))
         elif frame.rgb_encoded is not None:
             self.mode = "files"
-            rec.log("/camera/rgb", rr.EncodedImage(contents=frame.rgb_encoded, media_type=frame.rgb_media_type))
+            stream.log("/camera/rgb", rr.EncodedImage(contents=frame.rgb_encoded, media_type=frame.rgb_media_type))
         else:
-            rec.log("/camera/rgb", rr.EncodedImage(
-                contents=jpeg_bytes(frame.rgb, self.quality, f"frame {frame.index}", self.recording.path),
+            stream.log("/camera/rgb", rr.EncodedImage(
+                contents=jpeg_bytes(frame.rgb, self.quality, f"frame {frame.index}",
+                                    None if self.recording is None else self.recording.path),
                 media_type="image/jpeg"))
 
 
@@ -142,15 +143,15 @@ def jpeg_bytes(rgb: np.ndarray, quality: int, what: str = "a frame", path=None) 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
-def log_depth(rec: rr.RecordingStream, depth: np.ndarray, encoded: bytes | None = None) -> None:
+def log_depth(stream: rr.RecordingStream, depth: np.ndarray, encoded: bytes | None = None) -> None:
     """``/camera/depth``: the frame's 16-bit PNG as the reader read it (``Frame.depth_encoded``; logged as its own
     bytes, ``EncodedDepthImage``, no re-encode: ``depth`` is those bytes decoded, so they have been checked already),
     else the array as a ``DepthImage``."""
     if encoded is not None and bytes(encoded[:8]) == _PNG_SIGNATURE:
-        rec.log("/camera/depth", rr.EncodedDepthImage(encoded, media_type=rr.components.MediaType.PNG,
-                                                      meter=1000.0, colormap="turbo"))
+        stream.log("/camera/depth", rr.EncodedDepthImage(encoded, media_type=rr.components.MediaType.PNG,
+                                                         meter=1000.0, colormap="turbo"))
     else:
-        rec.log("/camera/depth", rr.DepthImage(depth, meter=1000.0, colormap="turbo"))
+        stream.log("/camera/depth", rr.DepthImage(depth, meter=1000.0, colormap="turbo"))
 
 
 def scene_depth_m(depth: np.ndarray) -> float:
@@ -159,7 +160,7 @@ def scene_depth_m(depth: np.ndarray) -> float:
     return 1.0 if valid.size == 0 else float(np.clip(np.median(valid) / 1000.0, 0.1, 10.0))
 
 
-def log_points(rec: rr.RecordingStream, depth: np.ndarray, rgb: np.ndarray, intr: Intrinsics, step: int,
+def log_points(stream: rr.RecordingStream, depth: np.ndarray, rgb: np.ndarray, intr: Intrinsics, step: int,
                max_points: int) -> int:
     """``/world/points`` of one frame (at most ``max_points``, evenly subsampled); returns the number logged."""
     from massviz.measure3d.geometry import depth_to_points  # Open3D: imported only with --points
@@ -168,7 +169,7 @@ def log_points(rec: rr.RecordingStream, depth: np.ndarray, rgb: np.ndarray, intr
     if max_points > 0 and len(points) > max_points:
         keep = np.arange(0, len(points), math.ceil(len(points) / max_points))
         points, colours = points[keep], None if colours is None else colours[keep]
-    rec.log("/world/points", rr.Points3D(points, colors=colours, radii=rr.Radius.ui_points(1.5)))
+    stream.log("/world/points", rr.Points3D(points, colors=colours, radii=rr.Radius.ui_points(1.5)))
     return len(points)
 
 
@@ -210,48 +211,48 @@ def detection_colours(dets: Detections, idx: list[int], class_ids: np.ndarray) -
     return np.asarray(out, dtype=np.uint8).reshape(-1, 3)
 
 
-def log_detections(rec: rr.RecordingStream, dets: Detections, idx: list[int], class_ids: np.ndarray,
+def log_detections(stream: rr.RecordingStream, dets: Detections, idx: list[int], class_ids: np.ndarray,
                    rank_of: dict[int, int]) -> None:
     """``/camera/detections`` of one frame (an empty frame clears the previous frame's boxes)."""
     if not idx:
-        rec.log("/camera/detections", rr.Boxes2D(array=np.zeros((0, 4), np.float32),
-                                                 array_format=rr.Box2DFormat.XYXY))
+        stream.log("/camera/detections", rr.Boxes2D(array=np.zeros((0, 4), np.float32),
+                                                    array_format=rr.Box2DFormat.XYXY))
         return
-    rec.log("/camera/detections", rr.Boxes2D(
+    stream.log("/camera/detections", rr.Boxes2D(
         array=dets.xyxy[idx].astype(np.float32), array_format=rr.Box2DFormat.XYXY, class_ids=class_ids,
         colors=detection_colours(dets, idx, class_ids),
         labels=[detection_label(dets, i, rank_of.get(i), bool(c >= FLAGGED_ID)) for i, c in zip(idx, class_ids)]),
         rr.AnyValues(track=dets.track[idx].astype(np.int64), detection=np.asarray(idx, np.int64)))
 
 
-def log_masks(rec: rr.RecordingStream, dets: Detections, idx: list[int], class_ids: np.ndarray,
+def log_masks(stream: rr.RecordingStream, dets: Detections, idx: list[int], class_ids: np.ndarray,
               shape: tuple[int, int]) -> None:
     """``/camera/masks``: one segmentation image of the frame; chosen masks are drawn last (on top)."""
     seg = np.zeros(shape, dtype=np.uint8 if len(idx) == 0 or int(class_ids.max()) < 256 else np.uint16)
     for j in sorted(range(len(idx)), key=lambda j: class_ids[j] >= CHOSEN_ID):
         x1, y1, x2, y2 = (int(v) for v in dets.xyxy[idx[j]])
         seg[y1:y2, x1:x2][dets.mask(idx[j])] = class_ids[j]
-    rec.log("/camera/masks", rr.SegmentationImage(seg, opacity=0.5))
+    stream.log("/camera/masks", rr.SegmentationImage(seg, opacity=0.5))
 
 
 # ------------------------------------------------------------------------------------------------------- patches
-def log_patch(rec: rr.RecordingStream, rank: int, dets: Detections, i: int, patch: np.ndarray, flag=None,
+def log_patch(stream: rr.RecordingStream, rank: int, dets: Detections, i: int, patch: np.ndarray, flag=None,
               static: bool = False) -> None:
     """``/patches/<rank>`` at the stream's time (or ``static``): the model's input image and the numbers that went
     with it, and ``/patches/<rank>/outline`` around it in the chosen colour, or the flagged colour with why (``flag``,
     a ``massviz.core.flags.PatchFlag``)."""
     image = model_view(patch)
     flagged = flag is not None and flag.flagged
-    rec.log(f"/patches/{rank}", rr.EncodedImage(contents=jpeg_bytes(image, PATCH_JPEG_QUALITY, f"patch {rank}"),
-                                                media_type="image/jpeg"),
-            rr.AnyValues(
+    stream.log(f"/patches/{rank}", rr.EncodedImage(contents=jpeg_bytes(image, PATCH_JPEG_QUALITY, f"patch {rank}"),
+                                                   media_type="image/jpeg"),
+               rr.AnyValues(
         a=float(dets.a[i]), b=float(dets.b[i]), d_mm=float(dets.d[i]), frame=int(dets.frame[i]),
         class_name=class_name(dets.class_id[i]), score=float(dets.score[i]), pred_g=float(dets.pred[i]),
         detection=int(i), track=int(dets.track[i]), flagged=bool(flagged), flag="" if not flagged else flag.reason),
-            static=static)
+               static=static)
     h, w = image.shape[:2]
     label = f"★{rank} ⚑ flagged: {short_reason(flag)}" if flagged else f"★{rank}"
-    rec.log(f"/patches/{rank}/outline", rr.Boxes2D(
+    stream.log(f"/patches/{rank}/outline", rr.Boxes2D(
         array=[[0.5, 0.5, w - 0.5, h - 0.5]], array_format=rr.Box2DFormat.XYXY, labels=[label],
         colors=[rgb255(FLAGGED_COLOUR if flagged else CHOSEN_COLOUR)], radii=[2.0 if flagged else 1.0]), static=static)
 
@@ -268,7 +269,7 @@ class PatchTiles:
         self.source = source
         self.occupants: list[int] = []
 
-    def update(self, rec: rr.RecordingStream, selection) -> list[int]:
+    def update(self, stream: rr.RecordingStream, selection) -> list[int]:
         """Log the ranks that changed at the stream's current time; returns them."""
         new = [int(i) for i in selection]
         changed = []
@@ -277,19 +278,19 @@ class PatchTiles:
                 continue
             dets, j, patch, flag = self.source(i)
             if patch is None or not patch.size:
-                rec.log(f"/patches/{r}", rr.Clear(recursive=True))
+                stream.log(f"/patches/{r}", rr.Clear(recursive=True))
             else:
-                log_patch(rec, r, dets, j, patch, flag)
+                log_patch(stream, r, dets, j, patch, flag)
             changed.append(r)
         for r in range(len(new), len(self.occupants)):
-            rec.log(f"/patches/{r}", rr.Clear(recursive=True))
+            stream.log(f"/patches/{r}", rr.Clear(recursive=True))
             changed.append(r)
         self.occupants = new
         return changed
 
 
 # --------------------------------------------------------------------------------------------------- predictions
-def log_predictions(rec: rr.RecordingStream, trace: Trace) -> None:
+def log_predictions(stream: rr.RecordingStream, trace: Trace) -> None:
     """``/predictions/*``: each chosen prediction from its source frame to the last frame, the estimate at the last
     frame (when estimated), the ground truth over the whole run (when known)."""
     if len(trace.frames) == 0:
@@ -301,39 +302,39 @@ def log_predictions(rec: rr.RecordingStream, trace: Trace) -> None:
         flag = trace.flags.of(int(i))
         flagged = flag is not None and flag.flagged
         name = f"patch ★{rank} ({class_name(dets.class_id[i])}, {dets.d[i]:.0f} mm)" + (" ⚑ flagged" if flagged else "")
-        rec.log(path, rr.SeriesLines(names=name, colors=rgb255(FLAGGED_COLOUR if flagged else CHOSEN_COLOUR)),
-                static=True)
+        stream.log(path, rr.SeriesLines(names=name, colors=rgb255(FLAGGED_COLOUR if flagged else CHOSEN_COLOUR)),
+                   static=True)
         for t in sorted({int(dets.frame[i]), last}):
-            rec.set_time("frame", sequence=t)
-            rec.log(path, rr.Scalars(float(dets.pred[i])))
+            stream.set_time("frame", sequence=t)
+            stream.log(path, rr.Scalars(float(dets.pred[i])))
     if trace.estimate >= 0:
-        rec.log("/predictions/estimate", rr.SeriesLines(names="estimate", colors=(255, 255, 255), widths=2),
-                rr.SeriesPoints(names="estimate", colors=(255, 255, 255), markers="diamond", marker_sizes=6),
-                static=True)
-        rec.set_time("frame", sequence=last)
-        rec.log("/predictions/estimate", rr.Scalars(float(trace.estimate)))
+        stream.log("/predictions/estimate", rr.SeriesLines(names="estimate", colors=(255, 255, 255), widths=2),
+                   rr.SeriesPoints(names="estimate", colors=(255, 255, 255), markers="diamond", marker_sizes=6),
+                   static=True)
+        stream.set_time("frame", sequence=last)
+        stream.log("/predictions/estimate", rr.Scalars(float(trace.estimate)))
     flags = trace.flags
     if flags.flagged and flags.estimate_without >= 0:
         path = "/predictions/estimate_without_flagged"
         colour = rgb255(WITHOUT_FLAGGED_COLOUR)
-        rec.log(path, rr.SeriesLines(names="estimate without flagged patches", colors=colour, widths=2),
-                rr.SeriesPoints(names="estimate without flagged patches", colors=colour, markers="diamond",
-                                marker_sizes=6), static=True)
-        rec.set_time("frame", sequence=last)
-        rec.log(path, rr.Scalars(float(flags.estimate_without)))
+        stream.log(path, rr.SeriesLines(names="estimate without flagged patches", colors=colour, widths=2),
+                   rr.SeriesPoints(names="estimate without flagged patches", colors=colour, markers="diamond",
+                                   marker_sizes=6), static=True)
+        stream.set_time("frame", sequence=last)
+        stream.log(path, rr.Scalars(float(flags.estimate_without)))
     gt = trace.ground_truth_mass
     if gt is not None:
-        rec.log("/predictions/ground_truth", rr.SeriesLines(names="ground truth", colors=(0, 200, 0), widths=2),
-                static=True)
+        stream.log("/predictions/ground_truth", rr.SeriesLines(names="ground truth", colors=(0, 200, 0), widths=2),
+                   static=True)
         for t in sorted({first, last}):
-            rec.set_time("frame", sequence=t)
-            rec.log("/predictions/ground_truth", rr.Scalars(gt))
+            stream.set_time("frame", sequence=t)
+            stream.log("/predictions/ground_truth", rr.Scalars(gt))
 
 
 RUNNING_COLOUR = (90, 170, 255)
 
 
-def log_running(rec: rr.RecordingStream, trace: Trace) -> None:
+def log_running(stream: rr.RecordingStream, trace: Trace) -> None:
     """``/predictions/running_estimate``: the estimate after each processed frame (``Trace.running_estimate``, from
     the first frame with a selected patch), and ``/latency/<stage>``: each processed frame's seconds per stage, in
     ms (when the trace has them)."""
@@ -343,15 +344,15 @@ def log_running(rec: rr.RecordingStream, trace: Trace) -> None:
     running = trace.running_estimate()
     keep = running >= 0
     if keep.any():
-        rec.log("/predictions/running_estimate", rr.SeriesLines(names="running estimate (K nearest so far)",
-                                                                colors=RUNNING_COLOUR, widths=2), static=True)
-        rec.send_columns("/predictions/running_estimate", indexes=[rr.TimeColumn("frame", sequence=frames[keep])],
-                         columns=rr.Scalars.columns(scalars=running[keep]))
+        stream.log("/predictions/running_estimate", rr.SeriesLines(names="running estimate (K nearest so far)",
+                                                                   colors=RUNNING_COLOUR, widths=2), static=True)
+        stream.send_columns("/predictions/running_estimate", indexes=[rr.TimeColumn("frame", sequence=frames[keep])],
+                            columns=rr.Scalars.columns(scalars=running[keep]))
     for stage, seconds in trace.frame_timings.items():
         seconds = np.asarray(seconds, dtype=np.float64)
         if len(seconds) == len(frames):
-            rec.send_columns(f"/latency/{stage}", indexes=[rr.TimeColumn("frame", sequence=frames)],
-                             columns=rr.Scalars.columns(scalars=1000.0 * seconds))
+            stream.send_columns(f"/latency/{stage}", indexes=[rr.TimeColumn("frame", sequence=frames)],
+                                columns=rr.Scalars.columns(scalars=1000.0 * seconds))
 
 
 # ----------------------------------------------------------------------------------------------------- text, log
@@ -361,28 +362,28 @@ def text_log(text: str, level: str = "info") -> rr.TextLog:
     return rr.TextLog(str(text), level=getattr(rr.TextLogLevel, str(level).upper(), rr.TextLogLevel.INFO))
 
 
-def log_events(rec: rr.RecordingStream, events, first_frame: int) -> None:
+def log_events(stream: rr.RecordingStream, events, first_frame: int) -> None:
     """``/log``: the trace's typed events at their frames (frame -1, e.g. cache reuse: at the first frame), at
     their level."""
     for e in events:
         frame = int(e.frame)
-        rec.set_time("frame", sequence=frame if frame >= 0 else first_frame)
-        rec.log("/log", text_log(e.message, e.level))
+        stream.set_time("frame", sequence=frame if frame >= 0 else first_frame)
+        stream.log("/log", text_log(e.message, e.level))
 
 
-def log_flags(rec: rr.RecordingStream, trace: Trace) -> None:
+def log_flags(stream: rr.RecordingStream, trace: Trace) -> None:
     """``/log`` WARN entries of ``trace.flags``: each flagged patch at its frame, the summary line at the last frame."""
     flags = trace.flags
     if not flags.flagged:
         return
     for p in flags.flagged:
-        rec.set_time("frame", sequence=p.frame)
-        rec.log("/log", rr.TextLog(f"flagged patch ★{p.rank} (frame {p.frame}, track {p.track}, severity "
-                                   f"{p.severity}): probably not the container: {p.reason}",
-                                   level=rr.TextLogLevel.WARN))
+        stream.set_time("frame", sequence=p.frame)
+        stream.log("/log", rr.TextLog(f"flagged patch ★{p.rank} (frame {p.frame}, track {p.track}, severity "
+                                      f"{p.severity}): probably not the container: {p.reason}",
+                                      level=rr.TextLogLevel.WARN))
     last = int(trace.frames[-1]) if len(trace.frames) else max(p.frame for p in flags.patches)
-    rec.set_time("frame", sequence=last)
-    rec.log("/log", rr.TextLog(flags.warning(), level=rr.TextLogLevel.WARN))
+    stream.set_time("frame", sequence=last)
+    stream.log("/log", rr.TextLog(flags.warning(), level=rr.TextLogLevel.WARN))
 
 
 def summary_markdown(trace: Trace) -> str:
@@ -414,26 +415,26 @@ def summary_markdown(trace: Trace) -> str:
     return "\n".join(lines) + "\n"
 
 
-def log_summary(rec: rr.RecordingStream, trace: Trace) -> None:
-    rec.log("/summary", rr.TextDocument(summary_markdown(trace), media_type=rr.MediaType.MARKDOWN), static=True)
+def log_summary(stream: rr.RecordingStream, trace: Trace) -> None:
+    stream.log("/summary", rr.TextDocument(summary_markdown(trace), media_type=rr.MediaType.MARKDOWN), static=True)
 
 
-def log_timings(rec: rr.RecordingStream, timings: dict, n_frames: int) -> None:
+def log_timings(stream: rr.RecordingStream, timings: dict, n_frames: int) -> None:
     """``/timings``: seconds per stage (the pipeline's and ``log``, this logging's cost), static."""
     rows = ["| stage | seconds | ms / frame |", "|---|---:|---:|"]
     for stage, seconds in timings.items():
         per = f"{1000 * seconds / n_frames:.1f}" if n_frames else "–"
         rows.append(f"| {stage} | {seconds:.3f} | {per} |")
-        rec.log(f"/timings/{stage}", rr.Scalars(float(seconds)), static=True)
-    rec.log("/timings", rr.TextDocument("\n".join(rows) + "\n", media_type=rr.MediaType.MARKDOWN), static=True)
+        stream.log(f"/timings/{stage}", rr.Scalars(float(seconds)), static=True)
+    stream.log("/timings", rr.TextDocument("\n".join(rows) + "\n", media_type=rr.MediaType.MARKDOWN), static=True)
 
 
 
 # ------------------------------------------------------------------------------------------------ 3D clouds
 def log_detection_clouds(stream, clouds: dict, *, root: str = "world/detections",
-                         voxel_m: float = 0.004) -> dict[int, str]:
+                         voxel_m: float = CLOUD_VOXEL_M) -> dict[int, str]:
     """Log the clouds of one frame's detections (``clouds``: {detection index in the trace: cleaned Open3D cloud},
-    as the measure stage made them, ``massviz.measure.stage.MeasureStage``) as ``/<root>/<id>`` (Points3D in their RGB
+    as the measure stage made them, ``massviz.measure3d.stage.MeasureStage``) as ``/<root>/<id>`` (Points3D in their RGB
     colours), with the stream's time already set to the frame. ``voxel_m`` thins the clouds (0: every point).
     Returns {id: entity path} of the clouds logged (empty clouds are not). ``log_cloud_overlays`` adds what the
     selection says (colours of the chosen ones, their measured boxes)."""
@@ -473,30 +474,3 @@ def log_cloud_overlays(stream, trace: Trace, paths: dict[int, str], *, timeline:
                        rr.Boxes3D(half_sizes=[np.asarray(m.extent) / 2], colors=[rgb255(BOX_COLOUR)], labels=[label]))
             stream.log(f"{path}/measurement", rr.AnyValues(
                 rank=m.rank, height_mm=m.height_mm, width_mm=m.width_mm, depth_mm=m.depth_mm, n_points=m.n_points))
-
-
-def log_frame_clouds(trace, frame_index: int, clouds: dict, stream, *, root: str = "world/detections",
-                     voxel_m: float = 0.004, timeline: str = "frame") -> list[str]:
-    """``log_detection_clouds`` of one frame's ``clouds`` and their ``log_cloud_overlays``; the stream's time
-    already set to the frame. Returns the entity paths logged."""
-    paths = log_detection_clouds(stream, clouds, root=root, voxel_m=voxel_m)
-    log_cloud_overlays(stream, trace, paths, timeline=timeline)
-    stream.set_time(timeline, sequence=frame_index)
-    return list(paths.values())
-
-
-def log_clouds(trace, frames, stream, *, timeline: str = "frame", root: str = "world/detections",
-               voxel_m: float = 0.004) -> int:
-    """Log each processed frame's detection clouds (``log_frame_clouds``) on ``timeline`` (sequence = frame index),
-    clearing each frame's detection entities at the next processed frame so that none lingers. ``frames``: (frame,
-    {detection: cloud}) of every processed frame, e.g. ``MeasureStage(recording, clouds="active")
-    .replay_frames(trace)``. Returns the number of clouds logged."""
-    n = 0
-    shown: list[str] = []
-    for frame, clouds in frames:
-        stream.set_time(timeline, sequence=frame.index)
-        for p in shown:
-            stream.log(p, rr.Clear(recursive=True))
-        shown = log_frame_clouds(trace, frame.index, clouds, stream, root=root, voxel_m=voxel_m, timeline=timeline)
-        n += len(shown)
-    return n

@@ -1,12 +1,13 @@
 """Where a recording stream goes: an .rrd file (written atomically), a spawned viewer, a running viewer or server
-(gRPC URL), a caller's stream, or the inline viewer of a notebook. One set-up (``open_stream``) for ``massviz log``
-(``replay``) and ``massviz live`` (``live``)."""
+(gRPC URL), a caller's stream, or the inline viewer of a notebook. One output (``Output``, a context manager) for
+``massviz log`` (``trace_logger``, ``massviz.runners.logged``) and ``massviz live`` (``live_logger``)."""
 from __future__ import annotations
 
 import contextlib
 import logging
 import os
 import sys
+import time
 import uuid
 from datetime import timedelta
 from pathlib import Path
@@ -59,10 +60,18 @@ class Output:
     written to a temporary name and renamed into place by ``close`` only when logging succeeded: nothing is left at
     ``rrd`` otherwise), ``spawn`` (a native viewer, spawned or connected on the default port), ``connect`` (a gRPC
     URL), any combination; or ``stream``: a caller's stream, whose sinks are left as they are and which is not
-    disconnected."""
+    disconnected. While it is open, massviz's log records also go to the stream's ``/log``.
+
+    As a context manager (``with Output(...) as out:``), leaving the block delivers what was logged (``flush``) and
+    closes the output; an error or a signal in the block closes it as failed (nothing is left at ``rrd``) and is
+    raised on. ``stats()`` and ``seconds`` report on it.
+    """
 
     def __init__(self, *, rrd: str | Path | None = None, spawn: bool = False, connect: str | None = None,
                  stream: rr.RecordingStream | None = None, recording_id: str | None = None):
+        #: ``time.perf_counter()`` when the output was opened.
+        self.opened = time.perf_counter()
+        self._closed: float | None = None
         if stream is not None and (rrd is not None or spawn or connect):
             raise ValueError("give either stream or rrd/spawn/connect: a caller's stream keeps its own sinks")
         if stream is None and rrd is None and not spawn and not connect:
@@ -105,6 +114,30 @@ class Output:
             raise
         self._route_logs()
 
+    def __enter__(self) -> Output:
+        return self
+
+    def __exit__(self, kind, err, traceback) -> bool:
+        if err is None:
+            try:
+                self.flush()
+            except BaseException as failed:
+                self.close(failed)
+                raise
+            self.close()
+        else:
+            self.close(err)
+        return False
+
+    @property
+    def seconds(self) -> float:
+        """Wall seconds since the output was opened, until it was closed."""
+        return (time.perf_counter() if self._closed is None else self._closed) - self.opened
+
+    def stats(self) -> dict:
+        """``recording_id`` (the stream's) and ``rrd`` (the file's path, or None)."""
+        return {"recording_id": self.stream.get_recording_id(), "rrd": None if self.rrd is None else str(self.rrd)}
+
     def _route_logs(self) -> None:
         """massviz's log records also go to this stream's ``/log`` until ``close``."""
         self._handler = RerunLogHandler(self.stream)
@@ -131,9 +164,9 @@ class Output:
                         size = grown  # still writing onto a disk with room: wait on
                         continue
                     raise MassvizError(f"cannot write {what} ({self._why(err)})", self.rrd) from None
-            where = "the spawned Rerun viewer" if self.spawn else "Rerun"
-            raise MassvizError(f"could not deliver {what} to {where} ({err}); without a display, log to a file "
-                               "(--rrd FILE.rrd) and open it in a browser with 'massviz view FILE.rrd'") from None
+                where = "the spawned Rerun viewer" if self.spawn else "Rerun"
+                raise MassvizError(f"could not deliver {what} to {where} ({err}); without a display, log to a file "
+                                   "(--rrd FILE.rrd) and open it in a browser with 'massviz view FILE.rrd'") from None
 
     def _tmp_size(self) -> int:
         try:
@@ -179,17 +212,20 @@ class Output:
     def close(self, err: BaseException | None = None) -> None:
         """Disconnect an own stream; with ``err`` None rename the .rrd into place (a ``MassvizError`` when Rerun wrote
         nothing), else leave nothing at its path (the caller re-raises ``err``)."""
-        self._unroute_logs()
-        if self.own:
-            self._disconnect(err is not None)
-        if err is None and self._tmp is not None and (not self._tmp.is_file() or self._tmp.stat().st_size == 0):
-            empty = MassvizError("Rerun wrote nothing (is logging disabled with RERUN=off?)", self.rrd)
-            self._abandon(empty)
-            raise empty
-        if err is None:
-            self._stack.close()
-        else:
-            self._abandon(err)
+        try:
+            self._unroute_logs()
+            if self.own:
+                self._disconnect(err is not None)
+            if err is None and self._tmp is not None and (not self._tmp.is_file() or self._tmp.stat().st_size == 0):
+                empty = MassvizError("Rerun wrote nothing (is logging disabled with RERUN=off?)", self.rrd)
+                self._abandon(empty)
+                raise empty
+            if err is None:
+                self._stack.close()
+            else:
+                self._abandon(err)
+        finally:
+            self._closed = time.perf_counter()
 
     def _abandon(self, err: BaseException) -> None:
         self._unroute_logs()

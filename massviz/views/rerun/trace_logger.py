@@ -1,6 +1,7 @@
-"""A trace -> a Rerun recording stream (``log_trace``): what ``massviz log`` shows, from the trace and the
-recording's frames. A sink: it is given each frame's ``FrameResult`` and the final trace; it never runs the
-pipeline, filters, crops or measures (``massviz.runners.logged.log_run`` runs the pipeline with it)."""
+"""A trace -> a Rerun recording stream: what ``massviz log`` shows, from the trace and the recording's frames.
+``TraceLogger`` is the sink: it is given each frame's ``FrameResult`` and the final trace; it never runs the pipeline,
+filters, crops or measures (``massviz.runners.logged.log_run`` runs the pipeline with it). ``log_trace_with_clouds``
+logs a finished trace with the clouds it is given (``massviz.runners.trace_to_rerun.log_trace`` measures and gives them)."""
 from __future__ import annotations
 
 import sys
@@ -11,15 +12,16 @@ import numpy as np
 import rerun as rr
 from tqdm.auto import tqdm
 
-from massviz.errors import MassvizError
 from massviz.core.trace import FrameResult, Trace, frame_results
+from massviz.errors import MassvizError
 from massviz.views.rerun.blueprint import blueprint_for
-from massviz.views.rerun.entities import (CLOUD_VOXEL_M, MAX_POINTS, POINT_STEP, PatchTiles, RgbLogger,
-                                          detection_class_ids, frustum_depth, log_annotation_context,
-                                          log_cloud_overlays, log_depth, log_detection_clouds, log_detections,
-                                          log_events, log_flags, log_masks, log_pinhole, log_points,
-                                          log_predictions, log_running, log_summary, log_timings, text_log)
+from massviz.views.rerun.entities import (MAX_POINTS, POINT_STEP, PatchTiles, RgbLogger, detection_class_ids,
+                                          log_annotation_context, log_cloud_overlays, log_detection_clouds,
+                                          log_detections, log_events, log_flags, log_masks, log_predictions,
+                                          log_running, log_summary, log_timings, text_log)
+from massviz.views.rerun.frame_logger import FrameLogger
 from massviz.views.rerun.output import Output
+
 
 def _check_match(trace: Trace, recording) -> None:
     w, h = trace.recording.width, trace.recording.height
@@ -33,79 +35,72 @@ def _check_match(trace: Trace, recording) -> None:
 
 class TraceLogger:
     """Logs one run of the pipeline to ``stream`` in one pass over the frames: ``on_frame(frame, result, clouds)``
-    logs what needs the frame (its RGB and depth as the reader read them, the camera, the patches of the detections
-    entering the running selection, the clouds of the detections above the threshold as the measure stage made them)
-    as the pipeline processes it (``massviz.core.pipeline.run``'s read-only observer, so no frame is read twice; for
-    a finished trace, e.g. one from the cache, the caller passes ``trace_frames``), and ``finish(trace)`` logs what
-    needs the whole trace (ranks, chosen patches, predictions, flags, decisions, summary, the layout), reading no
-    frame.
+    logs what needs the frame (``FrameLogger``: its time, the camera, its RGB and depth as the reader read them, its
+    points; the patches of the detections entering the running selection, the clouds of the detections above the
+    threshold as the measure stage made them) as the pipeline processes it (``massviz.core.pipeline.run``'s read-only
+    observer, so no frame is read twice; for a finished trace, e.g. one from the cache, the caller passes
+    ``trace_frames``), and ``finish(trace)`` logs what needs the whole trace (ranks, chosen patches, predictions,
+    flags, decisions, summary, timings, the layout), reading no frame.
 
-    ``video``, ``points``, ``step``, ``max_points``, ``clouds``: see ``log_trace``.
+    ``video``, ``points``, ``step``, ``max_points``, ``clouds``: see ``log_trace_with_clouds``.
     """
 
     def __init__(self, recording, stream: rr.RecordingStream, *, video: str = "auto", points: bool = False,
                  step: int = POINT_STEP, max_points: int = MAX_POINTS, clouds: bool = True, blueprint=None):
-        self.recording, self.rec = recording, stream
+        self.recording, self.stream = recording, stream
         if blueprint is not None:  # a layout first, as a viewer expects it (``finish`` sends the trace's own)
             stream.send_blueprint(blueprint, make_active=True, make_default=True)
         self.intr = recording.intrinsics
         self.rgb = RgbLogger(recording, video)
-        self.points, self.step, self.max_points = points and self.intr is not None, step, max_points
+        self.frame_logger = FrameLogger(stream, self.intr, self.rgb, points=points, step=step, max_points=max_points)
         self.clouds = clouds and self.intr is not None
-        self.frames: list[int] = []
         self.cloud_paths: dict[int, str] = {}
         self.patches: dict[int, np.ndarray] = {}  # RGB patches of the running K nearest's entrants
-        self.n_points = 0
         self.seconds = 0.0
         self._shown: list[str] = []
-        self.rec.send_recording_name(f"massviz {recording.id}")
-        self.rgb.log_static(self.rec)
+        stream.send_recording_name(f"massviz {recording.id}")
+        self.rgb.log_static(stream)
+
+    @property
+    def frames(self) -> int:
+        """How many frames were logged."""
+        return self.frame_logger.frames
 
     # ------------------------------------------------------------------------------------------------ per frame
     def on_frame(self, frame, result: FrameResult, clouds: dict | None = None) -> None:
-        """Log one processed frame and its ``FrameResult`` (the pipeline's, or ``trace_frames``' for a finished
-        trace). ``clouds``: {detection index: cleaned cloud} of the frame's detections above the selection's
-        threshold, as the measure stage made them (``massviz.measure.stage.MeasureStage``), logged with
-        ``clouds=True``; None: no cloud."""
+        """Log one processed frame (``result.frame``, which is ``frame``) and its ``FrameResult`` (the pipeline's, or
+        ``trace_frames``' for a finished trace). ``clouds``: {detection index: cleaned cloud} of the frame's
+        detections above the selection's threshold, as the measure stage made them
+        (``massviz.measure3d.stage.MeasureStage``), logged with ``clouds=True``; None: no cloud."""
         t0 = time.perf_counter()
-        rec = self.rec
-        rec.set_time("frame", sequence=frame.index)
-        ns = self.rgb.video_time_ns(frame.index)
-        if ns is not None:
-            rec.set_time("video_time", duration=ns * 1e-9)
-        if self.intr is not None and not self.frames:
-            log_pinhole(rec, self.intr, frustum_depth(frame.depth))
-        self.frames.append(frame.index)
-        self.rgb.log_frame(rec, frame)
-        log_depth(rec, frame.depth, frame.depth_encoded)
-        if self.points:
-            self.n_points += log_points(rec, frame.depth, frame.rgb, self.intr, self.step, self.max_points)
-        for g in result.selection[result.selection >= result.offset]:  # entered the running K nearest
-            patch = result.patches[int(g) - result.offset]
+        for g, i in self.frame_logger.log(result).items():
+            patch = result.patches[i]
             if patch is not None and patch.size:
-                self.patches[int(g)] = patch
+                self.patches[g] = patch
         if self.clouds:
             for path in self._shown:
-                rec.log(path, rr.Clear(recursive=True))
-            paths = log_detection_clouds(rec, clouds or {}, voxel_m=CLOUD_VOXEL_M)
+                self.stream.log(path, rr.Clear(recursive=True))
+            paths = log_detection_clouds(self.stream, clouds or {})
             self.cloud_paths.update(paths)
             self._shown = list(paths.values())
         self.seconds += time.perf_counter() - t0
 
     # ------------------------------------------------------------------------------------------------------ end
-    def finish(self, trace: Trace, *, points: bool = False, layout: bool = True) -> dict:
-        """Log what needs the whole trace (no frame is read) and, with ``layout``, its layout (``blueprint_for``);
-        returns the stats of ``log_trace``."""
+    def finish(self, trace: Trace, *, points: bool = False, layout: bool = True,
+               timed_from: float | None = None) -> dict:
+        """Log what needs the whole trace (no frame is read), ``/timings`` (the trace's and ``log``: this logger's
+        own seconds, or with ``timed_from``, a ``time.perf_counter()``, the wall seconds since then) and, with
+        ``layout``, its layout (``blueprint_for``); returns the stats of ``log_trace_with_clouds``."""
         t0 = time.perf_counter()
-        rec, dets = self.rec, trace.detections
+        stream, dets = self.stream, trace.detections
         frames = [int(f) for f in trace.frames]
         first = frames[0] if frames else 0
         rank_of = {int(i): r for r, i in enumerate(trace.selection)}
         flag_of = {p.detection: p for p in trace.flags.patches}
         if layout:
-            rec.send_blueprint(blueprint_for(trace, self.recording, points=points), make_active=True,
-                               make_default=True)
-        log_opening(rec, trace)
+            stream.send_blueprint(blueprint_for(trace, self.recording, points=points), make_active=True,
+                                  make_default=True)
+        log_opening(stream, trace)
         notes = []
         if self.intr is None:
             notes.append("no camera intrinsics for this recording: no /camera Pinhole, no 3D view")
@@ -113,28 +108,31 @@ class TraceLogger:
             notes.append(self.rgb.warning)
         if trace.estimate < 0 and not any(e.kind == "not_estimated" for e in trace.events):
             notes.append("not estimated: no detection with depth was selected")
-        rec.set_time("frame", sequence=first)
+        stream.set_time("frame", sequence=first)
         for note in notes:
-            rec.log("/log", text_log(note, "warn"))
-        log_overlays(rec, trace, masks_shape=(trace.recording.height or self.recording.height,
-                                              trace.recording.width or self.recording.width))
+            stream.log("/log", text_log(note, "warn"))
+        log_overlays(stream, trace, masks_shape=(trace.recording.height or self.recording.height,
+                                                 trace.recording.width or self.recording.width))
         # each tile shows the patch holding its rank at every frame: logged where the running selection changes
         tiles = PatchTiles(lambda i: (dets, i, dets.patches[i] if dets.patches[i] is not None else self.patches.get(i),
                                       flag_of.get(i)))
         for f, selection in zip(frames, trace.running_selections()):
-            rec.set_time("frame", sequence=f)
-            tiles.update(rec, selection)
+            stream.set_time("frame", sequence=f)
+            tiles.update(stream, selection)
         if self.cloud_paths:
-            log_cloud_overlays(rec, trace, self.cloud_paths)
-        log_conclusion(rec, trace)
+            log_cloud_overlays(stream, trace, self.cloud_paths)
+        log_conclusion(stream, trace)
         self.seconds += time.perf_counter() - t0
-        return {"frames": len(frames), "detections": len(dets), "chosen": len(rank_of), "points": self.n_points,
-                "clouds": len(self.cloud_paths), "rgb": self.rgb.mode, "notes": notes}
+        log_timings(stream, {**trace.timings, "log": self.seconds if timed_from is None
+                             else time.perf_counter() - timed_from}, len(frames))
+        return {"frames": len(frames), "detections": len(dets), "chosen": len(rank_of),
+                "points": self.frame_logger.n_points, "clouds": len(self.cloud_paths), "rgb": self.rgb.mode,
+                "notes": notes}
 
 
 # ------------------------------------------------------------------------------------- what every trace path logs
 # The one way a finished trace reaches Rerun, shared by ``massviz log`` (``TraceLogger.finish``), the dataset's light
-# recordings (``massviz.views.rerun_dataset.log_light``) and ``massviz live`` (``massviz.views.rerun.live``).
+# recordings (``massviz.views.rerun_dataset.log_light``) and ``massviz live`` (``massviz.views.rerun.live_logger``).
 def log_opening(stream: rr.RecordingStream, trace: Trace) -> None:
     """The annotation classes for the trace's K and ``/summary``."""
     log_annotation_context(stream, trace.k)
@@ -197,11 +195,12 @@ def trace_frames(trace: Trace, recording, *, progress: bool = False, frames=None
         bar.close()
 
 
-def log_trace(trace: Trace, recording, *, rrd: str | Path | None = None, spawn: bool = False,
-              stream: rr.RecordingStream | None = None, progress: bool = False, max_points: int = MAX_POINTS,
-              step: int = POINT_STEP, video: str = "auto", clouds: bool = True, points: bool = False,
-              frames=None) -> dict:
-    """Log ``trace`` (made on ``recording``) to Rerun; the entity tree is in ``massviz.views.rerun``'s docstring.
+def log_trace_with_clouds(trace: Trace, recording, *, rrd: str | Path | None = None, spawn: bool = False,
+                          stream: rr.RecordingStream | None = None, progress: bool = False,
+                          max_points: int = MAX_POINTS, step: int = POINT_STEP, video: str = "auto",
+                          clouds: bool = True, points: bool = False, frames=None) -> dict:
+    """Log ``trace`` (made on ``recording``) to Rerun with the clouds it is given (``frames``); the entity tree is in
+    ``massviz.views.rerun``'s docstring.
 
     Outputs: ``rrd`` (a file, written atomically: nothing is left at ``rrd`` if logging fails), ``spawn`` (spawn
     or connect to a viewer on the default port), both, or ``stream`` (a caller's ``rr.RecordingStream``, e.g. a
@@ -213,32 +212,23 @@ def log_trace(trace: Trace, recording, *, rrd: str | Path | None = None, spawn: 
     ``step``/``max_points``: their subsampling.
     ``clouds``: also log each detection's Open3D cloud under ``/world/detections``; ``frames``: the processed frames
     with those clouds, (frame, {detection: cloud}) pairs as the measure stage replays them
-    (``massviz.measure.stage.MeasureStage(recording, clouds="active").replay_frames(trace)``; without them, no cloud
+    (``massviz.measure3d.stage.MeasureStage(recording, clouds="active").replay_frames(trace)``; without them, no cloud
     is logged: a view makes none). ``massviz.log_trace`` passes them.
 
-    Returns stats: ``recording_id``, ``frames``, ``detections``, ``chosen``, ``points``, ``rgb`` ("asset",
-    "images" or "files"), ``notes`` (warnings also in /log), ``log_seconds`` (wall time of logging, flushing
-    included), ``rrd`` (path or None).
+    Returns stats: ``recording_id``, ``frames``, ``detections``, ``chosen``, ``points``, ``clouds``, ``rgb``
+    ("asset", "images" or "files"), ``notes`` (warnings also in /log), ``log_seconds`` (wall time of logging,
+    flushing included), ``rrd`` (path or None).
     """
-    t0 = time.perf_counter()
     _check_match(trace, recording)
-    out = Output(rrd=rrd, spawn=spawn, stream=stream)
-    try:
+    with Output(rrd=rrd, spawn=spawn, stream=stream) as out:
         logger = TraceLogger(recording, out.stream, video=video, points=points, step=step, max_points=max_points,
                              clouds=clouds, blueprint=blueprint_for(trace, recording, points=points))
         for frame, result, frame_clouds in trace_frames(trace, recording, progress=progress, frames=frames):
             logger.on_frame(frame, result, frame_clouds)
-        stats = logger.finish(trace, layout=False)
-        log_timings(out.stream, {**trace.timings, "log": time.perf_counter() - t0}, stats["frames"])
-        out.flush()
-    except BaseException as err:
-        out.close(err)
-        raise
-    out.close()
-    stats.update(recording_id=out.stream.get_recording_id(), rrd=None if out.rrd is None else str(out.rrd))
-    stats["log_seconds"] = time.perf_counter() - t0
+        stats = logger.finish(trace, layout=False, timed_from=out.opened)
+    stats.update(out.stats(), log_seconds=out.seconds)
     return stats
 
 
-__all__ = ["TraceLogger", "log_trace", "trace_frames", "log_opening", "log_overlays",
+__all__ = ["TraceLogger", "log_trace_with_clouds", "trace_frames", "log_opening", "log_overlays",
            "log_conclusion"]
