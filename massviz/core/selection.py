@@ -168,17 +168,14 @@ class NearestOrder:
 
     def select(self, k: int, threshold: float) -> np.ndarray:
         """Indices of the ``k`` nearest detections with score > ``threshold``, nearest first."""
-        if k < 1:
-            raise ValueError("k must be >= 1")
-        return self.order[self.score > threshold][:k]
+        return self.order[self.score > threshold][:Selection.check("k", k)]
 
 
 def select_k_nearest(d: np.ndarray, score: np.ndarray, k: int, threshold: float,
                      exclude: np.ndarray | None = None) -> np.ndarray:
     """Indices of the ``k`` detections with the smallest ``d`` among those with score > threshold and a finite d,
     nearest first; ties go to the earliest detection. ``exclude`` (bool mask or indices) removes detections."""
-    if k < 1:
-        raise ValueError("k must be >= 1")
+    Selection.check("k", k)  # before the sort
     return NearestOrder(d, score, exclude).select(k, threshold)
 
 

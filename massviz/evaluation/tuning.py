@@ -26,16 +26,14 @@ import pandas as pd
 from massviz.evaluation.metrics import ScoreReport, default_class_of, score_from_estimates
 from massviz.evaluation.sweep import annotations_from_meta, match_annotations
 from massviz.core.detector import detector_info
-from massviz.core.selection import estimate_mass, select_k_nearest
+from massviz.core.selection import Selection, estimate_mass, select_k_nearest
 from massviz.core.trace import Trace, check_reselectable
 from massviz.core.types import Detections
 
 
 def kept_indices(trace: "Trace | SelectionSource", stride: int) -> np.ndarray:
     """Indices of the detections that ``subsample(trace, stride)`` keeps (frame % stride == 0), ascending."""
-    if int(stride) < 1:
-        raise ValueError(f"stride must be >= 1, got {stride}")
-    return np.flatnonzero(trace.detections.frame % int(stride) == 0)
+    return np.flatnonzero(trace.detections.frame % Selection.check("stride", stride) == 0)
 
 
 def _renumbered(n: int, keep: np.ndarray) -> np.ndarray:
