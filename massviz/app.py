@@ -211,7 +211,7 @@ class _NamedDetector:
         return dict(self._settings)
 
     def detect(self, frame):  # pragma: no cover - a CachedPipeline is used only when every trace is cached
-        raise MassvizError("internal error: a pipeline of cached traces reached a recording that is not in the cache")
+        raise MassvizError("internal error: the warm path reached a recording that is not in the cache")
 
     detect_batch = detect
 
@@ -223,7 +223,7 @@ class _NamedModel:
         self.weights_id = weights_id
 
     def predict(self, *a, **k):  # pragma: no cover - see _NamedDetector.detect
-        raise MassvizError("internal error: a pipeline of cached traces needed the mass CNN")
+        raise MassvizError("internal error: the warm path needed the mass CNN")
 
 
 @dataclass
@@ -235,7 +235,8 @@ class CachedPipeline(Pipeline):
     auto: tuple | None = None
 
     def used(self) -> "CachedPipeline":
-        """This pipeline serves the command: say auto's choice as a built one does (``massviz.detect.announce_auto``)."""
+        """This pipeline serves the command: say auto's choice as a built one does
+        (``massviz.detect.announce_auto``)."""
         if self.auto is not None:
             from massviz.detect import announce_auto
 

@@ -193,7 +193,8 @@ def check_trace_arrays(header: dict, data: dict) -> None:
         if len(a) and (n == 0 or int(a.max()) >= n):
             raise ValueError(f"{name} indexes a detection that does not exist ({n} detections)")
     ints("frames")
-    for name, rule in (("detect_threshold", "threshold"), ("threshold", "threshold"), ("k", "k"), ("stride", "stride")):
+    for name in ("detect_threshold", "threshold", "k", "stride"):
+        rule = "threshold" if name.endswith("threshold") else name
         header[name] = Selection.check(rule, header[name], f"header {name}")
     est = header["estimate"]
     if isinstance(est, bool) or not isinstance(est, (int, float)) or not math.isfinite(est):
