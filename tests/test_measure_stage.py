@@ -75,6 +75,19 @@ def test_only_the_detections_chosen_at_the_end_are_measured_and_at_most_k_frames
     assert [m.detection for m in trace.measurements] == [int(i) for i in trace.selection]
 
 
+def test_active_clouds_are_those_of_the_steps_active_detections(cup):
+    """In ``"active"`` mode the stage makes the clouds of ``FrameResult.active`` (the pipeline's decision), nothing
+    else: it applies no score cut of its own."""
+    from massviz.core.pipeline import FramePipeline
+
+    fp = FramePipeline(make_detector("depth"), DistanceModel(), k=2, recording=cup.info())
+    stage = MeasureStage(cup, clouds="active")
+    frame, result = next((f, r) for f, r in ((f, fp.step(f)) for f in cup.frames()) if len(r.active))
+    assert sorted(stage.on_frame(frame, result)) == [result.offset + int(j) for j in result.active]
+    fewer = dataclasses.replace(result, active=result.active[1:])  # the same scores, one detection fewer active
+    assert sorted(stage.on_frame(frame, fewer)) == [result.offset + int(j) for j in result.active[1:]]
+
+
 def test_reselect_keeps_the_measurements_of_the_detections_still_chosen(traced):
     fewer = traced.reselect(k=1)
     assert [m.detection for m in fewer.measurements] == [int(traced.selection[0])]

@@ -115,7 +115,7 @@ def test_a_run_from_the_cache_indexes_equals_the_run_from_full_traces(two_runs, 
 def test_a_run_folders_source_is_found_where_it_is_unambiguous(tmp_path, monkeypatch):
     """``locate_source``: absolute; relative from the current directory; else from the folder or a folder above it,
     every distinct place (two: ambiguous, for the caller to refuse)."""
-    from massviz.evaluation.runs import locate_source
+    from massviz.io.run_folder import locate_source
 
     folder = tmp_path / "work" / "runs" / "k5"
     folder.mkdir(parents=True)

@@ -34,7 +34,7 @@ two runs of a dataset (one row per recording, ranked by how much the relative er
 
 def is_run_folder(path: str) -> bool:
     """A folder written by ``massviz log DATASET --rrd-dir`` (it has an ``index.csv``)."""
-    from massviz.evaluation.browser import INDEX_NAME
+    from massviz.io.run_folder import INDEX_NAME
 
     return Path(path).is_dir() and (Path(path) / INDEX_NAME).is_file()
 

@@ -79,7 +79,7 @@ def _warm_or_build(args, recordings):
     from massviz.commands._warm import all_cached, build_remembering, warm_pipeline
 
     warm = warm_pipeline(args) if args.engine == "local" and not args.threads else None
-    if warm is not None and recordings and all_cached(warm, recordings, args.stride, warm.threshold):
+    if warm is not None and recordings and all_cached(warm, recordings):
         return warm.used()
     return build_remembering(args)
 

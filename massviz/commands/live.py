@@ -217,9 +217,10 @@ def _cache(pipeline, trace, result, args, stream):
 
     if pipeline.cache is None:
         return None
+    from massviz.core.detector import detector_info
     from massviz.io.recording import open_recording
 
-    info = {"name": pipeline.detector.name, **pipeline.detector.settings()}
+    info = detector_info(pipeline.detector)
     if result.saved is not None:  # the recording the folder writer wrote (not read back)
         return pipeline.cache.save(trace, result.recording, info)
     if args.file:

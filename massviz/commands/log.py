@@ -88,7 +88,7 @@ def run(args) -> int:
     ply_line = []
     # the measure stage makes every cloud once: those the Rerun recording shows (each detection above the threshold,
     # as its frame is processed), the measured sizes and the --ply files are the same clouds
-    measure = MeasureStage(rec, clouds="active", threshold=pipeline.selection.threshold)
+    measure = MeasureStage(rec, clouds="active")
 
     def write_clouds(trace, stage):
         from massviz.views.open3d_view import write_ply_or_skip

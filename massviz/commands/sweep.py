@@ -51,22 +51,24 @@ def slim_trace(trace, recording, extra):
 
 
 def run(args) -> int:
-    from pathlib import Path
-
-    from massviz.io.atomic import atomic_path, check_output_file
     from massviz.commands._runner import open_dataset, run_tasks
     from massviz.commands._warm import build_remembering
+    from massviz.core.detector import detector_info
+    from massviz.core.selection import Selection
     from massviz.errors import MassvizError
     from massviz.evaluation.metrics import default_class_of, parse_class_map
-    from massviz.io.ccm_annotations import read_annotations
     from massviz.evaluation.sweep import MAX_SWEEP_PAIRS, parse_range
+    from massviz.io.atomic import check_output_file
+    from massviz.io.ccm_annotations import read_annotations
 
     thresholds = parse_range(args.threshold, float, "--threshold")
     ks = parse_range(args.k, int, "--k")
-    if min(thresholds) < 0 or max(thresholds) >= 1:
-        raise MassvizError(f"--threshold values must lie in [0, 1), got {args.threshold!r}")
-    if min(ks) < 1:
-        raise MassvizError(f"--k values must be >= 1, got {args.k!r}")
+    try:  # every value of the grid as the pipeline's options are checked
+        for name, values in (("threshold", thresholds), ("k", ks)):
+            for v in values:
+                Selection.check(name, v, f"--{name}")
+    except ValueError as err:
+        raise MassvizError(str(err)) from None
     if len(thresholds) * len(ks) > MAX_SWEEP_PAIRS:
         raise MassvizError(f"--threshold x --k is {len(thresholds)} x {len(ks)} = {len(thresholds) * len(ks)} pairs "
                            f"(at most {MAX_SWEEP_PAIRS}); use larger steps")
@@ -82,10 +84,10 @@ def run(args) -> int:
     tasks, failed, opened, on_error = open_dataset(args)
     recordings = [opened[t.index] for t in tasks]
     pipeline = build_remembering(args, threshold=min(thresholds))
-    detector, cache = pipeline.detector, pipeline.cache
-    info = {"name": detector.name, **detector.settings()}
+    cache, selection = pipeline.cache, pipeline.selection
+    info = detector_info(pipeline.detector)
     missing = [r.id for r in recordings if cache is None or
-               cache.lookup(r, info, args.stride, min(thresholds)) is None]
+               cache.lookup(r, info, selection.stride, selection.threshold) is None]
     if args.cached_only and missing:
         raise MassvizError(f"{len(missing)} recording(s) not in the cache at threshold <= {min(thresholds)} "
                            f"(first: {missing[0]}); run without --cached-only")
@@ -111,7 +113,7 @@ def _warm_indexes(args, threshold: float):
     recordings = locate_all(paths, cache_root(args), getattr(args, "allow_partial", False))
     if not recordings:
         return None
-    indexes = cached_indexes(pipeline, recordings, args.stride, threshold)
+    indexes = cached_indexes(pipeline, recordings)
     if indexes is not None:
         pipeline.used()
     if indexes is not None and args.report:

@@ -24,6 +24,12 @@ def describe_cut(detector: str, threshold: float) -> str:
     return f"score > {threshold:g} ({detector}'s default: {default:g})"
 
 
+def detector_info(detector) -> dict:
+    """What a trace records of its detector and what keys its traces in the cache: the detector's name and
+    ``settings()`` (every setting that changes its output but the score cut)."""
+    return {"name": detector.name, **detector.settings()}
+
+
 @runtime_checkable
 class Detector(Protocol):
     """A detector turns one frame into detections.
@@ -44,4 +50,4 @@ class Detector(Protocol):
     def settings(self) -> dict: ...
 
 
-__all__ = ["Detector", "PAPER_THRESHOLD", "DEFAULT_THRESHOLDS", "describe_cut"]
+__all__ = ["Detector", "PAPER_THRESHOLD", "DEFAULT_THRESHOLDS", "describe_cut", "detector_info"]

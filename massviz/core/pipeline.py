@@ -36,7 +36,7 @@ from collections import defaultdict
 import numpy as np
 from tqdm.auto import tqdm
 
-from massviz.core.detector import Detector
+from massviz.core.detector import Detector, detector_info
 from massviz.core.frame_stage import FramePatches, FrameStage, StagedFrame, predictable
 from massviz.core.prefetch import Prefetcher
 from massviz.core.selection import REJECTED_PREFIX, Selection, estimate_mass, select_k_nearest
@@ -80,21 +80,24 @@ class _NearestPatches:
             self.patches.pop(-neg, None)
 
 
-def resolve_selection(selection: Selection | None, k: int | None, stride: int | None) -> Selection:
-    """``selection``, or one made of the shorthand ``k``/``stride`` (not both)."""
+def resolve_selection(selection: Selection | None, k: int | None, stride: int | None,
+                      cut: float | None = None) -> Selection:
+    """``selection``, or one made of the shorthand ``k``/``stride`` (not both); with ``cut`` (the detector's score
+    cut) resolved for it (``Selection.for_cut``: a selection resolved for that cut at the edge is used as it is)."""
     if selection is None:
-        return Selection(k=5 if k is None else k, stride=1 if stride is None else stride)
-    if k is not None or stride is not None:
+        selection = Selection(k=5 if k is None else k, stride=1 if stride is None else stride)
+    elif k is not None or stride is not None:
         raise ValueError("pass either selection= or k=/stride=, not both")
-    return selection
+    return selection if cut is None else selection.for_cut(cut)
 
 
 class FramePipeline:
     """The per-frame step of the pipeline, holding the running nearest-K state of one recording.
 
     ``selection``: the K, threshold, stride and exclusions to select with (``Selection``; ``k=``/``stride=`` are a
-    shorthand for ``Selection(k, stride=stride)``). A selection without a threshold selects at the detector's own
-    score cut; one below it is refused (those detections were never kept).
+    shorthand for ``Selection(k, stride=stride)``), resolved for the detector's score cut unless the edge did
+    (``Selection.for_cut``): a selection without a threshold selects at the cut; one below it is refused (those
+    detections were never kept).
 
     Measured sizes (point clouds, Open3D) are not a step of this pipeline: the optional measure stage
     (``massviz.measure3d.stage.MeasureStage``) observes the steps' results and fills ``Trace.measurements``.
@@ -104,7 +107,7 @@ class FramePipeline:
                  stride: int | None = None, recording: RecordingInfo | None = None,
                  keep_patches: int = KEEP_PATCHES, stage: FrameStage | None = None):
         self.detect_threshold = float(detector.threshold)  # the detector's own cut, recorded in the trace
-        self.selection = selection = resolve_selection(selection, k, stride).at_cut(self.detect_threshold)
+        self.selection = selection = resolve_selection(selection, k, stride, self.detect_threshold)
         self.detector, self.model = detector, model
         self.stage = stage if stage is not None else FrameStage(detector, model)
         self.k, self.stride = selection.k, selection.stride
@@ -196,7 +199,7 @@ class FramePipeline:
         events = [*self.events, *describe_selection(detections, selection, estimate, self.k, self.events,
                                                     threshold=self.selection.threshold, detector=self.detector.name)]
         info = self.recording if self.recording is not None else RecordingInfo(id="live")
-        trace = Trace(recording=info, detector={"name": self.detector.name, **self.detector.settings()},
+        trace = Trace(recording=info, detector=detector_info(self.detector),
                      detect_threshold=self.detect_threshold, threshold=self.selection.threshold,
                      k=self.k, stride=self.stride, frames=np.asarray(self._frames, dtype=np.int32),
                      detections=detections, selection=selection, estimate=estimate, excluded=excluded,
@@ -227,7 +230,7 @@ def run(recording, detector: Detector, model, *, selection: Selection | None = N
     ``analyse``: the flags (``FramePipeline.finish``).
     """
     stage = FrameStage(detector, model, batch=batch, kernels=kernels, overlap=overlap)
-    fp = FramePipeline(detector, model, selection=resolve_selection(selection, k, stride), recording=recording.info(),
+    fp = FramePipeline(detector, model, selection=selection, k=k, stride=stride, recording=recording.info(),
                        keep_patches=keep_patches, stage=stage)
     stride = fp.stride
     total = math.ceil(recording.num_frames / stride)

@@ -10,11 +10,21 @@ earliest detection, and each detection is chosen at most once; a detection witho
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
+import math
+import numbers
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from massviz.core.types import Detections
+
+
+def _shown(value, n: int = 60) -> str:
+    """``value`` in a message: 2.5, not np.float64(2.5); text quoted; at most ``n`` characters."""
+    if isinstance(value, np.generic):
+        value = value.item()
+    text = repr(value)
+    return text if len(text) <= n else text[:n] + "..."
 
 
 @dataclass(frozen=True)
@@ -23,43 +33,84 @@ class Selection:
     ``Trace``: the ``k`` nearest detections with score > ``threshold`` among every ``stride``-th frame, never the
     detections ``exclude`` (indices into the recording's detections).
 
-    ``threshold`` None: the detector's own score cut (what ``FramePipeline`` resolves it to when the caller names
-    none; the CLI and ``massviz.app`` always name it).
+    ``threshold`` None: the detector's own score cut. The edge that builds the pipeline (``massviz.app.Pipeline``)
+    resolves it once (``at_cut``); ``cut`` then says for which cut, and the stages it is given use it as it is.
     """
 
     k: int = 5
     threshold: float | None = None
     stride: int = 1
     exclude: tuple = ()
+    #: the detector's score cut this selection was resolved for (``at_cut``); None: not resolved. Not part of the
+    #: value (equality, repr); a ``replace`` that changes the threshold drops it.
+    cut: float | None = field(default=None, init=False, compare=False, repr=False)
 
     def __post_init__(self) -> None:
-        if isinstance(self.k, bool) or int(self.k) != self.k or self.k < 1:
-            raise ValueError(f"k must be an integer >= 1, got {self.k!r}")
-        if isinstance(self.stride, bool) or int(self.stride) != self.stride or self.stride < 1:
-            raise ValueError(f"stride must be an integer >= 1, got {self.stride!r}")
-        if self.threshold is not None and not 0.0 <= float(self.threshold) < 1.0:
-            raise ValueError(f"threshold must be in [0, 1), got {self.threshold!r}")
+        k, stride = self.check("k", self.k), self.check("stride", self.stride)
+        threshold = None if self.threshold is None else self.check("threshold", self.threshold)
         ex = np.asarray(self.exclude if self.exclude is not None else ())
         ex = np.flatnonzero(ex) if ex.dtype == bool else ex.astype(np.int64).reshape(-1)
-        object.__setattr__(self, "k", int(self.k))
-        object.__setattr__(self, "stride", int(self.stride))
-        object.__setattr__(self, "threshold", None if self.threshold is None else float(self.threshold))
+        object.__setattr__(self, "k", k)
+        object.__setattr__(self, "stride", stride)
+        object.__setattr__(self, "threshold", threshold)
         object.__setattr__(self, "exclude", tuple(int(i) for i in ex))
 
+    @staticmethod
+    def check(name: str, value, label: str | None = None) -> int | float:
+        """``value`` as the selection's ``name``: ``k`` and ``stride`` an integer >= 1 (returned as an int),
+        ``threshold`` a number in [0, 1) (a float); else ``ValueError`` "<label> must be an integer" / "must be >= 1"
+        / "must be a number" / "must be in [0, 1)", ", got <value>" (``label``: how the caller names it, ``--k`` or
+        ``column 'k'``; default ``name``). The one check of K, stride and threshold: the options
+        (``massviz.app.PipelineOptions``), ``massviz sweep``'s grid, a run folder's ``index.csv``, a trace file and
+        the trace cache's index refuse a value with these words."""
+        label = name if label is None else label
+        if isinstance(value, np.generic):
+            value = value.item()
+        real = isinstance(value, numbers.Real) and not isinstance(value, bool)
+        if name in ("k", "stride"):
+            if not real or not (isinstance(value, numbers.Integral) or math.isfinite(value) and value == int(value)):
+                raise ValueError(f"{label} must be an integer, got {_shown(value)}")
+            if value < 1:
+                raise ValueError(f"{label} must be >= 1, got {_shown(value)}")
+            return int(value)
+        if name == "threshold":
+            if not real:
+                raise ValueError(f"{label} must be a number, got {_shown(value)}")
+            if not 0.0 <= float(value) < 1.0:
+                raise ValueError(f"{label} must be in [0, 1), got {_shown(value)}")
+            return float(value)
+        raise KeyError(f"the selection has no checked value {name!r} (k, stride, threshold)")
+
     def replace(self, **changes) -> "Selection":
-        return dataclasses.replace(self, **changes)
+        """``dataclasses.replace``, keeping ``cut`` unless the threshold changes (K, stride and exclusions do not
+        change what the detector's cut allows)."""
+        out = dataclasses.replace(self, **changes)
+        if "threshold" not in changes and self.cut is not None:
+            object.__setattr__(out, "cut", self.cut)
+        return out
 
     def at_cut(self, detect_threshold: float) -> "Selection":
-        """This selection with its threshold resolved for a detector whose score cut is ``detect_threshold``: the
-        cut itself when it names none; ``ValueError`` when it names one below the cut (those detections were never
-        kept). What the edge (``massviz.app.Pipeline``, ``massviz.app.process``, ``FramePipeline``'s shorthand)
-        resolves once; every stage and sink after it reads the trace's (or the ``FrameResult``'s) values."""
+        """This selection with its threshold resolved for a detector whose score cut is ``detect_threshold`` (and
+        ``cut`` set): the cut itself when it names none; ``ValueError`` when it names one below the cut (those
+        detections were never kept). What the edge (``massviz.app.Pipeline``, ``massviz.app.process`` and
+        ``FramePipeline`` given a selection not resolved for their detector) does once; every stage and sink after it
+        reads the trace's (or the ``FrameResult``'s) values."""
+        cut = float(detect_threshold)
         if self.threshold is None:
-            return self.replace(threshold=float(detect_threshold))
-        if self.threshold < float(detect_threshold) - 1e-9:
+            out = dataclasses.replace(self, threshold=cut)
+        elif self.threshold < cut - 1e-9:
             raise ValueError(f"selection threshold {self.threshold} is below the detector's score cut "
-                             f"{float(detect_threshold)} (lower-scored detections are never kept)")
-        return self
+                             f"{cut} (lower-scored detections are never kept)")
+        else:
+            out = dataclasses.replace(self)
+        object.__setattr__(out, "cut", cut)
+        return out
+
+    def for_cut(self, detect_threshold: float) -> "Selection":
+        """This selection when it was resolved for ``detect_threshold`` already (``cut``), else
+        ``at_cut(detect_threshold)``: what a stage given a selection calls, so that one resolved at the edge is not
+        resolved again."""
+        return self if self.cut is not None and self.cut == float(detect_threshold) else self.at_cut(detect_threshold)
 
 
 class NearestOrder:
@@ -79,17 +130,14 @@ class NearestOrder:
 
     def select(self, k: int, threshold: float) -> np.ndarray:
         """Indices of the ``k`` nearest detections with score > ``threshold``, nearest first."""
-        if k < 1:
-            raise ValueError("k must be >= 1")
-        return self.order[self.score > threshold][:k]
+        return self.order[self.score > threshold][:Selection.check("k", k)]
 
 
 def select_k_nearest(d: np.ndarray, score: np.ndarray, k: int, threshold: float,
                      exclude: np.ndarray | None = None) -> np.ndarray:
     """Indices of the ``k`` detections with the smallest ``d`` among those with score > threshold and a finite d,
     nearest first; ties go to the earliest detection. ``exclude`` (bool mask or indices) removes detections."""
-    if k < 1:
-        raise ValueError("k must be >= 1")
+    Selection.check("k", k)  # before the sort
     return NearestOrder(d, score, exclude).select(k, threshold)
 
 

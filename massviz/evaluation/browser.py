@@ -28,10 +28,9 @@ import pandas as pd
 from massviz.core.trace import Trace
 from massviz.errors import DataError
 from massviz.evaluation.failures import Exclusion
+from massviz.io.run_folder import INDEX_NAME, PATCHES_NAME
 from massviz.io.untrusted import confined, text_id
 
-INDEX_NAME = "index.csv"
-PATCHES_NAME = "patches.csv"
 PATCH_COLUMNS = ("recording", "rank", "detection", "frame", "track", "class", "score", "d_mm", "a", "b", "pred_g",
                  "flagged", "severity", "cues", "x1", "y1", "x2", "y2")
 #: the figures ``catalog_summary`` and ``pandas_summary`` both give, per recording.

@@ -7,8 +7,9 @@ from
 
 * a dataset folder written by ``massviz log DATASET --rrd-dir OUT`` (``load_run``: its ``index.csv`` and
   ``patches.csv``; nothing is recomputed; ``with_traces(plan_traces(run, options))`` adds the traces of its
-  recordings, from the trace cache with the settings, source and weights its ``index.csv`` records, each checked
-  against the folder's estimate), or
+  recordings, from the trace cache with the settings, source and weights its ``index.csv`` records (read and
+  checked by ``massviz.io.run_folder``, the pipelines built by ``massviz.app``), each checked against the folder's
+  estimate), or
 * traces (``run_from_traces``), e.g. those of the trace cache selected by their settings (``run_from_cache``:
   detector, threshold, K, stride, weights; cached detections are reused, a threshold or K the cache can serve runs
   no detector, and a recording without a usable cache entry is processed once and cached), or the cache's
@@ -32,13 +33,14 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 
+from massviz.app import PipelineOptions
 from massviz.errors import MassvizError
 from massviz.evaluation.browser import read_dataset, tables_from_traces
 from massviz.evaluation.compare import DEFAULT_IOU, match_boxes
 
-#: the settings a run from the trace cache may set (``PipelineOptions`` fields), and how each is read from text.
-SETTINGS = {"detector": str, "threshold": float, "k": int, "stride": int, "weights": str, "detector_weights": str,
-            "precision": str, "replay": str}
+#: the settings a run from the trace cache may set (the ``PipelineOptions`` fields marked as settings), and how each
+#: is read from text.
+SETTINGS = PipelineOptions.setting_types()
 #: the per-recording figures compared (``_a``, ``_b`` and ``delta_`` columns).
 FIGURES = ("estimate_g", "rel_error", "score", "n_flagged")
 #: the settings columns of a recording row, shown per run.
@@ -108,7 +110,7 @@ def run_from_cache(recordings: Sequence, options=None, *, label: str | None = No
     """The run of ``recordings`` (paths or ``Recording`` objects) with ``options`` (``PipelineOptions``) and
     ``settings`` (``SETTINGS`` names) over them, from the trace cache (``massviz.app``: cached detections are
     reused; only what the cache cannot serve is computed, then cached)."""
-    from massviz.app import PipelineOptions, build_pipeline
+    from massviz.app import build_pipeline
     from massviz.io.recording import open_recording
 
     options = (options or PipelineOptions()).replace(**settings) if settings else (options or PipelineOptions())
@@ -116,25 +118,6 @@ def run_from_cache(recordings: Sequence, options=None, *, label: str | None = No
     recs = [r if not isinstance(r, (str, Path)) else open_recording(r) for r in recordings]
     traces = [pipeline.process(r, progress=progress) for r in recs]
     return run_from_traces(traces, label if label is not None else describe_settings(settings), recs)
-
-
-#: the detectors a run folder's ``detector`` column may name (``massviz log``'s, ``auto`` resolved), then its
-#: precision when it records one (``maskrcnn bf16``)
-FOLDER_DETECTORS = ("maskrcnn", "nanodet", "depth", "replay")
-
-
-def locate_source(source: str, folder: str | Path) -> list[Path]:
-    """Where a run folder's ``source`` (a recording's path as ``massviz log`` was given it) is now: an absolute
-    path that exists; a relative one that exists from the current directory; else relative to ``folder`` or a folder
-    above it, every distinct place it exists (one: found; none: not found; several: ambiguous)."""
-    path = Path(source).expanduser()
-    if path.is_absolute() or path.exists():
-        return [path.resolve()] if path.exists() else []
-    found = []
-    for base in (Path(folder).resolve(), *Path(folder).resolve().parents):
-        if (base / path).exists() and (base / path).resolve() not in found:
-            found.append((base / path).resolve())
-    return found
 
 
 @dataclass
@@ -147,71 +130,24 @@ class TracePlan:
     pipelines: list
 
 
-def _bad_row(index_path: Path, rid: str, message: str) -> MassvizError:
-    return MassvizError(f"recording {rid!r}: {message}", index_path)
-
-
-def _row_settings(row, index_path: Path, rid: str) -> dict:
-    """The pipeline settings a run folder's row records (detector, threshold, k, stride; ``precision`` when the
-    detector column names one), checked: the folder may come from someone else."""
-    words = str(row.get("detector", "")).split() if isinstance(row.get("detector"), str) else []
-    if not 1 <= len(words) <= 2 or words[0] not in FOLDER_DETECTORS:
-        raise _bad_row(index_path, rid, f"column 'detector': {row.get('detector')!r} is not one of "
-                       f"{', '.join(FOLDER_DETECTORS)} (with a precision)")
-    out = {"detector": words[0]}
-    if len(words) == 2:
-        out["precision"] = words[1]
-    from massviz.io.untrusted import number
-
-    what = lambda name: f"recording {rid!r}: column {name!r}"  # noqa: E731
-    out["threshold"] = number(row.get("threshold"), what("threshold"), index_path, lo=0.0, error=MassvizError)
-    if out["threshold"] >= 1.0:
-        raise MassvizError(f"{what('threshold')} must be < 1, got {out['threshold']:g}", index_path)
-    for name in ("k", "stride"):
-        out[name] = number(row.get(name), what(name), index_path, lo=1, integral=True, error=MassvizError)
-    return out
-
-
 def plan_traces(run: Run, options=None, ids: Sequence | None = None, *, weights_option: str = "--weights",
                 allow_partial: bool = False) -> TracePlan:
     """Check that the traces of a run folder's recordings ``ids`` (default: all) can be made as the folder records
-    them, before anything runs: each ``source`` found (``locate_source``) and opened as the recording of that id,
-    each row's settings read (``detector``, ``threshold``, ``k``, ``stride``) over ``options``
-    (``PipelineOptions``: the detector's weights, replay input, precision, cache ...), and the mass CNN ``options``
-    loads is the one of the row's ``weights_id`` (``weights_option``: the option that gives it, for the message).
-    ``MassvizError`` naming the folder's ``index.csv`` and the recording when not."""
-    from massviz.app import PipelineOptions, build_pipeline
-    from massviz.evaluation.browser import INDEX_NAME
-    from massviz.io.recording import open_recording
+    them, before anything runs: each row read (``massviz.io.run_folder.read_rows``: its source found and opened as
+    the recording of that id, its settings ``detector``, ``threshold``, ``k``, ``stride``), one pipeline built per
+    distinct settings over ``options`` (``PipelineOptions``: the detector's weights, replay input, precision, cache
+    ...; ``massviz.app.build_pipelines``), and the mass CNN ``options`` loads is the one of the row's ``weights_id``
+    (``weights_option``: the option that gives it, for the message). ``MassvizError`` naming the folder's
+    ``index.csv`` and the recording when not."""
+    from massviz.app import build_pipelines
+    from massviz.io.run_folder import read_rows
 
     options = options or PipelineOptions()
     folder = Path(run.source)
-    index_path = folder / INDEX_NAME
     ids = list(run.recordings.index) if ids is None else list(ids)
-    recordings, groups = {}, {}
-    for rid in ids:
-        row = run.recordings.loc[rid]
-        source = row.get("source")
-        found = locate_source(source, folder) if isinstance(source, str) and source.strip() else []
-        if len(found) != 1:
-            where = (f"found at {' and at '.join(str(f) for f in found)} (ambiguous)" if found else
-                     "not found (absolute, from the current directory, nor from the folder or a folder above it)")
-            raise _bad_row(index_path, rid, f"its source {source!r} is {where}")
-        try:
-            rec = open_recording(found[0], allow_partial=allow_partial)
-        except MassvizError as err:
-            raise _bad_row(index_path, rid, f"its source {source!r} does not open ({err})") from None
-        if rec.id != rid:
-            raise _bad_row(index_path, rid, f"its source {source!r} ({found[0]}) is the recording {rec.id!r}")
-        recordings[rid] = rec
-        settings = _row_settings(row, index_path, rid)
-        if settings.pop("precision", options.precision) != options.precision:
-            raise _bad_row(index_path, rid, f"made with --precision {row['detector'].split()[1]}, the command "
-                           f"gives {options.precision}")
-        groups.setdefault(tuple(settings.items()), []).append(rid)
+    rows = read_rows(run.recordings, folder, ids, precision=options.precision, allow_partial=allow_partial)
     pipelines = []
-    for settings, rids in groups.items():
-        pipeline = build_pipeline(options.replace(**dict(settings)))
+    for pipeline, rids in build_pipelines(options, {rid: row.settings for rid, row in rows.items()}):
         have = getattr(pipeline.model, "weights_id", "") or ""
         for rid in rids:
             want = run.recordings.loc[rid].get("weights_id")
@@ -220,7 +156,7 @@ def plan_traces(run: Run, options=None, ids: Sequence | None = None, *, weights_
                 raise MassvizError(f"recording {rid!r} was made with the mass-CNN weights {want!r}, the checkpoint "
                                    f"{weights_option} gives is {have!r}", folder)
         pipelines.append((pipeline, rids))
-    return TracePlan(run, recordings, pipelines)
+    return TracePlan(run, {rid: row.recording for rid, row in rows.items()}, pipelines)
 
 
 def with_traces(plan: TracePlan, *, progress: bool = False) -> Run:
@@ -229,7 +165,7 @@ def with_traces(plan: TracePlan, *, progress: bool = False) -> Run:
     cached); ``MassvizError`` naming the folder's ``index.csv`` and the recording when a trace's estimate is not
     the folder's (both none, or equal to float precision): the folder was made with what the options do not
     reproduce (other detector weights, replay input ...)."""
-    from massviz.evaluation.browser import INDEX_NAME
+    from massviz.io.run_folder import INDEX_NAME, row_error
 
     traces = {}
     for pipeline, rids in plan.pipelines:
@@ -240,7 +176,7 @@ def with_traces(plan: TracePlan, *, progress: bool = False) -> Run:
         got = float(trace.estimate) if trace.estimate >= 0 else np.nan
         want = pd.to_numeric(pd.Series([plan.run.recordings.loc[rid].get("estimate_g")]), errors="coerce").iloc[0]
         if not (np.isnan(got) and np.isnan(want) or np.isclose(got, want, rtol=1e-6, atol=1e-6)):
-            raise _bad_row(index_path, rid, f"the trace made with its settings estimates {got:.6g} g, the folder's "
+            raise row_error(index_path, rid, f"the trace made with its settings estimates {got:.6g} g, the folder's "
                            f"estimate_g is {want:.6g} g: the folder was made with what this command does not "
                            "reproduce (other detector weights, replay input or precision?)")
     ids = list(plan.recordings)
@@ -495,8 +431,7 @@ def write_table(table: pd.DataFrame, path: str | Path) -> Path:
     return path
 
 
-__all__ = ["Run", "SETTINGS", "FIGURES", "CHANGES", "TIE_G", "OUTCOMES", "outcomes", "FOLDER_DETECTORS", "TracePlan",
-           "load_run", "run_from_traces",
-           "run_from_cache", "locate_source", "plan_traces", "with_traces", "run_from_indexes", "trace_from_index",
-           "parse_settings",
-           "describe_settings", "patch_changes", "compare_runs", "filter_comparison", "run_scores", "write_table"]
+__all__ = ["Run", "SETTINGS", "FIGURES", "CHANGES", "TIE_G", "OUTCOMES", "outcomes", "TracePlan", "load_run",
+           "run_from_traces", "run_from_cache", "plan_traces", "with_traces", "run_from_indexes", "trace_from_index",
+           "parse_settings", "describe_settings", "patch_changes", "compare_runs", "filter_comparison", "run_scores",
+           "write_table"]

@@ -16,7 +16,7 @@ import pandas as pd
 from massviz.errors import MassvizError
 from massviz.evaluation.metrics import default_class_of, recording_scores
 from massviz.io.ccm_annotations import ANN_CONTAINER, ANN_ID, ANN_MASS
-from massviz.core.selection import NearestOrder
+from massviz.core.selection import NearestOrder, Selection
 from massviz.core.trace import Trace
 
 
@@ -112,18 +112,15 @@ class SweepTable:
         """Number of patches chosen per trace (0 when not estimated): ``len(retune(trace, k=, threshold=,
         stride=).selection)``."""
         self._check(threshold)
-        if int(k) < 1:
-            raise ValueError("k must be >= 1")
+        k = Selection.check("k", k)
         trace_of, _, _ = self._ranked(threshold, stride)
-        return np.minimum(np.bincount(trace_of, minlength=len(self.traces)), int(k))
+        return np.minimum(np.bincount(trace_of, minlength=len(self.traces)), k)
 
     def estimates(self, threshold: float, k: int, stride: int = 1) -> np.ndarray:
         """Estimate per trace (grams, -1 when not estimated) — equal to ``trace.reselect(k, threshold).estimate``
         (``stride`` > 1: to ``retune(trace, k=, threshold=, stride=).estimate``)."""
         self._check(threshold)
-        k = int(k)
-        if k < 1:
-            raise ValueError("k must be >= 1")
+        k = Selection.check("k", k)
         trace_of, rank, pred = self._ranked(threshold, stride)
         chosen = rank < k
         trace_of, rank, pred = trace_of[chosen], rank[chosen], pred[chosen]

@@ -25,16 +25,15 @@ import pandas as pd
 
 from massviz.evaluation.metrics import ScoreReport, default_class_of, score_from_estimates
 from massviz.evaluation.sweep import annotations_from_meta, match_annotations
-from massviz.core.selection import estimate_mass, select_k_nearest
+from massviz.core.detector import detector_info
+from massviz.core.selection import Selection, estimate_mass, select_k_nearest
 from massviz.core.trace import Trace, check_reselectable
 from massviz.core.types import Detections
 
 
 def kept_indices(trace: "Trace | SelectionSource", stride: int) -> np.ndarray:
     """Indices of the detections that ``subsample(trace, stride)`` keeps (frame % stride == 0), ascending."""
-    if int(stride) < 1:
-        raise ValueError(f"stride must be >= 1, got {stride}")
-    return np.flatnonzero(trace.detections.frame % int(stride) == 0)
+    return np.flatnonzero(trace.detections.frame % Selection.check("stride", stride) == 0)
 
 
 def _renumbered(n: int, keep: np.ndarray) -> np.ndarray:
@@ -160,20 +159,20 @@ def index_recordings(recordings, options=None, *, progress: bool = False, **kwar
     pipeline = build_pipeline(options, **kwargs)
     if pipeline.cache is None:
         raise ValueError("index_recordings needs the trace cache (no_cache=False)")
-    o = pipeline.options
-    info = {"name": pipeline.detector.name, **pipeline.detector.settings()}
+    o, selection = pipeline.options, pipeline.selection
+    info = detector_info(pipeline.detector)
     out = []
     for r in recordings:
         rec = r if not isinstance(r, (str, Path)) else open_remembered(r, pipeline.cache.root,
                                                                        allow_partial=o.allow_partial)
-        index = pipeline.cache.load_index(rec, info, o.stride, pipeline.threshold)
+        index = pipeline.cache.load_index(rec, info, selection.stride, selection.threshold)
         if index is None or index.weights_id != getattr(pipeline.model, "weights_id", ""):
             if isinstance(rec, LocatedRecording):  # recognised, not opened: open it to process it
                 from massviz.io.recording import open_recording
 
                 rec = open_recording(r, allow_partial=o.allow_partial)
             pipeline.process(rec, progress=progress)
-            index = pipeline.cache.load_index(rec, info, o.stride, pipeline.threshold)
+            index = pipeline.cache.load_index(rec, info, selection.stride, selection.threshold)
         out.append(dataclasses.replace(index, recording=rec.info()))
     return out
 

@@ -32,6 +32,7 @@ from massviz.errors import MassvizError
 from massviz.io.filehash import FileHasher
 from massviz.io.untrusted import safe_filename
 from massviz.io.recording import Recording
+from massviz.core.selection import Selection
 from massviz.core.trace import Trace
 from massviz.core.types import Detections, RecordingInfo
 from massviz.io.trace_file import load_trace, save_trace
@@ -277,9 +278,9 @@ def load_index(trace_path: Path) -> TraceIndex | None:
         if n and (np.isinf(dets.d).any() or np.isnan(dets.score).any() or (dets.frame < 0).any()
                   or (dets.score < 0).any() or (dets.score > 1).any()):
             return None
-        threshold, stride = float(header["detect_threshold"]), int(header["stride"])
-        if not (0.0 <= threshold < 1.0 and stride >= 1):
-            return None
+        # checked as every cut and stride are (Selection.check): a ValueError is an unusable index
+        threshold = Selection.check("threshold", header["detect_threshold"], "detect_threshold")
+        stride = Selection.check("stride", header["stride"])
         return TraceIndex(recording=RecordingInfo.from_dict(header["recording"]), detector=dict(header["detector"]),
                           detect_threshold=threshold, stride=stride, weights_id=str(header["weights_id"]),
                           frames=np.asarray(data["frames"], dtype=np.int64), detections=dets,

@@ -21,7 +21,7 @@ import numpy as np
 
 from massviz.core.flags import Flags
 from massviz.core.measurement import Measurement
-from massviz.core.selection import REJECTED_PREFIX
+from massviz.core.selection import REJECTED_PREFIX, Selection
 from massviz.core.trace import Event, Trace, analyse_trace
 from massviz.core.types import Detections, PackedMask, RecordingInfo
 from massviz.errors import MassvizError
@@ -129,7 +129,7 @@ def check_trace_arrays(header: dict, data: dict) -> None:
     detection array has one entry per detection, boxes are non-empty integers >= 0, masks and patches have their
     box's size (checked from the stored sizes and PNG headers, before anything is unpacked or decoded), scores are in
     [0, 1], d/a/b/pred finite or NaN, selection and exclusions index detections, thresholds in [0, 1), k and stride
-    integers >= 1, the estimate finite."""
+    integers >= 1 (``Selection.check``; the header then holds the values it returns), the estimate finite."""
     import math
 
     def ints(name, lo=0, hi=MAX_INDEX, ndim=1):
@@ -193,14 +193,9 @@ def check_trace_arrays(header: dict, data: dict) -> None:
         if len(a) and (n == 0 or int(a.max()) >= n):
             raise ValueError(f"{name} indexes a detection that does not exist ({n} detections)")
     ints("frames")
-    for name in ("detect_threshold", "threshold"):
-        v = header[name]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < 1:
-            raise ValueError(f"header {name} must be a number in [0, 1), got {v!r}"[:200])
-    for name in ("k", "stride"):
-        v = header[name]
-        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-            raise ValueError(f"header {name} must be an integer >= 1, got {v!r}"[:200])
+    for name in ("detect_threshold", "threshold", "k", "stride"):
+        rule = "threshold" if name.endswith("threshold") else name
+        header[name] = Selection.check(rule, header[name], f"header {name}")
     est = header["estimate"]
     if isinstance(est, bool) or not isinstance(est, (int, float)) or not math.isfinite(est):
         raise ValueError(f"header estimate must be a finite number, got {est!r}"[:200])

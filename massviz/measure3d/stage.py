@@ -13,8 +13,9 @@ Which clouds a frame gets while it is observed is resolved when the stage is mad
 
 * ``"chosen"``: none until the end (``finish`` and ``ply_clouds`` make the chosen frames' clouds from the kept
   arrays);
-* ``"active"``: every detection above the selection's ``threshold`` in every frame, returned by ``on_frame`` /
-  ``replay`` for a sink that shows them (``massviz log``'s Rerun recording).
+* ``"active"``: every detection above the selection's threshold in every frame (a run's ``FrameResult.active``, a
+  replayed trace's ``active()``), returned by ``on_frame`` / ``replay`` for a sink that shows them (``massviz log``'s
+  Rerun recording).
 """
 from __future__ import annotations
 
@@ -51,17 +52,16 @@ class _Kept:
 class MeasureStage:
     """The measure stage of one recording (module docstring). ``recording``: what ``massviz.io.recording`` opens
     (its ``intrinsics``; a recording without them gets no cloud and no measurement, ``skip_reason`` says why).
-    ``clouds``: ``"chosen"`` or ``"active"``; ``threshold``: the score a detection must exceed to get a cloud in
-    ``"active"`` mode during a run (None: every detection; a replay uses the trace's threshold)."""
+    ``clouds``: ``"chosen"`` or ``"active"``."""
 
-    def __init__(self, recording, *, clouds: str = "chosen", threshold: float | None = None,
-                 depth_trunc: float = DEPTH_TRUNC_M, band_m: float | None = BAND_M):
+    def __init__(self, recording, *, clouds: str = "chosen", depth_trunc: float = DEPTH_TRUNC_M,
+                 band_m: float | None = BAND_M):
         if clouds not in CLOUDS:
             raise ValueError(f"clouds must be one of {', '.join(CLOUDS)}, got {clouds!r}")
         self.recording = recording
         self.skip = skip_reason(recording)
         self.intr = None if self.skip else recording.intrinsics
-        self.mode, self.threshold = clouds, threshold
+        self.mode = clouds
         self.depth_trunc, self.band_m = depth_trunc, band_m
         self.frames_seen = 0
         self.seconds = 0.0
@@ -87,7 +87,8 @@ class MeasureStage:
     # ------------------------------------------------------------------------------------------------ per frame
     def on_frame(self, frame: Frame, result) -> dict:
         """Observe one step of a run (``result``: its ``FrameResult``); returns {detection index in the trace: cloud}
-        of this frame's detections above ``threshold`` (``"active"``; empty for ``"chosen"``)."""
+        of this frame's active detections (``result.active``: above the selection's threshold) in ``"active"`` mode;
+        empty for ``"chosen"``."""
         if not self.enabled:
             return {}
         t0 = time.perf_counter()
@@ -100,9 +101,8 @@ class MeasureStage:
         kept = self._keep(frame, frame.index in frames_held)
         out = {}
         if self.mode == "active":
-            for j in range(len(dets)):
-                if self.threshold is None or dets.score[j] > self.threshold:
-                    out[offset + j] = self._cloud(frame, dets, j)
+            for j in result.active:
+                out[offset + int(j)] = self._cloud(frame, dets, int(j))
             if kept is not None:
                 kept.clouds.update(out)
         self.seconds += time.perf_counter() - t0
