@@ -169,7 +169,7 @@ def hostile_folder(root: Path) -> tuple[Path, dict[str, str], dict[str, str]]:
     (folder / "damaged.rrd").write_bytes(b"RRF2" + np.random.default_rng(8).bytes(5000))
     bad["damaged.rrd"] = "cut off or damaged"
     shutil.copy(folder / "good_0.rrd", folder / "zz_copy_of_good_0.rrd")
-    bad["zz_copy_of_good_0.rrd"] = "holds recording 'good-0', as good_0.rrd does"
+    bad["zz_copy_of_good_0.rrd"] = "holds recording 'good-0' as good_0.rrd does, which is served"
     return folder, good, bad
 
 

@@ -92,10 +92,9 @@ def _rrd_files(folder: Path) -> tuple[list[Path], dict[Path, str]]:
     for path in found:
         try:
             ids = rrd_recordings(path)
-            other = next((holder[i] for i in ids if i in holder), None)
-            if other is not None:
-                raise MassvizError(f"holds recording {next(i for i in ids if holder.get(i) == other)!r}, as "
-                                   f"{other.name} does (served: {other.name})", path)
+            same = next((i for i in ids if i in holder), None)
+            if same is not None:
+                raise MassvizError(f"holds recording {same!r} as {holder[same].name} does, which is served", path)
         except MassvizError as err:
             _not_served(skipped, path, err)
             continue
@@ -111,7 +110,7 @@ def _not_served(skipped: dict[Path, str], path: Path, err: MassvizError) -> None
     """Record ``path`` as not served for ``err`` and say so in one warning line naming it."""
     from massviz.io.untrusted import printable
 
-    skipped[path] = err.args[0] if err.args else str(err)
+    skipped[path] = str(err).removeprefix(f"{err.path}: ")
     logging.getLogger(__name__).warning("massviz: warning: %s; not served", printable(err))
 
 
