@@ -132,3 +132,12 @@ def samples_and_618(root: Path, shared_dir: Path, samples_dir: Path, intrinsics:
     (rec / "meta.json").write_text(json.dumps({"id": "618", "fps": 3.0,
                                                "container": {"mass_g": 10.0, "class": "cup", "id": 1}}))
     return root
+
+
+def require_pyrealsense2():
+    """pyrealsense2, else skip the test (fail it under CI=true, where the test extra has installed it)."""
+    try:
+        import pyrealsense2
+    except ImportError:
+        missing_reference("pyrealsense2 is missing (the test extra installs it)")
+    return pyrealsense2

@@ -57,59 +57,6 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-class _WebServer:
-    """Rerun's own binary serving gRPC and a web viewer on 127.0.0.1 (``rerun --serve-web``), started by
-    ``massviz live --serve-web`` and ended with the command: ``stop()`` (SIGTERM, SIGKILL after ``grace`` s) runs when
-    the session ends, however it ends, and the server gets SIGTERM if massviz dies first (Linux
-    ``PR_SET_PDEATHSIG``). The binary itself, not ``python -m rerun``: that wrapper runs the server as a child of its
-    own, which outlived it when the wrapper was killed."""
-
-    def __init__(self, web_port: int, grpc_port: int, timeout: float = 20.0):
-        import socket
-        import subprocess
-        import time
-        import urllib.parse
-
-        from massviz.errors import MassvizError
-        from massviz.views.rerun_serve import _die_with_parent, _viewer_binary
-
-        for port in (web_port, grpc_port):
-            with socket.socket() as s:
-                if s.connect_ex(("127.0.0.1", port)) == 0:
-                    raise MassvizError(f"port {port} on 127.0.0.1 is in use; choose others with --web-port/--grpc-port")
-        cmd = [str(_viewer_binary()), "--serve-web", "--bind", "127.0.0.1", "--port", str(grpc_port),
-               "--web-viewer-port", str(web_port)]
-        self.proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.DEVNULL, start_new_session=True,
-                                     preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
-        self.grpc = f"rerun+http://127.0.0.1:{grpc_port}/proxy"
-        self.url = f"http://127.0.0.1:{web_port}/?url={urllib.parse.quote(self.grpc, safe='')}"
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                raise MassvizError(f"the Rerun web viewer did not start (exit code {self.proc.returncode})")
-            with socket.socket() as s:
-                grpc_up = s.connect_ex(("127.0.0.1", grpc_port)) == 0
-            with socket.socket() as s:
-                if grpc_up and s.connect_ex(("127.0.0.1", web_port)) == 0:
-                    return
-            time.sleep(0.2)
-        self.stop()
-        raise MassvizError(f"the Rerun web viewer did not start within {timeout:.0f} s")
-
-    def stop(self, grace: float = 5.0) -> None:
-        """End the server (idempotent): SIGTERM, then SIGKILL if it is still there after ``grace`` seconds."""
-        import subprocess
-
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(grace)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-
-
 def run(args) -> int:
     from pathlib import Path
 
@@ -170,7 +117,14 @@ def run_session(args, pipeline, stream, name: str) -> int:
         try:
             connect = args.connect
             if args.serve_web:
-                web = _WebServer(args.web_port, args.grpc_port)
+                from massviz.errors import MassvizError
+                from massviz.views.web_viewer import WebViewer, port_in_use
+
+                for port in (args.web_port, args.grpc_port):
+                    if port and port_in_use(port):
+                        raise MassvizError(f"port {port} on 127.0.0.1 is in use; choose others with --web-port/"
+                                           "--grpc-port")
+                web = WebViewer(port=args.web_port, grpc_port=args.grpc_port, timeout=20.0)
                 connect = connect or web.grpc
                 print(f"massviz live: web viewer at {web.url}", file=sys.stderr)
             if args.rrd or args.spawn or connect:

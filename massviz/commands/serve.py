@@ -17,8 +17,11 @@ def register(sub) -> None:
         "column, 'recording', is a button that opens the recording at its best frame), start a web "
         "viewer on 127.0.0.1 and print how to open it. A folder of two-run recordings ('massviz compare A B "
         "--rrd-dir OUT') gets the two-run layouts: A and B side by side in each recording, and a table of both "
-        "runs' figures and their deltas ranked by how much the relative error changed (change_rank). Runs until Ctrl-C (or SIGTERM); then the server and the web "
-        "viewer stop and nothing is left running.",
+        "runs' figures and their deltas ranked by how much the relative error changed (change_rank). Only the .rrd "
+        "files Rerun reads whole are served; every other one (cut off, empty, not Rerun's, damaged, a second file of "
+        "one recording) is named on stderr with its reason. Runs until Ctrl-C (or SIGTERM/SIGHUP), also while a "
+        "browser page is open on it; then the server and the web viewer stop, nothing is left running, and the exit "
+        "code is 0 (1 if the web viewer exited by itself, 2 if no file can be served).",
         epilog="examples:\n  massviz log data_samples --detector depth --rrd-dir out/samples\n"
         "  massviz serve out/samples                 # then open the printed http://127.0.0.1:... URL\n"
         "  massviz serve out/samples --no-web-viewer --port 51234   # it runs until Ctrl-C; then, in another\n"

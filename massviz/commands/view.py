@@ -12,8 +12,8 @@ def register(sub) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Serve one Rerun recording to a browser from this machine: the .rrd from a small HTTP server and "
         "Rerun's web viewer, both bound to 127.0.0.1, and print the page to open. Needs no display (the native "
-        "viewer, 'rerun OUT.rrd', does). Idle, they use no CPU. Runs until Ctrl-C (or SIGTERM); then both stop and "
-        "nothing is left running.",
+        "viewer, 'rerun OUT.rrd', does). Idle, they use no CPU. Runs until Ctrl-C (or SIGTERM/SIGHUP), also while a "
+        "page is open on it; then both stop, nothing is left running, and the exit code is 0.",
         epilog="examples:\n  massviz log data_samples/cup_handover --detector depth --rrd out/cup_handover.rrd\n"
         "  massviz view out/cup_handover.rrd          # then open the printed http://127.0.0.1:... URL\n"
         "  massviz view out/cup_handover.rrd --web-port 9090 --port 9091   # fixed ports (e.g. for ssh -L)")

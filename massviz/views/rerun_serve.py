@@ -2,10 +2,10 @@
 massviz's layouts as the dataset's defaults and a Rerun web viewer, all bound to 127.0.0.1.
 
 ``open_catalog(folder)`` / ``catalog(folder)`` (a context manager) is the in-process part (the server, its dataset
-entry and a DataFusion-backed client; needs ``rerun-sdk[catalog]``), ``serve`` the blocking command (``massviz serve``). The web viewer is Rerun's
-own binary (``rerun --serve-web --bind 127.0.0.1 URL``: given a URL it serves only the viewer's page, no gRPC server,
-and opens no browser) in a child process that dies with this one (Linux ``PR_SET_PDEATHSIG``) and is stopped and
-waited for when the server stops; nothing is left running.
+entry and a DataFusion-backed client; needs ``rerun-sdk[catalog]``), ``serve`` the command (``massviz serve``): the
+catalog and Rerun's web viewer (``massviz.views.web_viewer.WebViewer``, given the dataset's URL) until Ctrl-C, SIGTERM
+or SIGHUP (``massviz.views.web_viewer.run_until_stopped``). Only the .rrd files Rerun reads whole are served
+(``check_rrd``); every other one is named, with its reason, in one warning line.
 
 ``view(rrd)`` (``massviz view``) is the same web viewer for one .rrd file, which a ``FileServer`` thread of this
 process serves over HTTP (only to the viewer's page): no display needed, and idle it costs no CPU (``rerun
@@ -18,38 +18,41 @@ import logging
 import os
 import re
 import shutil
-import signal
-import subprocess
+import socket
 import sys
 import tempfile
 import threading
-import time
 import urllib.parse
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from massviz.errors import MassvizError
+from massviz.views.web_viewer import HOST, WebViewer, run_until_stopped
 
-HOST = "127.0.0.1"
-_WEB_URL = re.compile(r"connect at (http://\S+)")
+#: seconds ``Catalog.close`` waits for the server's shutdown before it ends the connections still open, and after
+_SHUTDOWN_WAIT = 0.5
+_SHUTDOWN_GRACE = 5.0
 
 
 @dataclass
 class Catalog:
     """A running catalog server with one dataset: ``url`` (``rerun+http://127.0.0.1:PORT``), ``name``, ``dataset``
-    (``rerun.catalog.DatasetEntry``), ``client`` (``rerun.catalog.CatalogClient``)."""
+    (``rerun.catalog.DatasetEntry``), ``client`` (``rerun.catalog.CatalogClient``); ``not_served``: each .rrd file of
+    the folder that is not in the dataset, with the reason (said in a warning line when the catalog opened)."""
 
     server: object
     name: str
     dataset: object
     client: object
     _tmp: object = None  # the folder of the registered .rbl files, removed by close()
+    not_served: dict[Path, str] = field(default_factory=dict)
+    _closed: bool = False
 
     def close(self) -> None:
-        """Stop the server (idempotent)."""
-        with contextlib.suppress(Exception):
-            if self.server.is_running():
-                self.server.shutdown()
+        """Stop the server (idempotent; ``stop_server``) and remove its layout files."""
+        if self.server is not None and not self._closed:
+            self._closed = True
+            stop_server(self.server)
         if self._tmp is not None:
             self._tmp.cleanup()
             self._tmp = None
@@ -76,26 +79,46 @@ class Catalog:
         return ctx.sql(query).to_pandas()
 
 
-def _rrd_files(folder: Path) -> list[Path]:
-    """The readable .rrd files of ``folder`` (their first bytes are Rerun's header); each other ``*.rrd`` is one
-    warning line naming it (the server skips it, the rest is served); none readable is a ``MassvizError``."""
-    from massviz.io.untrusted import printable
-
+def _rrd_files(folder: Path) -> tuple[list[Path], dict[Path, str]]:
+    """The .rrd files of ``folder`` to serve (``check_rrd``: Rerun reads each whole; of files holding the same
+    recording, the first by name) and the others with the reason, each said in one warning line naming it; none to
+    serve is a ``MassvizError``."""
     if not folder.is_dir():
         raise MassvizError("not a folder (make a dataset with: massviz log DATASET --rrd-dir OUT)", folder)
     found = sorted(folder.glob("*.rrd"))
     if not found:
         raise MassvizError("holds no .rrd file (make a dataset with: massviz log DATASET --rrd-dir OUT)", folder)
-    files = []
+    files, skipped, holder = [], {}, {}
     for path in found:
         try:
-            files.append(check_rrd(path))
+            ids = rrd_recordings(path)
+            same = next((i for i in ids if i in holder), None)
+            if same is not None:
+                raise MassvizError(f"holds recording {same!r} as {holder[same].name} does, which is served", path)
         except MassvizError as err:
-            logging.getLogger(__name__).warning("massviz: warning: %s; not served", printable(err))
+            _not_served(skipped, path, err)
+            continue
+        files.append(path.resolve())
+        holder.update(dict.fromkeys(ids, path))
     if not files:
         raise MassvizError("holds no readable .rrd file (make a dataset with: massviz log DATASET --rrd-dir OUT)",
                            folder)
-    return files
+    return files, skipped
+
+
+def _not_served(skipped: dict[Path, str], path: Path, err: MassvizError) -> None:
+    """Record ``path`` as not served for ``err`` and say so in one warning line naming it."""
+    from massviz.io.untrusted import printable
+
+    skipped[path] = str(err).removeprefix(f"{err.path}: ")
+    logging.getLogger(__name__).warning("massviz: warning: %s; not served", printable(err))
+
+
+def served_files(dataset) -> set[Path]:
+    """The files the catalog server loaded into ``dataset`` (its segment table's storage URLs)."""
+    table = dataset.segment_table().select("rerun_storage_urls").to_pandas()
+    return {Path(urllib.parse.unquote(urllib.parse.urlsplit(u).path)) for urls in table["rerun_storage_urls"]
+            for u in (urls if urls is not None else [])}
 
 
 def _require_datafusion() -> None:
@@ -115,30 +138,82 @@ def open_catalog(folder: str | Path, *, name: str | None = None, port: int = 0, 
     from massviz.evaluation.browser import INDEX_NAME
 
     folder = Path(folder).resolve()
-    _rrd_files(folder)
+    files, skipped = _rrd_files(folder)
     _require_datafusion()
     name = name or re.sub(r"[^A-Za-z0-9_.-]", "_", folder.name) or "massviz"
     tmp = tempfile.TemporaryDirectory(prefix="massviz-serve-")
     try:
         try:
-            server = rr.server.Server(host=HOST, port=port or None, datasets={name: str(folder)})
+            server = rr.server.Server(host=HOST, port=port or None, datasets={name: [str(f) for f in files]})
         except Exception as err:  # noqa: BLE001 - a busy port, an unreadable file: one line
             raise MassvizError(f"the catalog server did not start ({err})", folder) from None
         try:
             client = server.client()
             dataset = client.get_dataset(name)
+            loaded = served_files(dataset)
+            for path in files:
+                if path not in loaded:
+                    _not_served(skipped, path, MassvizError("the catalog server did not load it", path))
             rec_bp, table_bp = save_layouts(dataset, tmp.name, k)
             dataset.register_blueprint(rec_bp.as_uri())
             dataset.register_blueprint(table_bp.as_uri(), segment_table=True)
             register_links(dataset, Path(tmp.name), folder / INDEX_NAME)
         except BaseException:
-            with contextlib.suppress(Exception):
-                server.shutdown()
+            stop_server(server)
             raise
     except BaseException:
         tmp.cleanup()
         raise
-    return Catalog(server, name, dataset, client, tmp)
+    return Catalog(server, name, dataset, client, tmp, skipped)
+
+
+def stop_server(server, grace: float = _SHUTDOWN_GRACE) -> None:
+    """Shut the catalog ``server`` down, within seconds whoever is connected. Rerun's shutdown stops taking connections
+    at once, then waits for every open request to end, and a browser page's never does (the page would hold the
+    server, and the command, for as long as it is open): the shutdown runs in a thread, and the connections still
+    open after a moment are ended (``end_connections``); a shutdown still not done ``grace`` seconds later is left to
+    the process's exit (it takes no new connection)."""
+    with contextlib.suppress(Exception):  # (a server that never started, or was stopped already)
+        if not server.is_running():
+            return
+    port = urllib.parse.urlsplit(server.url()).port  # asked first: the server answers nothing while it shuts down
+
+    def shutdown() -> None:
+        with contextlib.suppress(Exception):
+            server.shutdown()
+
+    thread = threading.Thread(target=shutdown, name="massviz-catalog-shutdown", daemon=True)
+    thread.start()
+    thread.join(_SHUTDOWN_WAIT)
+    if thread.is_alive() and port:
+        end_connections(port)
+        thread.join(grace)
+
+
+def end_connections(port: int) -> int:
+    """End (``shutdown(2)``, both ways) every connection this process accepted on 127.0.0.1:``port``: its sockets
+    whose own port is ``port`` and that have a peer (Linux: the sockets of ``/proc/self/fd``; elsewhere none).
+    Returns how many."""
+    fds = Path("/proc/self/fd")
+    try:
+        names = os.listdir(fds)
+    except OSError:
+        return 0
+    ended = 0
+    for name in names:
+        try:
+            if not os.readlink(fds / name).startswith("socket:"):
+                continue
+            dup = os.dup(int(name))
+        except (OSError, ValueError):
+            continue  # (closed meanwhile, or the listing's own descriptor)
+        with socket.socket(fileno=dup) as sock:  # a duplicate: closing it leaves the server's socket open
+            with contextlib.suppress(OSError):
+                if sock.family in (socket.AF_INET, socket.AF_INET6) and sock.getsockname()[1] == port \
+                        and sock.getpeername():
+                    sock.shutdown(socket.SHUT_RDWR)
+                    ended += 1
+    return ended
 
 
 def save_layouts(dataset, folder: str | Path, k: int = 5) -> tuple[Path, Path]:
@@ -216,127 +291,6 @@ def catalog(folder: str | Path, *, name: str | None = None, port: int = 0, k: in
         cat.close()
 
 
-def _viewer_binary() -> Path:
-    import rerun_cli
-
-    exe = Path(rerun_cli.__file__).parent / ("rerun.exe" if sys.platform.startswith("win") else "rerun")
-    if not exe.is_file():
-        raise MassvizError("Rerun's viewer binary is missing (reinstall rerun-sdk)", exe)
-    return exe
-
-
-def _die_with_parent() -> None:  # runs in the child before exec (Linux): SIGTERM when massviz serve goes away
-    with contextlib.suppress(Exception):
-        import ctypes
-
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-
-
-class WebViewer:
-    """Rerun's web viewer (its own binary, not the Python wrapper that would leave it orphaned) on 127.0.0.1, opening
-    ``url``; ``.url`` is the page to open. ``stop()`` terminates it and waits."""
-
-    def __init__(self, url: str, port: int = 0, timeout: float = 60.0):
-        cmd = [str(_viewer_binary()), "--serve-web", "--bind", HOST, "--web-viewer-port", str(port), url]
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                     preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
-                                     # its log line says where it serves: on even when massviz quiets Rerun's logs
-                                     env={**os.environ, "RERUN_TELEMETRY_ENABLED": "false", "RUST_LOG": "info"})
-        self.url, found = None, threading.Event()
-        self._tail: list[str] = []
-
-        def read() -> None:
-            for line in self.proc.stdout:
-                self._tail = (self._tail + [line])[-20:]
-                m = _WEB_URL.search(re.sub(r"\x1b\[[0-9;]*m", "", line))
-                if m and self.url is None:
-                    self.url = m.group(1).rstrip(",")
-                    found.set()
-            found.set()
-
-        threading.Thread(target=read, daemon=True).start()
-        found.wait(timeout)
-        if self.url is None:
-            self.stop()
-            raise MassvizError("Rerun's web viewer did not start: " + "".join(self._tail)[-300:].strip())
-
-    def alive(self) -> bool:
-        return self.proc.poll() is None
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(5)
-
-
-class _Stop(Exception):
-    pass
-
-
-@contextlib.contextmanager
-def _until_stopped():
-    """Run the block until Ctrl-C or SIGTERM (``_Stop``), whichever comes; the SIGTERM handler is restored after."""
-
-    def stop(signum, frame):
-        raise _Stop()
-
-    previous = signal.signal(signal.SIGTERM, stop)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-
-
-def _wait(viewer: "WebViewer") -> None:
-    """Block while the viewer runs (a wake-up a second: no CPU to speak of)."""
-    while viewer is None or viewer.alive():
-        time.sleep(1.0)
-
-
-def serve(folder: str | Path, *, name: str | None = None, port: int = 0, web_port: int = 0, web_viewer: bool = True,
-          k: int = 5, out=None, ready=None) -> int:
-    """``massviz serve``: run the catalog (and web viewer) until Ctrl-C or SIGTERM; print how to open it.
-    ``ready(catalog, page_url)`` (tests, benchmarks) is called once everything is up."""
-    out = out or sys.stdout
-
-    def start(stack: contextlib.ExitStack):
-        cat = stack.enter_context(catalog(folder, name=name, port=port, k=k))
-        n = len(cat.dataset.segment_ids())
-        lines = [f"massviz serve: dataset {cat.name!r}: {n} recording(s) from {Path(folder).resolve()}",
-                 f"  catalog server: {cat.url}",
-                 f"  native viewer:  rerun {cat.dataset_url}"]
-        viewer = None
-        if web_viewer:
-            viewer = WebViewer(cat.dataset_url, web_port)
-            stack.callback(viewer.stop)
-            lines.append(f"  web viewer:     {viewer.url}")
-        lines.append("  Ctrl-C stops the server" + (" and the web viewer" if viewer else ""))
-        print("\n".join(lines), file=out, flush=True)
-        if ready is not None:
-            ready(cat, viewer.url if viewer else None)
-        return viewer
-
-    return _run_until_stopped("serve", start)
-
-
-def _run_until_stopped(command: str, start) -> int:
-    """``start(stack)`` starts the servers (their clean-ups on the ``ExitStack``) and returns the web viewer (or
-    None); then wait until Ctrl-C or SIGTERM (exit 0) or until the viewer exits (exit 1); everything started is
-    stopped either way."""
-    try:
-        with _until_stopped(), contextlib.ExitStack() as stack:
-            _wait(start(stack))
-            print(f"massviz {command}: the web viewer exited; stopping", file=sys.stderr)
-            return 1
-    except (KeyboardInterrupt, _Stop):
-        print(f"massviz {command}: stopped", file=sys.stderr)
-        return 0
-
-
 #: the first bytes of an .rrd file (Rerun's stream header, "RRF2" since 0.x)
 RRD_MAGIC = b"RRF2"
 #: bytes of that header: the magic, Rerun's version and the encoding options.
@@ -344,7 +298,21 @@ RRD_HEADER_BYTES = 12
 
 
 def check_rrd(path: str | Path) -> Path:
-    """``path`` as a readable .rrd file (its first bytes are Rerun's header), else one ``MassvizError`` line."""
+    """``path`` (resolved) as an .rrd file Rerun reads whole (``rrd_recordings``), else one ``MassvizError`` line
+    saying why."""
+    rrd_recordings(path)
+    return Path(path).resolve()
+
+
+def rrd_recordings(path: str | Path) -> list[str]:
+    """The recording ids of the .rrd file ``path`` when Rerun reads it whole: its header, every message, and the
+    footer (the manifest its writer adds when it closes the file). Else one ``MassvizError`` line naming it and
+    saying why: missing, not a file, empty, not Rerun's, cut off (in its header, in a message, or before its footer),
+    damaged, or holding no recording."""
+    import warnings
+
+    from massviz.io.untrusted import printable
+
     path = Path(path)
     if not path.is_file():
         raise MassvizError("no such .rrd file" if not path.exists() else "is not a file", path)
@@ -353,11 +321,35 @@ def check_rrd(path: str | Path) -> Path:
             head = f.read(RRD_HEADER_BYTES)
     except OSError as err:
         raise MassvizError(f"cannot read ({err.strerror or err})", path) from None
-    if not head.startswith(RRD_MAGIC):
+    if not head:
+        raise MassvizError("is empty (0 bytes)", path)
+    if not RRD_MAGIC.startswith(head[:len(RRD_MAGIC)]):
         raise MassvizError("not a Rerun .rrd file (make one with: massviz log REC --rrd OUT.rrd)", path)
     if len(head) < RRD_HEADER_BYTES:
         raise MassvizError(f"a Rerun .rrd file cut off in its header ({len(head)} bytes)", path)
-    return path.resolve()
+    from rerun.chunk import RrdReader
+
+    def said(err: BaseException) -> str:  # Rerun's words, without the path it repeats
+        text = str(err).replace(f"Failed to read RRD file at {path}: ", "").replace(f": {path}", "")
+        return printable(text.split(". ")[0].strip() or type(err).__name__)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # (Rerun's "no footer" warning: the reason said below)
+        try:
+            reader = RrdReader(path)
+            ids = [str(s.recording_id) for s in reader.recordings()]
+            if ids:
+                reader.store()  # the manifest, from the footer
+        except (KeyboardInterrupt, SystemExit):
+            raise
+        except BaseException as err:  # noqa: BLE001 - (a Rust panic is a BaseException): one line
+            if "without footer" in str(err):
+                raise MassvizError("cut off: it ends before the footer Rerun writes when it closes a recording (its "
+                                   "writer did not finish)", path) from None
+            raise MassvizError(f"cut off or damaged: Rerun cannot read it ({said(err)})", path) from None
+    if not ids:
+        raise MassvizError("holds no recording (cut off before its first message, or only a blueprint)", path)
+    return ids
 
 
 class FileServer:
@@ -411,17 +403,44 @@ class FileServer:
         self._thread.join(5)
 
 
+def serve(folder: str | Path, *, name: str | None = None, port: int = 0, web_port: int = 0, web_viewer: bool = True,
+          k: int = 5, out=None, ready=None) -> int:
+    """``massviz serve``: run the catalog (and web viewer) until Ctrl-C, SIGTERM or SIGHUP (exit 0; ``run_until_stopped``);
+    print how to open it. ``ready(catalog, page_url)`` (tests, benchmarks) is called once everything is up."""
+    out = out or sys.stdout
+
+    def start(stack: contextlib.ExitStack):
+        cat = stack.enter_context(catalog(folder, name=name, port=port, k=k))
+        n = len(cat.dataset.segment_ids())
+        skipped = f"; {len(cat.not_served)} .rrd file(s) not served (each named above)" if cat.not_served else ""
+        lines = [f"massviz serve: dataset {cat.name!r}: {n} recording(s) from {Path(folder).resolve()}{skipped}",
+                 f"  catalog server: {cat.url}",
+                 f"  native viewer:  rerun {cat.dataset_url}"]
+        viewer = None
+        if web_viewer:
+            viewer = WebViewer(cat.dataset_url, port=web_port)
+            stack.callback(viewer.stop)
+            lines.append(f"  web viewer:     {viewer.url}")
+        lines.append("  Ctrl-C stops the server" + (" and the web viewer" if viewer else ""))
+        print("\n".join(lines), file=out, flush=True)
+        if ready is not None:
+            ready(cat, viewer.url if viewer else None)
+        return viewer
+
+    return run_until_stopped("serve", start)
+
+
 def view(path: str | Path, *, port: int = 0, web_port: int = 0, out=None, ready=None) -> int:
     """``massviz view``: serve one .rrd to a browser from this machine (no display needed): the file from a small
-    HTTP server and Rerun's web viewer (its own binary, ``WebViewer``), both on 127.0.0.1, until Ctrl-C or SIGTERM;
-    prints the page to open. ``ready(page_url)`` (tests) is called once both are up."""
+    HTTP server and Rerun's web viewer (``WebViewer``), both on 127.0.0.1, until Ctrl-C, SIGTERM or SIGHUP
+    (``run_until_stopped``); prints the page to open. ``ready(page_url)`` (tests) is called once both are up."""
     out = out or sys.stdout
     path = check_rrd(path)
 
     def start(stack: contextlib.ExitStack):
         files = FileServer(path, port)
         stack.callback(files.close)
-        viewer = WebViewer(files.url, web_port)
+        viewer = WebViewer(files.url, port=web_port)
         stack.callback(viewer.stop)
         page = urllib.parse.urlsplit(viewer.url)
         files.origin = f"{page.scheme}://{page.netloc}"  # only the viewer's page may read the file
@@ -434,7 +453,8 @@ def view(path: str | Path, *, port: int = 0, web_port: int = 0, out=None, ready=
             ready(viewer.url)
         return viewer
 
-    return _run_until_stopped("view", start)
+    return run_until_stopped("view", start)
 
 
-__all__ = ["Catalog", "open_catalog", "catalog", "save_layouts", "best_frames", "register_links", "WebViewer", "serve", "check_rrd", "FileServer", "view", "HOST"]
+__all__ = ["Catalog", "open_catalog", "catalog", "stop_server", "end_connections", "served_files", "save_layouts",
+           "best_frames", "register_links", "serve", "check_rrd", "rrd_recordings", "FileServer", "view", "HOST"]
