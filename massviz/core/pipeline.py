@@ -48,15 +48,22 @@ from massviz.core.types import Detections, Frame, RecordingInfo, Rejection
 KEEP_PATCHES = 32
 
 
-def predict_detections(model, rgb: np.ndarray, dets: Detections) -> tuple[np.ndarray, FramePatches]:
-    """Mass prediction (g) for every detection with a finite d and a non-empty box; NaN for the others."""
+def predict_detections(model, rgb: np.ndarray, dets: Detections,
+                       kernels: str = "exact") -> tuple[np.ndarray, FramePatches]:
+    """Mass prediction (g) for every detection with a finite d and a non-empty box; NaN for the others.
+    ``kernels``: ``exact`` (patches cut and resized on the host, ``model.predict``) or ``device`` (on the model's
+    device, as ``FrameStage``'s device kernels: ``MassPredictor.predict_boxes``)."""
     from massviz.core.stage import _check_finite
 
     pred = np.full(len(dets), np.nan, dtype=np.float32)
     patches = FramePatches(rgb, dets.xyxy)
     ok = predictable(dets)
     if len(ok):
-        pred[ok] = model.predict([patches[i] for i in ok], np.stack([dets.a[ok], dets.b[ok], dets.d[ok]], axis=1))
+        feats = np.stack([dets.a[ok], dets.b[ok], dets.d[ok]], axis=1)
+        if kernels == "device":
+            pred[ok] = model.predict_boxes(rgb, dets.xyxy[ok], feats)
+        else:
+            pred[ok] = model.predict([patches[i] for i in ok], feats)
         _check_finite(model, pred[ok])
     return pred, patches
 
@@ -240,33 +247,49 @@ def run(recording, detector: Detector, model, *, selection: Selection | None = N
     staged = stage.stream(frames)
     if stage.overlap:
         staged = Prefetcher(staged, size=2 * batch)
-    try:  # the bar is cleared before any error is reported, so the error line stands alone
-        for item in staged:
-            result = fp.step(item.frame, staged=item)
-            if on_frame is not None:
-                on_frame(item.frame, result)
-            bar.update(1)
-    finally:
-        bar.close()
-        for it in (staged, frames):
-            if isinstance(it, Prefetcher):
-                it.close()
+    # the faithful settings once for the whole run, the stage's thread included (closed before they are left)
+    with stage.faithful():
+        try:  # the bar is cleared before any error is reported, so the error line stands alone
+            for item in staged:
+                result = fp.step(item.frame, staged=item)
+                if on_frame is not None:
+                    on_frame(item.frame, result)
+                bar.update(1)
+        finally:
+            bar.close()
+            for it in (staged, frames):
+                if isinstance(it, Prefetcher):
+                    it.close()
     fp.events.extend(Event(-1, note, "warning", "warn") for note in getattr(recording, "notes", ()))
     return fp.finish(analyse=analyse)
 
 
-def repredict(trace: Trace, recording, model, progress: bool = False) -> Trace:
-    """Recompute every detection's prediction with another model (re-reads the frames that have detections)."""
+def repredict(trace: Trace, recording, model, progress: bool = False, *, detector: Detector | None = None,
+              kernels: str = "auto") -> Trace:
+    """Recompute every detection's prediction with another model (re-reads the frames that have detections), in
+    the settings a run of that model computes in (a ``FrameStage`` of ``detector`` and ``model``, which detects
+    nothing here): its kernels (``auto``: ``device`` when the model is on a CUDA GPU) inside the run's faithful
+    settings (``FrameStage.faithful``: the run's ``--precision`` is the detector's, without a detector the
+    model's). ``compute`` records it: ``predict_device``, ``predict_kernels``, ``predict_precision`` and
+    ``predict_mode`` say where and how the predictions were recomputed, and ``mode`` is ``faithful`` only when both
+    the detections and the predictions are."""
+    stage = FrameStage(detector, model, kernels=kernels)
     dets = trace.detections
     pred = np.full(len(dets), np.nan, dtype=np.float32)
     by_frame = dets.indices_by_frame()
-    for frame in tqdm(recording.frames(indices=list(by_frame)), total=len(by_frame), disable=not progress,
-                      file=sys.stderr, desc=f"{recording.id} re-predict", leave=False):
-        idx = by_frame[frame.index]
-        pred[idx], _ = predict_detections(model, frame.rgb, dets[idx])
+    with stage.faithful():
+        for frame in tqdm(recording.frames(indices=list(by_frame)), total=len(by_frame), disable=not progress,
+                          file=sys.stderr, desc=f"{recording.id} re-predict", leave=False):
+            idx = by_frame[frame.index]
+            pred[idx], _ = predict_detections(model, frame.rgb, dets[idx], stage.kernels)
     new = Detections(**{n: getattr(dets, n) for n in Detections._ARRAYS if n != "pred"}, pred=pred,
                      masks=dets.masks, patches=dets.patches)
-    out = dataclasses.replace(trace, detections=new, weights_id=getattr(model, "weights_id", ""))
+    predicted = stage.describe()
+    compute = {**trace.compute, **{f"predict_{k}": predicted[k] for k in ("device", "kernels", "precision", "mode")}}
+    if "mode" in trace.compute:
+        both = trace.compute["mode"] == predicted["mode"] == "faithful"
+        compute["mode"] = "faithful" if both else "fast"
+    out = dataclasses.replace(trace, detections=new, weights_id=getattr(model, "weights_id", ""), compute=compute)
     return out.reselect()
 
 
