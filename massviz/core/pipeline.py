@@ -26,7 +26,6 @@ RGB patches are held, so memory does not grow with the recording's length beyond
 from __future__ import annotations
 
 import dataclasses
-import heapq
 import inspect
 import math
 import sys
@@ -72,19 +71,24 @@ class _NearestPatches:
     """Keeps the RGB patches of the ``n`` nearest detections seen so far (ties: the earliest wins)."""
 
     def __init__(self, n: int):
-        self.n, self.heap, self.patches = n, [], {}
+        self.n, self.patches = n, {}
+        self._index, self._d = np.zeros(0, np.int64), np.zeros(0)
 
-    def offer(self, index: int, d: float, patches, i: int) -> None:
-        """Detection ``index`` at distance ``d``, its patch ``patches[i]`` (read only when it is kept)."""
-        if not np.isfinite(d) or self.n <= 0:
+    def offer(self, offset: int, d: np.ndarray, patches) -> None:
+        """A frame's detections, global indices ``offset + i`` at distances ``d`` (NaN: none), their patches
+        ``patches[i]`` (read only for those kept)."""
+        d = np.asarray(d, dtype=np.float64)
+        local = np.flatnonzero(np.isfinite(d))
+        if self.n <= 0 or not len(local):
             return
-        if len(self.heap) >= self.n and (-d, -index) <= self.heap[0]:
-            return  # not nearer than the farthest kept (ties: the earliest stays)
-        heapq.heappush(self.heap, (-d, -index))
-        self.patches[index] = patches[i]
-        if len(self.heap) > self.n:
-            _, neg = heapq.heappop(self.heap)
-            self.patches.pop(-neg, None)
+        index = np.concatenate([self._index, offset + local])
+        dist = np.concatenate([self._d, d[local]])
+        keep = np.sort(np.lexsort((index, dist))[:self.n])  # the n nearest, ties to the earliest; in index order
+        self._index, self._d = index[keep], dist[keep]
+        for gone in set(self.patches) - set(self._index.tolist()):
+            del self.patches[gone]
+        for i in self._index[self._index >= offset].tolist():
+            self.patches[i] = patches[i - offset]
 
 
 def resolve_selection(selection: Selection | None, k: int | None, stride: int | None) -> Selection:
@@ -155,8 +159,7 @@ class FramePipeline:
         for i in np.flatnonzero(~np.isfinite(dets.d)):
             events.append(Event(frame.index, f"skipped {describe_detection(dets, int(i))}: its mask has no depth",
                                 "skipped", "warn", offset + int(i)))
-        for i in np.flatnonzero(np.isfinite(dets.d)):
-            self._nearest.offer(offset + int(i), float(dets.d[i]), patches, int(i))
+        self._nearest.offer(offset, dets.d, patches)
         self._frames.append(frame.index)
         self._parts.append(dets)
         self._offset += len(dets)
