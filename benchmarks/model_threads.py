@@ -4,7 +4,7 @@ alternately with each thread count, so that both see the same load on the shared
     MASSVIZ_WEIGHTS=../shared/weights/corsmal_visual/Encoder_pool_aug_158.torch \\
         .venv/bin/python benchmarks/model_threads.py [--repeat 40] [--patches 6,16]
 
-Prints per thread count and batch size the median and 95th percentile of one ``MassNet.predict`` call, the ratio,
+Prints per thread count and batch size the median and 95th percentile of one ``MassPredictor.predict`` call, the ratio,
 whether the predictions are bit-identical across thread counts, and the load average.
 """
 from __future__ import annotations
@@ -31,10 +31,10 @@ def main(argv=None) -> int:
     from massviz.io.checkpoint import load_checkpoint
     from massviz.io.weights import resolve_weights
 
-    os.environ["MASSVIZ_MODEL_THREADS"] = "0"  # predict with torch's setting, the one set below
     reference = ROOT.parent / "shared" / "weights" / "corsmal_visual" / "Encoder_pool_aug_158.torch"
     weights = os.environ.get("MASSVIZ_WEIGHTS") or str(reference)
     model = load_checkpoint(resolve_weights(weights))
+    model.threads = 0  # predict with torch's setting, the one set below
     rng = np.random.default_rng(0)
     print(f"{os.cpu_count()} CPUs, torch {torch.__version__}, load average at the start "
           f"{' '.join(f'{v:.1f}' for v in os.getloadavg())}")

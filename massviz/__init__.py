@@ -27,6 +27,7 @@ _API = {
     "Recording": "massviz.io.recording",
     "make_detector": "massviz.detect",
     "MassNet": "massviz.core.model",
+    "MassPredictor": "massviz.core.predictor",
     "load_checkpoint": "massviz.io.checkpoint",
     "process": "massviz.app",
     "run": "massviz.core.pipeline",

@@ -273,7 +273,7 @@ def process(recording, detector, model, *, selection: Selection | None = None, k
         t0 = time.perf_counter()
         note = (f"reused cached detections (made at threshold {trace.detect_threshold}); the detector did not run")
         if trace.weights_id != getattr(model, "weights_id", ""):
-            trace = repredict(trace, recording, model, progress=progress)
+            trace = repredict(trace, recording, model, progress=progress, detector=detector)
             cache.save(trace, recording, info)
             note += "; predictions recomputed for this model"
         # the key is the frames' content: the recording's path, meta and intrinsics are today's, not the cached run's;

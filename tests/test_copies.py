@@ -38,6 +38,7 @@ def test_one_precision_list():
     import massviz.detect.maskrcnn as maskrcnn
     from massviz.commands._common import add_pipeline_args
     from massviz.core.model import MassNet
+    from massviz.core.predictor import MassPredictor
     from massviz.core.types import PRECISIONS
 
     assert PRECISIONS[0] == "fp32" and app.PRECISIONS is PRECISIONS and maskrcnn.PRECISIONS is PRECISIONS
@@ -46,7 +47,7 @@ def test_one_precision_list():
     (action,) = [a for a in p._actions if a.dest == "precision"]
     assert tuple(action.choices) == PRECISIONS and action.default == "fp32"
     with pytest.raises(ValueError, match="fp32, bf16, fp16"):
-        MassNet().set_precision("fp64")
+        MassPredictor(MassNet()).set_precision("fp64")
 
 
 def test_png_header_size_is_the_one_png_header_reader(tmp_path):

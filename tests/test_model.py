@@ -16,6 +16,7 @@ from torchvision.transforms import functional as TF
 from massviz.io import weights as W
 from massviz.errors import WeightsError
 from massviz.core.model import MassNet, Ranges, preprocess_patch, preprocess_patches, square_pad
+from massviz.core.predictor import MassPredictor
 from massviz.io.checkpoint import load_checkpoint, save_checkpoint
 
 # The README's table (shared/weights/corsmal_visual/README.md), written out independently of massviz.io.weights.
@@ -49,7 +50,7 @@ def golden_inputs(shared_dir, golden):
 
 
 @pytest.fixture(scope="module")
-def model158(weights_dir) -> MassNet:
+def model158(weights_dir) -> MassPredictor:
     return load_checkpoint(weights_dir / "Encoder_pool_aug_158.torch")
 
 
@@ -92,9 +93,9 @@ def test_predict_uses_eval_mode_and_restores_training_flag(weights_dir, golden_i
     model = load_checkpoint(weights_dir / "Encoder_pool_aug_158.torch")
     patches, feats = golden_inputs
     expected = model.predict(patches, feats)
-    model.train()
+    model.net.train()
     np.testing.assert_array_equal(model.predict(patches, feats), expected)
-    assert model.training
+    assert model.net.training
 
 
 # -------------------------------------------------------------------------------------------------- preprocessing
@@ -167,11 +168,11 @@ def test_published_checkpoints_load_strictly_with_their_ranges(weights_dir, name
     assert sum(p.numel() for p in net.parameters()) == 532_752
 
     model = load_checkpoint(path)
-    assert not model.training
-    assert next(model.parameters()).device.type == "cpu"
+    assert not model.net.training
+    assert next(model.net.parameters()).device.type == "cpu" == model.device.type
     assert model.ranges == Ranges(*README_RANGES[name])
     assert model.weights_id == W.PUBLISHED[name].sha256[:12] == W.sha256_file(path)[:12]
-    for k, v in model.state_dict().items():
+    for k, v in model.net.state_dict().items():
         assert torch.equal(v, state[k]), k
 
 
@@ -199,8 +200,8 @@ def test_clamp_at_zero(weights_dir, golden_inputs):
     model = load_checkpoint(weights_dir / "Encoder_pool_aug_158.torch")
     patches, feats = golden_inputs
     with torch.no_grad():
-        model.linear3.bias.fill_(-50.0)
-        raw = model(preprocess_patches(patches), torch.from_numpy(model.ranges.normalise_features(feats)))
+        model.net.linear3.bias.fill_(-50.0)
+        raw = model.net(preprocess_patches(patches), torch.from_numpy(model.ranges.normalise_features(feats)))
     assert (raw < -1).all()  # unclamped this would be far below 0 g
     pred = model.predict(patches, feats)
     np.testing.assert_array_equal(pred, np.zeros(len(patches), np.float32))
@@ -274,18 +275,17 @@ def test_save_checkpoint_round_trip(model158, tmp_path, golden_inputs):
     raw = torch.load(path, map_location="cpu", weights_only=True)
     assert raw["ranges"] == ranges.to_dict() and raw["extra"] == {"epoch": 3, "split": "F3"}
     loaded = load_checkpoint(path)
-    assert loaded.ranges == ranges and not loaded.training
+    assert loaded.ranges == ranges and not loaded.net.training
     assert loaded.weights_id == W.sha256_file(path)[:12] != model158.weights_id
     patches, feats = golden_inputs
-    with_override = MassNet()
-    with_override.load_state_dict(model158.state_dict())
-    with_override.ranges = ranges
+    with_override = MassPredictor(MassNet(), ranges)
+    with_override.net.load_state_dict(model158.net.state_dict())
     np.testing.assert_array_equal(loaded.predict(patches, feats), with_override.predict(patches, feats))
 
 
 def test_predict_without_ranges_is_an_error():
     with pytest.raises(WeightsError):
-        MassNet().predict(random_patches(3, 1), [[0.1, 0.1, 500.0]])
+        MassPredictor(MassNet()).predict(random_patches(3, 1), [[0.1, 0.1, 500.0]])
 
 
 # ------------------------------------------------------------------------------------------------ weights resolution

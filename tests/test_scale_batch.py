@@ -1,7 +1,7 @@
 """The mass CNN batches patches across frames: ``run(..., batch=N)`` predicts the patches of N frames in
-one ``MassNet.predict_groups`` call, and every prediction and estimate stays bit for bit what one call per frame
+one ``MassPredictor.predict_groups`` call, and every prediction and estimate stays bit for bit what one call per frame
 gives (on the samples and CCM 618), because a row of the convolutions does not depend on the other rows of a call of
-two rows or more, and the head runs on each frame's own rows (see ``MassNet.predict_groups``)."""
+two rows or more, and the head runs on each frame's own rows (see ``MassPredictor.predict_groups``)."""
 from __future__ import annotations
 
 import numpy as np
@@ -61,7 +61,7 @@ def test_predict_groups_is_predict_per_group_bit_for_bit(model, precision):
 def test_calls_cover_every_row_once_for_any_group_and_call_size():
     """Any rows (several groups' rows, in any sizes) cut into calls: every row exactly once, in order, no call of
     one row when there are two rows or more, no call over size + 1 rows."""
-    from massviz.core.model import _calls
+    from massviz.core.predictor import _calls
 
     rng = np.random.default_rng(0)
     for _ in range(3000):

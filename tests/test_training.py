@@ -116,7 +116,7 @@ def test_overfits_a_handful_of_patches(patch_set):
     data = PatchDataset(patch_set, index, ranges)
     torch.manual_seed(0)
     config = TrainConfig(epochs=12, batch_size=4, augment_factor=1).resolved()  # one step per epoch
-    losses = [m.train_loss for m in fit(MassNet(ranges=ranges), data, PatchDataset(patch_set, index.iloc[:1], ranges),
+    losses = [m.train_loss for m in fit(MassNet(), data, PatchDataset(patch_set, index.iloc[:1], ranges),
                                         ranges, config)]
     assert max(losses[-3:]) < losses[0] / 10, losses
 

@@ -6,13 +6,14 @@ product. On NVIDIA GPUs since Ampere, PyTorch runs fp32 convolutions as TF32 by 
 :func:`faithful_fp32` turns that off (cuDNN and cuBLAS in IEEE fp32) and asks cuDNN for deterministic algorithms
 without benchmarking, so the same input gives the same bits run after run. cuDNN still chooses its algorithm by the
 shape of the call, so a batch of 4 frames may round differently from 4 batches of 1: on CUDA the faithful mode
-therefore detects one frame per call by default (``default_batch``), and the mass CNN always runs calls of one fixed
-size (``massviz.core.model.DEVICE_CALL_ROWS``), so a patch's prediction does not depend on its company.
+therefore detects one frame per call by default (:func:`default_batch`), and the mass CNN always runs calls of one fixed
+size (``massviz.core.predictor.DEVICE_CALL_ROWS``), so a patch's prediction does not depend on its company.
 ``bf16``/``fp16`` are the fast modes: batched, reduced precision, results that differ (measure with ``compare``).
 """
 from __future__ import annotations
 
 import contextlib
+import threading
 
 from massviz.errors import MassvizError
 
@@ -56,33 +57,109 @@ def describe(device) -> str:
     return f"cuda:{index} ({torch.cuda.get_device_name(index)})"
 
 
+class _FaithfulFlags:
+    """The process-wide faithful settings, reference-counted: torch's cuDNN and TF32 flags are global to the
+    process, so they are set when the first user enters (saving the settings found) and restored when the last user
+    leaves, under a lock. Nested use and several threads then share one setting: no thread's exit turns TF32 back on
+    under another thread still computing. (A thread running a fast mode beside a faithful run computes with the
+    faithful flags too while the run lasts: torch has no per-thread setting of them.)"""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._users = 0
+        self._saved = None
+
+    @property
+    def users(self) -> int:
+        """How many contexts hold the faithful settings now."""
+        return self._users
+
+    def enter(self) -> None:
+        with self._lock:
+            if self._users == 0:
+                self._saved = _read_flags()
+                _write_flags(True, False, "ieee")
+            self._users += 1
+
+    def leave(self) -> None:
+        with self._lock:
+            self._users -= 1
+            if self._users == 0:
+                _write_flags(*self._saved)
+                self._saved = None
+
+
+def _new_precision_api(b) -> bool:
+    return hasattr(b.cudnn, "conv") and hasattr(b.cudnn.conv, "fp32_precision")
+
+
+def _read_flags() -> tuple:
+    """(cudnn.deterministic, cudnn.benchmark, the fp32 precision of cuDNN convolutions, cuDNN RNNs and cuBLAS matrix
+    products): ``"ieee"``/``"tf32"``/``"none"`` in torch's newer API, ``allow_tf32`` of cuDNN and cuBLAS in the
+    older one."""
+    import torch
+
+    b = torch.backends
+    if _new_precision_api(b):
+        precision = (b.cudnn.conv.fp32_precision, b.cudnn.rnn.fp32_precision, b.cuda.matmul.fp32_precision)
+    else:
+        precision = (b.cudnn.allow_tf32, b.cuda.matmul.allow_tf32)
+    return b.cudnn.deterministic, b.cudnn.benchmark, precision
+
+
+def _write_flags(deterministic: bool, benchmark: bool, precision) -> None:
+    """Set what :func:`_read_flags` reads; ``precision`` ``"ieee"``: no TF32 anywhere. cuDNN's convolutions and
+    RNNs get the same setting (torch refuses to read its older ``allow_tf32`` flag when they differ)."""
+    import torch
+
+    b = torch.backends
+    b.cudnn.deterministic, b.cudnn.benchmark = deterministic, benchmark
+    if _new_precision_api(b):
+        conv, rnn, matmul = ("ieee",) * 3 if precision == "ieee" else precision
+        b.cudnn.conv.fp32_precision, b.cudnn.rnn.fp32_precision = conv, rnn
+        b.cuda.matmul.fp32_precision = matmul
+    else:
+        conv, matmul = (False, False) if precision == "ieee" else precision
+        b.cudnn.allow_tf32, b.cuda.matmul.allow_tf32 = conv, matmul
+
+
+_FAITHFUL = _FaithfulFlags()
+
+
+def faithful_users() -> int:
+    """How many :func:`faithful_fp32` contexts (all threads) hold the faithful settings now."""
+    return _FAITHFUL.users
+
+
 @contextlib.contextmanager
 def faithful_fp32(device, enabled: bool = True):
-    """IEEE fp32 (no TF32) and deterministic cuDNN algorithms inside the block when ``device`` is CUDA; the previous
-    settings are restored after it. A no-op on the CPU (its fp32 is IEEE already)."""
+    """IEEE fp32 (no TF32 in cuDNN convolutions nor cuBLAS matrix products), deterministic cuDNN algorithms and no
+    cuDNN benchmarking inside the block when ``device`` is CUDA and ``enabled``; a no-op on the CPU (its fp32 is IEEE
+    already). Meant to be entered once per run (``massviz.core.pipeline.run`` does, around the whole run); entering
+    it again inside (a batch, the detector's own call) only counts a user.
+
+    The flags are process-wide, so the context is reference-counted across threads: the first user to enter sets
+    them, saving what it found; the last to leave (also by an exception) restores that. Two threads computing
+    faithfully at once both see the faithful flags until both are done."""
     import torch
 
     if not enabled or torch.device(device).type != "cuda":
         yield
         return
-    b = torch.backends
-    new_api = hasattr(b.cudnn, "conv") and hasattr(b.cudnn.conv, "fp32_precision")
-    saved = (b.cudnn.deterministic, b.cudnn.benchmark,
-             (b.cudnn.conv.fp32_precision, b.cuda.matmul.fp32_precision) if new_api
-             else (b.cudnn.allow_tf32, b.cuda.matmul.allow_tf32))
-    b.cudnn.deterministic, b.cudnn.benchmark = True, False
-    if new_api:
-        b.cudnn.conv.fp32_precision, b.cuda.matmul.fp32_precision = "ieee", "ieee"
-    else:
-        b.cudnn.allow_tf32, b.cuda.matmul.allow_tf32 = False, False
+    _FAITHFUL.enter()
     try:
         yield
     finally:
-        b.cudnn.deterministic, b.cudnn.benchmark = saved[0], saved[1]
-        if new_api:
-            b.cudnn.conv.fp32_precision, b.cuda.matmul.fp32_precision = saved[2]
-        else:
-            b.cudnn.allow_tf32, b.cuda.matmul.allow_tf32 = saved[2]
+        _FAITHFUL.leave()
+
+
+def default_batch(device, precision: str) -> int:
+    """Frames per detector call when ``--batch`` is not given: 8 in bf16/fp16 on CUDA; 1 in the faithful fp32 mode
+    on CUDA (cuDNN chooses its kernels by the call's shape: a frame's detections must not depend on its company) and
+    on a CPU (batching gains ~5 % there)."""
+    import torch
+
+    return 8 if torch.device(device).type == "cuda" and precision != "fp32" else 1
 
 
 def pin_frame(frame):
@@ -117,4 +194,5 @@ def upload(arrays, device):
     return out
 
 
-__all__ = ["DEVICE_HELP", "resolve_device", "describe", "faithful_fp32", "pin_frame", "upload"]
+__all__ = ["DEVICE_HELP", "resolve_device", "describe", "faithful_fp32", "faithful_users", "default_batch",
+           "pin_frame", "upload"]

@@ -5,12 +5,13 @@ Two sets of kernels compute the same three stages (``FrameStage(kernels=...)``):
 
 * ``exact`` (the CPU's default): the detector's ``detect``/``detect_batch`` (host ``Detections`` with masks), d, a
   and b with numpy (``compute_features``), each patch cropped on the host and resized by Pillow for the mass CNN
-  (``MassNet.predict_groups``): bit for bit the paper's CPU arithmetic. Nothing else is ever run on a CPU by default.
+  (``MassPredictor.predict_groups``): bit for bit the paper's CPU arithmetic. Nothing else is ever run on a CPU by
+  default.
 * ``device`` (CUDA's default): the frames are copied to the device once (from pinned memory, without blocking);
   Mask R-CNN's masks stay there and are pasted only inside their boxes (the detector's ``detect_device``), d is
   summed there; every patch is cut, zero-padded and resized there (``massviz.core.resample``, Pillow's bytes exactly)
-  and the mass CNN runs there in calls of a fixed size (``MassNet.predict_normalised``). Back to the host come only
-  the boxes, scores and classes (one copy, after the detector), then d, the masks' bits inside their boxes and the
+  and the mass CNN runs there in calls of a fixed size (``MassPredictor.predict_normalised``). Back to the host come
+  only the boxes, scores and classes (one copy, after the detector), then d, the masks' bits inside their boxes and the
   predictions (one copy at the end of the batch). A detector without ``detect_device`` (depth, NanoDet, replay)
   detects on the host; its masks' d is computed there and the patches still go to the device.
 
@@ -67,9 +68,12 @@ class StagedFrame:
 
 
 def model_device(model):
-    """The torch device of a model's parameters (the CPU for a model without any, e.g. a test's stand-in)."""
+    """The torch device of a model (``MassPredictor.device``), else of its parameters (the CPU for a model without
+    any, e.g. a test's stand-in)."""
     import torch
 
+    if isinstance(getattr(model, "device", None), torch.device):
+        return model.device
     params = getattr(model, "parameters", None)
     if params is None:
         return torch.device("cpu")
@@ -90,6 +94,11 @@ def same_device(a, b) -> bool:
         return True
     current = torch.cuda.current_device()
     return (current if a.index is None else a.index) == (current if b.index is None else b.index)
+
+
+def run_precision(detector, model) -> str:
+    """A run's ``--precision``: the detector's (Mask R-CNN's), else the mass CNN's, else ``fp32``."""
+    return getattr(detector, "precision", None) or getattr(model, "precision", "fp32")
 
 
 def _check_finite(model, pred: np.ndarray) -> None:
@@ -122,17 +131,31 @@ class FrameStage:
         if kernels == "auto":
             kernels = "device" if self.device.type == "cuda" and has_net else "exact"
         if kernels == "device" and not has_net:
-            raise ValueError("the device kernels need the mass CNN (MassNet with its ranges)")
+            raise ValueError("the device kernels need the mass CNN (a MassPredictor with its ranges)")
         self.kernels = kernels
         self._overlap = overlap
 
+    @property
+    def precision(self) -> str:
+        """The run's ``--precision``: the detector's, else the mass CNN's (``fp32`` for models without one)."""
+        return str(run_precision(self.detector, self.model))
+
+    def faithful(self):
+        """The faithful settings of this stage's run (``massviz.core.device.faithful_fp32`` on its device, in
+        fp32): entered once around a run (``massviz.core.pipeline.run``) and around each batch (then only
+        counted)."""
+        from massviz.core.device import faithful_fp32
+
+        return faithful_fp32(self.device, self.precision == "fp32")
+
     def describe(self) -> dict:
         """What a trace records of where it was computed: device, kernels, precision, batch and the mode
-        (``faithful``: fp32, the paper's arithmetic; ``fast``: bf16/fp16)."""
+        (``faithful``: fp32, the paper's arithmetic, computed in :meth:`faithful`'s settings; ``fast``:
+        bf16/fp16)."""
         from massviz.core.device import describe
 
-        precision = getattr(self.detector, "precision", None) or getattr(self.model, "precision", "fp32")
-        return {"device": describe(self.device), "kernels": self.kernels, "precision": str(precision),
+        precision = self.precision
+        return {"device": describe(self.device), "kernels": self.kernels, "precision": precision,
                 "batch": self.batch, "mode": "faithful" if precision == "fp32" else "fast"}
 
     @property
@@ -180,10 +203,8 @@ class FrameStage:
         """Detect, features and predict on ``frames`` (one detector call for all of them when the detector has
         ``detect_batch`` and there are several); ``reads``: each frame's read seconds."""
         reads = list(reads) if reads is not None else [0.0] * len(frames)
-        if self.kernels == "device":
-            out = self._process_device(frames)
-        else:
-            out = self._process_exact(frames)
+        with self.faithful():
+            out = self._process_device(frames) if self.kernels == "device" else self._process_exact(frames)
         for staged, r in zip(out, reads):
             staged.timings = {"read": r, **staged.timings}
         return out
@@ -225,12 +246,11 @@ class FrameStage:
     def _process_device(self, frames: list[Frame]) -> list[StagedFrame]:
         import torch
 
-        from massviz.core.device import faithful_fp32, upload
+        from massviz.core.device import upload
         from massviz.core.resample import resize_boxes
 
         n, dev = len(frames), self.device
-        fp32 = getattr(self.model, "precision", "fp32") == "fp32"
-        with torch.inference_mode(), faithful_fp32(dev, fp32):
+        with torch.inference_mode():
             t0 = time.perf_counter()
             rgb = upload([f.rgb for f in frames], dev)
             detect_device = getattr(self.detector, "detect_device", None)
@@ -325,4 +345,4 @@ class FrameStage:
         return d, chunks
 
 
-__all__ = ["KERNELS", "FrameStage", "StagedFrame", "FramePatches", "model_device", "predictable"]
+__all__ = ["KERNELS", "FrameStage", "StagedFrame", "FramePatches", "model_device", "predictable", "run_precision"]

@@ -16,10 +16,11 @@ Faithful to the original:
   predictions a lot, so only torchvision/PIL is used here;
 - features ``(v - min) / (max - min)``; grams ``clamp(y * (maxMass - minMass) + minMass, min=0)``.
 
-Deliberate differences: the model holds no preprocessing (``forward`` takes ready tensors; :meth:`MassNet.predict`
-does the rest); the normalisation ranges travel with the checkpoint (:class:`Ranges`, see
-``massviz.io.checkpoint.load_checkpoint``) instead of being constants edited in a script; :meth:`MassNet.predict` returns one
-prediction per patch (the original averages them per recording, which is the pipeline's job here).
+Deliberate differences: the model holds no preprocessing (``forward`` takes ready tensors;
+``massviz.core.predictor.MassPredictor.predict`` does the rest); the normalisation ranges travel with the checkpoint
+(:class:`Ranges`, see ``massviz.io.checkpoint.load_checkpoint``) instead of being constants edited in a script;
+``MassPredictor.predict`` returns one prediction per patch (the original averages them per recording, which is the
+pipeline's job here).
 """
 from __future__ import annotations
 
@@ -35,7 +36,6 @@ import torch.nn.functional as F
 from PIL import Image, ImageOps
 from torch import nn
 
-from massviz.core.types import PRECISIONS
 from massviz.errors import WeightsError
 
 #: side of the square patch the network sees.
@@ -151,35 +151,14 @@ def preprocess_patches(patches: Sequence[np.ndarray]) -> torch.Tensor:
     return torch.stack([preprocess_patch(p) for p in patches])
 
 
-#: rows of every mass CNN call of :meth:`MassNet.predict_normalised` (the device path), the last call padded: a
-#: patch's prediction then never depends on how many patches share its call.
-DEVICE_CALL_ROWS = 128
-
-#: torch intra-op threads for :meth:`MassNet.predict` (0: leave torch's setting). One thread: a call of 6-16 patches
-#: is too small to share between threads, and a second thread competes with the detector and the reader for the
-#: cores (``benchmarks/model_threads.py`` compares 1 and 2 on a machine); predictions move by < 2e-5 g. Environment
-#: ``MASSVIZ_MODEL_THREADS`` overrides it.
-MODEL_THREADS = 1
-
-
-def _model_threads() -> int:
-    import os
-
-    value = os.environ.get("MASSVIZ_MODEL_THREADS", "")
-    return int(value) if value.isdigit() else MODEL_THREADS
-
-
 # ---------------------------------------------------------------------------------------------------------- network
 class MassNet(nn.Module):
-    """The paper's mass CNN. ``forward(images N×3×112×112, features N×3 normalised) → N×1 normalised mass``.
+    """The paper's mass CNN, layers and forward only: ``forward(images N×3×112×112, features N×3 normalised) → N×1
+    normalised mass``. Predictions from patches and raw features (normalisation ranges, batching, device, threads,
+    precision) are ``massviz.core.predictor.MassPredictor``'s; ``massviz.io.checkpoint.load_checkpoint`` returns one
+    holding this network."""
 
-    Attributes set by ``massviz.io.checkpoint.load_checkpoint``: ``ranges`` (:class:`Ranges`, needed by :meth:`predict`) and
-    ``weights_id`` (first 12 hex characters of the checkpoint file's sha256; a cache key). :meth:`set_precision`
-    makes :meth:`predict` run under bf16 autocast (``--precision bf16``; it appends ``+bf16`` to ``weights_id``, so
-    such predictions never pass for fp32 ones in the trace cache).
-    """
-
-    def __init__(self, ranges: Ranges | None = None, weights_id: str | None = None):
+    def __init__(self):
         super().__init__()
         self.conv1 = nn.Conv2d(3, 32, kernel_size=3, padding=1, stride=1)
         self.bn1 = nn.BatchNorm2d(32)
@@ -194,9 +173,6 @@ class MassNet(nn.Module):
         self.linear2 = nn.Linear(64, 6)
         self.linear3 = nn.Linear(6 + 3, 1)
         self.pool = nn.MaxPool2d((2, 2))
-        self.ranges = ranges
-        self.weights_id = weights_id
-        self.precision = "fp32"
 
     def _blocks(self):
         return ((self.conv1, self.bn1), (self.conv2, self.bn2), (self.conv3, self.bn3), (self.conv4, self.bn4))
@@ -205,9 +181,10 @@ class MassNet(nn.Module):
         x = images
         for conv, bn in self._blocks():
             x = self.pool(bn(F.relu(conv(x))))
-        return self._head(x, features)
+        return self.head(x, features)
 
-    def _head(self, x: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+    def head(self, x: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+        """The linear layers on the pooled maps ``x`` (N×128×7×7) and the normalised features (N×3)."""
         x = self.bn5(F.relu(self.linear1(x.flatten(1))))
         x = F.relu(self.linear2(x))
         return self.linear3(torch.cat((x, features), dim=1))
@@ -222,10 +199,10 @@ class MassNet(nn.Module):
         ``pool(bn(relu(conv(x))))`` = ``bn(relu(s * pool(conv_s(x))))`` with s = ±1 per channel: the same numbers.
         Only valid with the norms' running statistics (not in training mode, where they come from the batch).
         """
-        return self._head(self._trunk_eval(images), features)
+        return self.head(self.trunk_eval(images), features)
 
-    def _trunk_eval(self, images: torch.Tensor) -> torch.Tensor:
-        """The convolution blocks of ``forward_eval`` (the pooled maps the head reads)."""
+    def trunk_eval(self, images: torch.Tensor) -> torch.Tensor:
+        """The convolution blocks of ``forward_eval``: the pooled maps (N×128×7×7) :meth:`head` reads."""
         if self.training:
             raise RuntimeError("MassNet.forward_eval needs eval mode (BatchNorm running statistics)")
         x = images
@@ -238,148 +215,6 @@ class MassNet(nn.Module):
             x = bn(F.relu_(v.mul_(s.view(1, -1, 1, 1).to(v.dtype))))  # ±1: exact in any dtype
         return x
 
-    @torch.no_grad()
-    def pooled_features(self, patches: Sequence[np.ndarray], rows: int = 64) -> np.ndarray:
-        """The pooled maps the head reads (128×7×7, flattened: float32, shape (N, 6272)) of N RGB crops, in eval
-        mode: the network's own description of what a patch looks like (the patch map's embedding). Calls of
-        ``rows`` patches."""
-        was_training = self.training
-        self.eval()
-        device = next(self.parameters()).device
-        out = []
-        try:
-            for start in range(0, len(patches), rows):
-                x = preprocess_patches(patches[start:start + rows]).to(device)
-                out.append(self._trunk_eval(x).flatten(1).float().cpu().numpy())
-        finally:
-            self.train(was_training)
-        return np.concatenate(out) if out else np.zeros((0, 128 * 7 * 7), np.float32)
 
-    def set_precision(self, precision: str) -> "MassNet":
-        """``"fp32"`` (default) or ``"bf16"`` for :meth:`predict` (bf16: CPUs with bfloat16 support or CUDA; the
-        caller checks, as ``massviz.detect.maskrcnn.check_precision`` does). ``"fp16"`` keeps the mass CNN in fp32:
-        it runs on the CPU, where fp16 is not a fast format."""
-        if precision not in PRECISIONS:
-            raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
-        base = (self.weights_id or "").split("+")[0]
-        self.precision = "bf16" if precision == "bf16" else "fp32"
-        if self.weights_id is not None:
-            self.weights_id = base + ("+bf16" if self.precision == "bf16" else "")
-        return self
-
-    @torch.no_grad()
-    def predict_normalised(self, images: torch.Tensor, features: torch.Tensor,
-                           rows: int = DEVICE_CALL_ROWS) -> torch.Tensor:
-        """The network's outputs (normalised mass, float32, shape (N,), on the model's device) for inputs already
-        there: ``images`` (N, 3, 112, 112) float32 in [0, 1] (``massviz.core.resample.resize_boxes``), ``features``
-        (N, 3) normalised (``Ranges.normalise_features_tensor``). Every call has exactly ``rows`` rows, the last one
-        padded with zeros, so a patch's output does not depend on how many patches share its call (on a GPU the
-        kernels are chosen by the call's shape). Nothing is copied to the host: ``Ranges.denormalise_mass`` of the
-        result gives grams."""
-        n = len(images)
-        device = next(self.parameters()).device
-        out = torch.empty(n, dtype=torch.float32, device=device)
-        if n == 0:
-            return out
-        was_training = self.training
-        self.eval()
-        self.to(memory_format=torch.channels_last)
-        try:
-            for start in range(0, n, rows):
-                x = images[start:start + rows]
-                f = features[start:start + rows]
-                if len(x) < rows:  # pad to the fixed call size
-                    x = torch.cat([x, x.new_zeros((rows - len(x), *x.shape[1:]))])
-                    f = torch.cat([f, f.new_zeros((rows - len(f), f.shape[1]))])
-                x = x.to(device).contiguous(memory_format=torch.channels_last)
-                with torch.autocast(device.type, dtype=torch.bfloat16, enabled=self.precision == "bf16"):
-                    y = self._head(self._trunk_eval(x), f.to(device))
-                out[start:start + rows] = y[:min(rows, n - start), 0].float()
-        finally:
-            self.train(was_training)
-        return out
-
-    @torch.no_grad()
-    def predict(self, patches: Sequence[np.ndarray], features, batch_size: int = 16) -> np.ndarray:
-        """Grams (float32, shape (N,)) for N RGB crops (H×W×3 uint8) and their raw ``[a, b, d_mm]`` features."""
-        return self.predict_groups([(patches, features)], batch_size)[0]
-
-    @torch.no_grad()
-    def predict_groups(self, groups: Sequence[tuple[Sequence[np.ndarray], np.ndarray]],
-                       batch_size: int = 16) -> list[np.ndarray]:
-        """``[predict(patches, features) for patches, features in groups]`` (e.g. one group per frame), bit for bit,
-        with the convolutions of every group's patches run together, ``batch_size`` rows a call.
-
-        Bit for bit because a row of the convolution blocks does not depend on the other rows of its call as long as
-        the call has two rows or more (oneDNN's CPU kernels, fp32 and bf16, 1 and 2 threads: rows computed with
-        2 ... 96 others are equal; a call of ONE row takes another kernel and differs by ~2e-6). So a
-        patch ``predict`` would send alone (a group's last call of one row) is sent alone here too; the others go in
-        calls of ``batch_size`` (never leaving one row alone); the head (linear layers, whose rows do depend on the
-        call's size) then runs on each group's own calls of ``batch_size``, exactly as ``predict`` calls it."""
-        if self.ranges is None:
-            raise WeightsError("MassNet.predict needs normalisation ranges (load with massviz.io.checkpoint.load_checkpoint)")
-        feats, spans = [], []
-        for patches, features in groups:
-            f = self.ranges.normalise_features(features)
-            if len(patches) != len(f):
-                raise ValueError(f"{len(patches)} patches but {len(f)} feature rows")
-            feats.append(f)
-            # predict's calls: rows [i, i + batch_size) of this group
-            spans.append([(i, min(i + batch_size, len(f))) for i in range(0, len(f), batch_size)])
-        if not any(len(f) for f in feats):
-            return [np.zeros(0, dtype=np.float32) for _ in groups]
-        was_training = self.training
-        self.eval()
-        device = next(self.parameters()).device
-        # channels_last: the same arithmetic in another order, ~1.5x faster on a CPU (max-pooling most of all);
-        # forward_eval: the same numbers as forward with ReLU/BatchNorm on a quarter of the data; batches of 16
-        # stay in the caches (~1.6x faster than 64 on a 2-core CPU; the batch size moves predictions by ~1e-4 g)
-        self.to(memory_format=torch.channels_last)
-        threads, wanted = torch.get_num_threads(), _model_threads()
-        if wanted and wanted != threads:
-            torch.set_num_threads(wanted)  # the detector keeps its own (restored below)
-
-        def images(rows):
-            batch = preprocess_patches([groups[g][0][r] for g, r in rows]).to(device)
-            return batch.contiguous(memory_format=torch.channels_last)
-
-        def autocast():
-            return torch.autocast(device.type, dtype=torch.bfloat16, enabled=self.precision == "bf16")
-
-        try:
-            alone = [(g, a) for g, sp in enumerate(spans) for a, b in sp if b - a == 1]
-            together = [(g, r) for g, sp in enumerate(spans) for a, b in sp if b - a > 1 for r in range(a, b)]
-            maps = {}
-            for rows in [[row] for row in alone] + _calls(together, batch_size):
-                x = images(rows)
-                with autocast():
-                    for row, m in zip(rows, self._trunk_eval(x)):
-                        maps[row] = m
-            out = []
-            for g, sp in enumerate(spans):
-                parts = []
-                for a, b in sp:
-                    x = torch.stack([maps[(g, r)] for r in range(a, b)])
-                    with autocast():
-                        y = self._head(x, torch.from_numpy(feats[g][a:b]).to(device))
-                    parts.append(y[:, 0].float().cpu().numpy())
-                out.append(self.ranges.denormalise_mass(np.concatenate(parts)) if parts else
-                           np.zeros(0, dtype=np.float32))
-        finally:
-            self.train(was_training)
-            if torch.get_num_threads() != threads:
-                torch.set_num_threads(threads)
-        return out
-
-
-def _calls(rows: list, size: int) -> list[list]:
-    """``rows`` cut into calls of ``size`` rows, the last one taking a lone last row (never a call of one row)."""
-    calls = [rows[i:i + size] for i in range(0, len(rows), size)]
-    if len(calls) > 1 and len(calls[-1]) == 1:
-        lone = calls.pop()
-        calls[-1] = calls[-1] + lone
-    return calls
-
-
-__all__ = ["PATCH_SIZE", "N_PARAMETERS", "DEVICE_CALL_ROWS", "RANGE_KEYS", "Ranges", "square_pad", "preprocess_patch",
+__all__ = ["PATCH_SIZE", "N_PARAMETERS", "RANGE_KEYS", "Ranges", "square_pad", "preprocess_patch",
            "preprocess_patches", "MassNet"]

@@ -26,7 +26,6 @@ RGB patches are held, so memory does not grow with the recording's length beyond
 from __future__ import annotations
 
 import dataclasses
-import heapq
 import inspect
 import math
 import sys
@@ -48,15 +47,22 @@ from massviz.core.types import Detections, Frame, RecordingInfo, Rejection
 KEEP_PATCHES = 32
 
 
-def predict_detections(model, rgb: np.ndarray, dets: Detections) -> tuple[np.ndarray, FramePatches]:
-    """Mass prediction (g) for every detection with a finite d and a non-empty box; NaN for the others."""
+def predict_detections(model, rgb: np.ndarray, dets: Detections,
+                       kernels: str = "exact") -> tuple[np.ndarray, FramePatches]:
+    """Mass prediction (g) for every detection with a finite d and a non-empty box; NaN for the others.
+    ``kernels``: ``exact`` (patches cut and resized on the host, ``model.predict``) or ``device`` (on the model's
+    device, as ``FrameStage``'s device kernels: ``MassPredictor.predict_boxes``)."""
     from massviz.core.frame_stage import _check_finite
 
     pred = np.full(len(dets), np.nan, dtype=np.float32)
     patches = FramePatches(rgb, dets.xyxy)
     ok = predictable(dets)
     if len(ok):
-        pred[ok] = model.predict([patches[i] for i in ok], np.stack([dets.a[ok], dets.b[ok], dets.d[ok]], axis=1))
+        feats = np.stack([dets.a[ok], dets.b[ok], dets.d[ok]], axis=1)
+        if kernels == "device":
+            pred[ok] = model.predict_boxes(rgb, dets.xyxy[ok], feats)
+        else:
+            pred[ok] = model.predict([patches[i] for i in ok], feats)
         _check_finite(model, pred[ok])
     return pred, patches
 
@@ -65,19 +71,24 @@ class _NearestPatches:
     """Keeps the RGB patches of the ``n`` nearest detections seen so far (ties: the earliest wins)."""
 
     def __init__(self, n: int):
-        self.n, self.heap, self.patches = n, [], {}
+        self.n, self.patches = n, {}
+        self._index, self._d = np.zeros(0, np.int64), np.zeros(0)
 
-    def offer(self, index: int, d: float, patches, i: int) -> None:
-        """Detection ``index`` at distance ``d``, its patch ``patches[i]`` (read only when it is kept)."""
-        if not np.isfinite(d) or self.n <= 0:
+    def offer(self, offset: int, d: np.ndarray, patches) -> None:
+        """A frame's detections, global indices ``offset + i`` at distances ``d`` (NaN: none), their patches
+        ``patches[i]`` (read only for those kept)."""
+        d = np.asarray(d, dtype=np.float64)
+        local = np.flatnonzero(np.isfinite(d))
+        if self.n <= 0 or not len(local):
             return
-        if len(self.heap) >= self.n and (-d, -index) <= self.heap[0]:
-            return  # not nearer than the farthest kept (ties: the earliest stays)
-        heapq.heappush(self.heap, (-d, -index))
-        self.patches[index] = patches[i]
-        if len(self.heap) > self.n:
-            _, neg = heapq.heappop(self.heap)
-            self.patches.pop(-neg, None)
+        index = np.concatenate([self._index, offset + local])
+        dist = np.concatenate([self._d, d[local]])
+        keep = np.sort(np.lexsort((index, dist))[:self.n])  # the n nearest, ties to the earliest; in index order
+        self._index, self._d = index[keep], dist[keep]
+        for gone in set(self.patches) - set(self._index.tolist()):
+            del self.patches[gone]
+        for i in self._index[self._index >= offset].tolist():
+            self.patches[i] = patches[i - offset]
 
 
 def resolve_selection(selection: Selection | None, k: int | None, stride: int | None,
@@ -151,8 +162,7 @@ class FramePipeline:
         for i in np.flatnonzero(~np.isfinite(dets.d)):
             events.append(Event(frame.index, f"skipped {describe_detection(dets, int(i))}: its mask has no depth",
                                 "skipped", "warn", offset + int(i)))
-        for i in np.flatnonzero(np.isfinite(dets.d)):
-            self._nearest.offer(offset + int(i), float(dets.d[i]), patches, int(i))
+        self._nearest.offer(offset, dets.d, patches)
         self._frames.append(frame.index)
         self._parts.append(dets)
         self._offset += len(dets)
@@ -243,33 +253,49 @@ def run(recording, detector: Detector, model, *, selection: Selection | None = N
     staged = stage.stream(frames)
     if stage.overlap:
         staged = Prefetcher(staged, size=2 * batch)
-    try:  # the bar is cleared before any error is reported, so the error line stands alone
-        for item in staged:
-            result = fp.step(item.frame, staged=item)
-            if on_frame is not None:
-                on_frame(item.frame, result)
-            bar.update(1)
-    finally:
-        bar.close()
-        for it in (staged, frames):
-            if isinstance(it, Prefetcher):
-                it.close()
+    # the faithful settings once for the whole run, the stage's thread included (closed before they are left)
+    with stage.faithful():
+        try:  # the bar is cleared before any error is reported, so the error line stands alone
+            for item in staged:
+                result = fp.step(item.frame, staged=item)
+                if on_frame is not None:
+                    on_frame(item.frame, result)
+                bar.update(1)
+        finally:
+            bar.close()
+            for it in (staged, frames):
+                if isinstance(it, Prefetcher):
+                    it.close()
     fp.events.extend(Event(-1, note, "warning", "warn") for note in getattr(recording, "notes", ()))
     return fp.finish(analyse=analyse)
 
 
-def repredict(trace: Trace, recording, model, progress: bool = False) -> Trace:
-    """Recompute every detection's prediction with another model (re-reads the frames that have detections)."""
+def repredict(trace: Trace, recording, model, progress: bool = False, *, detector: Detector | None = None,
+              kernels: str = "auto") -> Trace:
+    """Recompute every detection's prediction with another model (re-reads the frames that have detections), in
+    the settings a run of that model computes in (a ``FrameStage`` of ``detector`` and ``model``, which detects
+    nothing here): its kernels (``auto``: ``device`` when the model is on a CUDA GPU) inside the run's faithful
+    settings (``FrameStage.faithful``: the run's ``--precision`` is the detector's, without a detector the
+    model's). ``compute`` records it: ``predict_device``, ``predict_kernels``, ``predict_precision`` and
+    ``predict_mode`` say where and how the predictions were recomputed, and ``mode`` is ``faithful`` only when both
+    the detections and the predictions are."""
+    stage = FrameStage(detector, model, kernels=kernels)
     dets = trace.detections
     pred = np.full(len(dets), np.nan, dtype=np.float32)
     by_frame = dets.indices_by_frame()
-    for frame in tqdm(recording.frames(indices=list(by_frame)), total=len(by_frame), disable=not progress,
-                      file=sys.stderr, desc=f"{recording.id} re-predict", leave=False):
-        idx = by_frame[frame.index]
-        pred[idx], _ = predict_detections(model, frame.rgb, dets[idx])
+    with stage.faithful():
+        for frame in tqdm(recording.frames(indices=list(by_frame)), total=len(by_frame), disable=not progress,
+                          file=sys.stderr, desc=f"{recording.id} re-predict", leave=False):
+            idx = by_frame[frame.index]
+            pred[idx], _ = predict_detections(model, frame.rgb, dets[idx], stage.kernels)
     new = Detections(**{n: getattr(dets, n) for n in Detections._ARRAYS if n != "pred"}, pred=pred,
                      masks=dets.masks, patches=dets.patches)
-    out = dataclasses.replace(trace, detections=new, weights_id=getattr(model, "weights_id", ""))
+    predicted = stage.describe()
+    compute = {**trace.compute, **{f"predict_{k}": predicted[k] for k in ("device", "kernels", "precision", "mode")}}
+    if "mode" in trace.compute:
+        both = trace.compute["mode"] == predicted["mode"] == "faithful"
+        compute["mode"] = "faithful" if both else "fast"
+    out = dataclasses.replace(trace, detections=new, weights_id=getattr(model, "weights_id", ""), compute=compute)
     return out.reselect()
 
 

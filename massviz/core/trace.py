@@ -116,7 +116,9 @@ class Trace:
     - ``flags``: ``massviz.core.flags.Flags`` of the selection, made by the stages that make or change the selection
       (module docstring); None on a trace no stage has analysed yet (``analyse_trace``).
     - ``compute``: where and how the detections and predictions were computed (``FrameStage.describe``: device,
-      kernels, precision, batch, mode ``faithful``/``fast``); empty for traces made before massviz recorded it.
+      kernels, precision, batch, mode ``faithful``/``fast``); after ``massviz.core.pipeline.repredict`` also
+      ``predict_device``/``predict_kernels``/``predict_precision``/``predict_mode`` of the new predictions, ``mode``
+      then ``faithful`` only when both were; empty for traces made before massviz recorded it.
     - ``ground_truth_source``: what the detections' ground-truth overlaps (``Detections.gt_iou`` ...) were computed
       from (``massviz.core.flags.ground_truth_source``; "" none): the flags use them only while it matches the
       recording's ground truth (``massviz.io.ground_truth.with_ground_truth`` fills them).

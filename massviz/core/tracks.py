@@ -25,8 +25,6 @@ tracker and ByteTrack 0.26 agree on the objects (the pitcher in ``cup_handover``
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from massviz.core.types import Detections
@@ -86,7 +84,9 @@ class Tracker:
         self.velocity = np.zeros((0, 4))
         self.d = np.zeros(0)
         self.size = np.zeros((0, 2))  # median metric size over the last SIZE_HISTORY detections with depth; NaN: none
-        self.history: dict[int, list] = {}  # track id -> its last metric sizes
+        # each track's last SIZE_HISTORY metric sizes (a ring, NaN where unfilled) and how many it has had
+        self.history = np.zeros((0, SIZE_HISTORY, 2))
+        self.seen = np.zeros(0, np.int64)
         self.next_id = 1
 
     def _gate(self, frame: int, boxes: np.ndarray, depths: np.ndarray) -> np.ndarray:
@@ -107,55 +107,92 @@ class Tracker:
             ok &= ~(sized[:, None] & both & (~positive | (worst > SIZE_GATE)))
         return np.where(ok, overlap, np.nan)
 
-    def _sizes(self, tid: int, box: np.ndarray, d: float, keep: list) -> np.ndarray:
-        """Track ``tid``'s history with this detection's metric size (when it has depth) and their median."""
-        if math.isfinite(d):
-            keep = (keep + [metric_size(box, d)])[-SIZE_HISTORY:]
-        self.history[tid] = keep
-        return np.median(np.asarray(keep), axis=0) if keep else np.full(2, np.nan)
+    def _record_sizes(self, rows: np.ndarray, boxes: np.ndarray, depths: np.ndarray) -> None:
+        """Tracks ``rows`` (distinct) get the metric sizes of ``boxes`` at ``depths`` (those with depth) into their
+        histories, and ``size`` their medians."""
+        has = np.isfinite(depths)
+        r = rows[has]
+        sizes = np.stack([(boxes[has, 2] - boxes[has, 0]) * depths[has],
+                          (boxes[has, 3] - boxes[has, 1]) * depths[has]], axis=1)
+        self.history[r, self.seen[r] % SIZE_HISTORY] = sizes
+        self.seen[r] += 1
+        self.size[rows] = _median_of_filled(self.history[rows], np.minimum(self.seen[rows], SIZE_HISTORY))
+
+    def _match(self, frame: int, boxes: np.ndarray, depths: np.ndarray, older: np.ndarray):
+        """Greedy matching of the open tracks ``older`` to the detections: (track rows, detection columns)."""
+        overlap = self._gate(frame, boxes, depths)[older]
+        r, j = np.nonzero(~np.isnan(overlap))
+        t = older[r]
+        # greedy, highest IoU first; ties: the shorter gap, the older track, the earlier detection
+        order = np.lexsort((j, self.ids[t], frame - self.frame[t], -overlap[r, j]))
+        return greedy_pairs(t[order], j[order])
 
     def update(self, frame: int, dets: Detections) -> np.ndarray:
         """Track ids (int64, >= 1) of ``dets``, all made on frame ``frame``."""
         frame = int(frame)
         alive = frame - self.frame <= self.max_gap
         if not alive.all():
-            for tid in self.ids[~alive]:
-                del self.history[int(tid)]
             self.ids, self.frame, self.box = self.ids[alive], self.frame[alive], self.box[alive]
             self.velocity, self.d, self.size = self.velocity[alive], self.d[alive], self.size[alive]
+            self.history, self.seen = self.history[alive], self.seen[alive]
         boxes = np.asarray(dets.xyxy, dtype=np.float64).reshape(-1, 4)
         depths = np.asarray(dets.d, dtype=np.float64).reshape(-1)
         ids = np.zeros(len(boxes), dtype=np.int64)
         older = np.flatnonzero(self.frame < frame)
         if len(boxes) and len(older):
-            overlap = self._gate(frame, boxes, depths)[older]
-            r, j = np.nonzero(~np.isnan(overlap))
-            t = older[r]
-            # greedy, highest IoU first; ties: the shorter gap, the older track, the earlier detection
-            order = np.lexsort((j, self.ids[t], frame - self.frame[t], -overlap[r, j]))
-            used = set()
-            for k in order:
-                row, col = int(t[k]), int(j[k])
-                if ids[col] or row in used:
-                    continue
-                used.add(row)
-                ids[col] = self.ids[row]
-                box, d = boxes[col], float(depths[col])
-                self.velocity[row] = (box - self.box[row]) / max(frame - int(self.frame[row]), 1)
-                self.frame[row], self.box[row], self.d[row] = frame, box, d
-                self.size[row] = self._sizes(int(self.ids[row]), box, d, self.history[int(self.ids[row])])
+            rows, cols = self._match(frame, boxes, depths, older)
+            ids[cols] = self.ids[rows]
+            self.velocity[rows] = (boxes[cols] - self.box[rows]) / np.maximum(frame - self.frame[rows], 1)[:, None]
+            self.frame[rows], self.box[rows], self.d[rows] = frame, boxes[cols], depths[cols]
+            self._record_sizes(rows, boxes[cols], depths[cols])
         new = np.flatnonzero(ids == 0)
         if len(new):
             ids[new] = np.arange(self.next_id, self.next_id + len(new))
             self.next_id += len(new)
+            first = len(self.ids)
             self.ids = np.concatenate([self.ids, ids[new]])
             self.frame = np.concatenate([self.frame, np.full(len(new), frame, np.int64)])
             self.box = np.concatenate([self.box, boxes[new]])
             self.velocity = np.concatenate([self.velocity, np.zeros((len(new), 4))])
             self.d = np.concatenate([self.d, depths[new]])
-            self.size = np.concatenate([self.size, np.stack([self._sizes(int(tid), boxes[j], float(depths[j]), [])
-                                                             for tid, j in zip(ids[new], new)])])
+            self.size = np.concatenate([self.size, np.full((len(new), 2), np.nan)])
+            self.history = np.concatenate([self.history, np.full((len(new), SIZE_HISTORY, 2), np.nan)])
+            self.seen = np.concatenate([self.seen, np.zeros(len(new), np.int64)])
+            self._record_sizes(np.arange(first, first + len(new)), boxes[new], depths[new])
         return ids
+
+
+def greedy_pairs(rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs a greedy matching keeps from candidates (``rows[k]``, ``cols[k]``) in order of preference: each
+    candidate whose row and column no earlier kept pair uses. In rounds, as arrays: a remaining candidate that is
+    the first remaining one of its row and of its column is one greedy keeps (every earlier candidate of its row or
+    column is gone, so none of them was kept); those are kept at once and the candidates they block removed."""
+    rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
+    kept = np.zeros(len(rows), bool)
+    left = np.ones(len(rows), bool)
+    while left.any():
+        idx = np.flatnonzero(left)
+        _, first_of_row = np.unique(rows[idx], return_index=True)
+        _, first_of_col = np.unique(cols[idx], return_index=True)
+        take = np.intersect1d(idx[first_of_row], idx[first_of_col], assume_unique=True)
+        kept[take] = True
+        left &= ~(np.isin(rows, rows[take]) | np.isin(cols, cols[take]))
+    return rows[kept], cols[kept]
+
+
+def _median_of_filled(values: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """``np.median(values[i, :counts[i]], axis=0)`` for each i, bit for bit (the mean of the two middle values is
+    their sum / 2, as numpy computes it); NaN where ``counts`` is 0. ``values`` (N, H, 2), NaN where unfilled."""
+    out = np.full((len(values), 2), np.nan)
+    filled = counts > 0
+    if not filled.any():
+        return out
+    s = np.sort(values[filled], axis=1)  # NaN (unfilled) last
+    n = counts[filled]
+    at = np.arange(len(s))
+    hi, lo = s[at, n // 2], s[at, (n - 1) // 2]
+    out[filled] = np.where((n % 2 == 1)[:, None], hi, (lo + hi) / 2)
+    return out
 
 
 def assign_tracks(dets: Detections, fps: float | None = None) -> np.ndarray:
@@ -173,5 +210,5 @@ def track_members(dets: Detections, track: int) -> np.ndarray:
     return np.array(sorted(idx.tolist(), key=lambda i: (int(dets.frame[i]), i)), dtype=np.int64)
 
 
-__all__ = ["Tracker", "assign_tracks", "track_members", "box_iou", "metric_size", "IOU_MIN", "DEPTH_GATE",
+__all__ = ["Tracker", "assign_tracks", "greedy_pairs", "track_members", "box_iou", "metric_size", "IOU_MIN", "DEPTH_GATE",
            "SIZE_GATE", "MAX_GAP_S"]

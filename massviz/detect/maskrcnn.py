@@ -44,7 +44,7 @@ from torchvision.models.detection.roi_heads import RoIHeads
 from torchvision.models.detection.transform import GeneralizedRCNNTransform, resize_boxes
 
 from massviz.core.detector import PAPER_THRESHOLD
-from massviz.core.device import faithful_fp32
+from massviz.core.device import default_batch, faithful_fp32
 from massviz.core.resample import to_unit_float
 from massviz.core.types import COCO_KEEP, PRECISIONS, Detections, Frame
 from massviz.errors import MassvizError, WeightsError
@@ -438,10 +438,9 @@ class MaskRCNNDetector:
 
     @property
     def default_batch(self) -> int:
-        """Frames per forward when ``--batch`` is not given: 1 on a CPU (batching gains ~5 % there) and in the
-        faithful fp32 mode on CUDA (cuDNN chooses kernels by the batch's shape: ``massviz.core.device``), 8 in
-        bf16/fp16 on CUDA."""
-        return 8 if self.device.type == "cuda" and self.precision != "fp32" else 1
+        """Frames per forward when ``--batch`` is not given (``massviz.core.device.default_batch``: 1 on a CPU and
+        in the faithful fp32 mode on CUDA, 8 in bf16/fp16 on CUDA)."""
+        return default_batch(self.device, self.precision)
 
     @property
     def runtime(self) -> torch.nn.Module:

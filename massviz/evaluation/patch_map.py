@@ -1,7 +1,7 @@
 """A map of every chosen patch of a dataset (pandas in, pandas out): where are the failures like this one?
 
 * The embedding of a patch is the mass CNN's own description of it: the pooled maps its head reads
-  (``MassNet.pooled_features``: 128×7×7 = 6,272 values), L2-normalised. No other model.
+  (``MassPredictor.pooled_features``: 128×7×7 = 6,272 values), L2-normalised. No other model.
 * ``embed_trace`` computes the embeddings of a trace's chosen patches once and caches them **with the trace**,
   beside its trace-cache entry and keyed like it (the same recording content, detector settings and stride) and by
   the model's id: ``…/<id>-<key>/t0.4.npz`` → ``e0.4-<model id>.emb`` (an .npz inside, not named so: every

@@ -1,5 +1,6 @@
 """Mass-CNN checkpoint files: :func:`load_checkpoint` reads one (a published state_dict or a massviz checkpoint) into
-a ``massviz.core.model.MassNet`` with its normalisation ranges, :func:`save_checkpoint` writes one atomically.
+a ``massviz.core.predictor.MassPredictor`` (the ``massviz.core.model.MassNet`` network with its normalisation ranges),
+:func:`save_checkpoint` writes one atomically.
 """
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from pathlib import Path
 import torch
 
 from massviz.core.model import MassNet, Ranges
+from massviz.core.predictor import MassPredictor
 from massviz.errors import WeightsError
 from massviz.io.atomic import atomic_path
 from massviz.io.weights import PUBLISHED, published_by_sha256, sha256_file
@@ -24,8 +26,9 @@ MIN_RANGE_SPAN = 1e-6
 MAX_WEIGHT_MAGNITUDE = 1e6
 
 
-def load_checkpoint(path: str | Path, ranges: Ranges | None = None) -> MassNet:
-    """Load a checkpoint on the CPU in eval mode, with its normalisation ranges.
+def load_checkpoint(path: str | Path, ranges: Ranges | None = None) -> MassPredictor:
+    """Load a checkpoint: a :class:`MassPredictor` whose network is on the CPU in eval mode, with the checkpoint's
+    normalisation ranges and ``weights_id``.
 
     Ranges, first found wins: the ``ranges`` argument; the ``"ranges"`` of a massviz checkpoint (see
     :func:`save_checkpoint`); the table of published checkpoints, by the file's sha256; the sidecar
@@ -58,12 +61,13 @@ def load_checkpoint(path: str | Path, ranges: Ranges | None = None) -> MassNet:
             ranges = _read_sidecar(path)
 
     check_ranges(ranges, path)
-    model = MassNet(ranges=ranges, weights_id=sha[:12])
-    _check_state_dict(model, state, path)
+    net = MassNet()
+    _check_state_dict(net, state, path)
     _check_tensors(state, path)
-    model.load_state_dict(state, strict=True)
-    model.checkpoint_path = str(path)  # named by the error of a prediction that still overflows
-    _probe(model.eval(), path)
+    net.load_state_dict(state, strict=True)
+    # the path is named by the error of a prediction that still overflows
+    model = MassPredictor(net.eval(), ranges, sha[:12], checkpoint_path=str(path))
+    _probe(model, path)
     return model
 
 
@@ -102,7 +106,7 @@ def _check_tensors(state: dict, path: Path) -> None:
             raise WeightsError(f"parameter {name} holds a negative variance", path)
 
 
-def _probe(model: MassNet, path: Path) -> None:
+def _probe(model: MassPredictor, path: Path) -> None:
     """One prediction on a grey patch at the middle of the ranges: a checkpoint whose numbers are each finite but
     overflow together is refused here, not after a whole recording."""
     import numpy as np
@@ -147,17 +151,20 @@ def _check_state_dict(model: MassNet, state: dict, path: Path) -> None:
         raise WeightsError(f"state_dict does not fit MassNet: {'; '.join(problems)}", path)
 
 
-def save_checkpoint(path: str | Path, model: MassNet, ranges: Ranges, extra: dict | None = None) -> Path:
-    """Write a massviz checkpoint ``{"format", "state_dict", "ranges", "extra"}`` atomically (temp file + rename).
+def save_checkpoint(path: str | Path, model: MassNet | MassPredictor, ranges: Ranges,
+                    extra: dict | None = None) -> Path:
+    """Write a massviz checkpoint ``{"format", "state_dict", "ranges", "extra"}`` atomically (temp file + rename):
+    the weights of ``model`` (a :class:`MassNet`, or a :class:`MassPredictor`'s network) with ``ranges``.
 
     ``extra`` (e.g. epoch, split, metrics) must hold plain Python values (str, int, float, bool, lists, dicts) so the
     file loads with ``torch.load(weights_only=True)``. :func:`load_checkpoint` reads the file back.
     """
     path = Path(path)
+    net = model.net if isinstance(model, MassPredictor) else model
     path.parent.mkdir(parents=True, exist_ok=True)
     payload = {
         "format": CHECKPOINT_FORMAT,
-        "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
+        "state_dict": {k: v.detach().cpu().clone() for k, v in net.state_dict().items()},
         "ranges": ranges.to_dict(),
         "extra": dict(extra or {}),
     }

@@ -407,10 +407,10 @@ def train_run(patches: str | Path, out: str | Path, config: TrainConfig, *, init
         seed_everything(cfg.seed)
         ranges = None if keep_ranges else compute_ranges(train_rows)
         if init is None:
-            model = MassNet(ranges=ranges)
+            model = MassNet()
         else:
-            model = load_checkpoint(init, ranges=ranges)
-            ranges = model.ranges
+            loaded = load_checkpoint(init, ranges=ranges)
+            model, ranges = loaded.net, loaded.ranges
         augment = make_augmentation() if cfg.augment_factor > 1 else None
         train_set = PatchDataset(patches, train_rows, ranges, cfg.augment_factor, augment)
         val_set = PatchDataset(patches, val_rows, ranges)
