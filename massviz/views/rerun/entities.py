@@ -431,11 +431,32 @@ def log_timings(stream: rr.RecordingStream, timings: dict, n_frames: int) -> Non
 
 
 # ------------------------------------------------------------------------------------------------ 3D clouds
-def log_detection_clouds(stream, clouds: dict, *, root: str = "world/detections",
-                         voxel_m: float = CLOUD_VOXEL_M) -> dict[int, str]:
+class _RowsOf:
+    """A Rerun component column given for some rows of a chunk only, null in the others (``present``): what lets one
+    ``send_columns`` carry rows of different components, e.g. a cloud at its frame and its ``Clear`` at the next."""
+
+    def __init__(self, column, present):
+        self.column, self.present = column, np.asarray(present, bool)
+        self.component_descriptor = column.component_descriptor
+
+    def as_arrow_array(self):
+        import pyarrow as pa
+
+        dense = self.column.as_arrow_array()
+        lengths = np.zeros(len(self.present), np.int64)
+        lengths[self.present] = np.diff(dense.offsets.to_numpy(zero_copy_only=False))
+        offsets = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int32)
+        return pa.ListArray.from_arrays(pa.array(offsets), dense.values, mask=pa.array(~self.present))
+
+
+def log_detection_clouds(stream, clouds: dict, *, root: str = "world/detections", voxel_m: float = CLOUD_VOXEL_M,
+                         frame: int | None = None, cleared_at: int | None = None,
+                         timeline: str = "frame") -> dict[int, str]:
     """Log the clouds of one frame's detections (``clouds``: {detection index in the trace: cleaned Open3D cloud},
-    as the measure stage made them, ``massviz.measure3d.stage.MeasureStage``) as ``/<root>/<id>`` (Points3D in their RGB
-    colours), with the stream's time already set to the frame. ``voxel_m`` thins the clouds (0: every point).
+    as the measure stage made them, ``massviz.measure3d.stage.MeasureStage``) as ``/<root>/<id>`` (Points3D in their
+    RGB colours): at the stream's time, or with ``frame`` at that time of ``timeline``, and with ``cleared_at`` a
+    recursive ``Clear`` at that later time, sent in the same chunk as the cloud (a chunk carries its own schema, so
+    one chunk a cloud instead of two keeps an .rrd smaller). ``voxel_m`` thins the clouds (0: every point).
     Returns {id: entity path} of the clouds logged (empty clouds are not). ``log_cloud_overlays`` adds what the
     selection says (colours of the chosen ones, their measured boxes)."""
     paths = {}
@@ -444,8 +465,19 @@ def log_detection_clouds(stream, clouds: dict, *, root: str = "world/detections"
             continue
         shown = pcd.voxel_down_sample(voxel_m) if voxel_m > 0 else pcd
         path = f"{root}/{int(i)}"
-        stream.log(path, rr.Points3D(np.asarray(shown.points, np.float32),
-                                     colors=(np.asarray(shown.colors) * 255).astype(np.uint8), radii=0.002))
+        points = np.asarray(shown.points, np.float32)
+        colours = (np.asarray(shown.colors) * 255).astype(np.uint8)
+        if frame is None:
+            stream.log(path, rr.Points3D(points, colors=colours, radii=0.002))
+        else:
+            times = [int(frame)] if cleared_at is None else [int(frame), int(cleared_at)]
+            cloud = [True] if cleared_at is None else [True, False]
+            columns = [_RowsOf(c, cloud) for c in (*rr.Points3D.columns(positions=points, colors=colours)
+                                                   .partition([len(points)]),
+                                                   *rr.Points3D.columns(radii=[0.002]).partition([1]))]
+            if cleared_at is not None:
+                columns += [_RowsOf(c, [False, True]) for c in rr.Clear.columns(is_recursive=[True]).partition([1])]
+            stream.send_columns(path, indexes=[rr.TimeColumn(timeline, sequence=times)], columns=columns)
         paths[int(i)] = path
     return paths
 

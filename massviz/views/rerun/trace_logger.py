@@ -57,7 +57,7 @@ class TraceLogger:
         self.cloud_paths: dict[int, str] = {}
         self.patches: dict[int, np.ndarray] = {}  # RGB patches of the running K nearest's entrants
         self.seconds = 0.0
-        self._shown: list[str] = []
+        self._pending: tuple[int, dict] | None = None  # (frame, its clouds), logged with the next frame's Clear
         stream.send_recording_name(f"massviz {recording.id}")
         self.rgb.log_static(stream)
 
@@ -78,12 +78,18 @@ class TraceLogger:
             if patch is not None and patch.size:
                 self.patches[g] = patch
         if self.clouds:
-            for path in self._shown:
-                self.stream.log(path, rr.Clear(recursive=True))
-            paths = log_detection_clouds(self.stream, clouds or {})
-            self.cloud_paths.update(paths)
-            self._shown = list(paths.values())
+            # the last frame's clouds go out now, each with its Clear at this frame in one chunk
+            self._send_clouds(cleared_at=frame.index)
+            self._pending = (frame.index, clouds or {})
         self.seconds += time.perf_counter() - t0
+
+    def _send_clouds(self, cleared_at: int | None) -> None:
+        """Log the clouds held back from the last frame (shown from that frame until ``cleared_at``; None: to the
+        end)."""
+        if self._pending is not None:
+            shown_at, clouds = self._pending
+            self.cloud_paths.update(log_detection_clouds(self.stream, clouds, frame=shown_at, cleared_at=cleared_at))
+            self._pending = None
 
     # ------------------------------------------------------------------------------------------------------ end
     def finish(self, trace: Trace, *, points: bool = False, layout: bool = True,
@@ -92,6 +98,7 @@ class TraceLogger:
         own seconds, or with ``timed_from``, a ``time.perf_counter()``, the wall seconds since then) and, with
         ``layout``, its layout (``blueprint_for``); returns the stats of ``log_trace_with_clouds``."""
         t0 = time.perf_counter()
+        self._send_clouds(cleared_at=None)
         stream, dets = self.stream, trace.detections
         frames = [int(f) for f in trace.frames]
         first = frames[0] if frames else 0
