@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
 import stat
 import tempfile
@@ -68,8 +69,8 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     tmp = None
     try:
         with deferred():  # a signal now would leave the new temporary file behind
-            sweep_stale(path.parent, path.name)
-            fd, tmp = tempfile.mkstemp(prefix=_prefix(path.name), suffix=f".tmp{path.suffix}", dir=path.parent)
+            sweep_stale(path.parent)
+            fd, tmp = tempfile.mkstemp(prefix=_prefix(), suffix=f".tmp{_suffix(path)}", dir=path.parent)
             os.close(fd)
             umask = os.umask(0)
             os.umask(umask)
@@ -84,10 +85,20 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         raise
 
 
-def _prefix(name: str) -> str:
-    """The start of a temporary's name for the output ``name``: hidden, and carrying this process's id (a temporary
-    of a process that is gone, killed before it could remove it, is found by :func:`sweep_stale`)."""
-    return f".{name}.{os.getpid()}."
+def _prefix() -> str:
+    """The start of a temporary's name: hidden, short (``.mv-PID-`` and a few random characters: it fits wherever the
+    output's own name fits, even a name of 255 bytes) and carrying this process's id (a temporary of a process that
+    is gone, killed before it could remove it, is found by :func:`sweep_stale`)."""
+    return f".mv-{os.getpid()}-"
+
+
+#: the longest suffix a temporary keeps from its output's name (writers choose the format by it: ``.png``, ``.rrd``)
+_MAX_SUFFIX = 16
+
+
+def _suffix(path: Path) -> str:
+    """The output's suffix (``.csv``), kept in the temporary's name when short; a long one is dropped."""
+    return path.suffix if len(path.suffix.encode()) <= _MAX_SUFFIX else ""
 
 
 def _alive(pid: int) -> bool:
@@ -100,19 +111,20 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def sweep_stale(folder: str | Path, name: str) -> None:
-    """Remove the temporaries of the output ``name`` in ``folder`` that a process left when it was killed
-    (SIGKILL, a power cut): hidden ``.NAME.PID.*`` files and folders ending ``.tmp*``, ``.part`` or ``.old`` whose
-    process no longer runs. Repeated kills leave at most one run's temporaries, never an accumulation."""
-    import re
+#: the name of a massviz temporary: ``.mv-PID-RANDOM`` then ``.tmp`` (and the output's suffix), ``.part`` or ``.old``
+_TEMPORARY = re.compile(r"\.mv-(\d+)-[^/]*\.(tmp[^/]*|part|old)$")
 
-    pattern = re.compile(rf"\.{re.escape(name)}\.(\d+)\.[^/]*\.(tmp[^/]*|part|old)$")
+
+def sweep_stale(folder: str | Path) -> None:
+    """Remove the temporaries in ``folder`` that a massviz process left when it was killed (SIGKILL, a power cut):
+    hidden ``.mv-PID-*`` files and folders ending ``.tmp*``, ``.part`` or ``.old`` whose process no longer runs.
+    Repeated kills leave at most one run's temporaries, never an accumulation."""
     try:
         entries = list(os.scandir(folder))
     except OSError:
         return
     for entry in entries:
-        m = pattern.match(entry.name)
+        m = _TEMPORARY.match(entry.name)
         if m is None or int(m.group(1)) == os.getpid() or _alive(int(m.group(1))):
             continue
         with deferred():
@@ -167,15 +179,15 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     tmp = None
     try:
         with deferred():  # a signal now would leave the new temporary folder behind
-            sweep_stale(path.parent, path.name)
-            tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=_prefix(path.name), suffix=".part"))
+            sweep_stale(path.parent)
+            tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=_prefix(), suffix=".part"))
             umask = os.umask(0)
             os.umask(umask)
             os.chmod(tmp, 0o777 & ~umask)
         yield tmp
         with deferred():  # the swap runs to its end: the old folder or the new one is in place, never neither
             if path.exists():
-                old = Path(tempfile.mkdtemp(dir=path.parent, prefix=_prefix(path.name), suffix=".old"))
+                old = Path(tempfile.mkdtemp(dir=path.parent, prefix=_prefix(), suffix=".old"))
                 os.replace(path, old / path.name)
                 os.replace(tmp, path)
                 shutil.rmtree(old, ignore_errors=True)
@@ -201,8 +213,8 @@ def staged_files(folder: str | Path) -> Iterator[Path]:
     try:
         with deferred():  # a signal now would leave the folder or the stage behind
             folder.mkdir(parents=True, exist_ok=True)
-            sweep_stale(folder, "massviz")
-            stage = Path(tempfile.mkdtemp(dir=folder, prefix=_prefix("massviz"), suffix=".part"))
+            sweep_stale(folder)
+            stage = Path(tempfile.mkdtemp(dir=folder, prefix=_prefix(), suffix=".part"))
         yield stage
         with deferred():  # every file moves in, or (a failure) none: a signal waits for the end of the moves
             for item in sorted(stage.iterdir()):
