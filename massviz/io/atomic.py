@@ -167,11 +167,16 @@ def _naming(err: OSError, path: Path, tmp) -> BaseException:
 
 
 @contextmanager
-def atomic_dir(path: str | Path) -> Iterator[Path]:
+def atomic_dir(path: str | Path, keep_others: tuple[str, ...] | None = None) -> Iterator[Path]:
     """Yield a new temporary folder beside ``path``; on success it replaces ``path`` (an existing folder is moved
     aside, the new one renamed into place, then the old one removed). If the block raises, the temporary folder is
     removed and ``path`` is left as it was. The folder gets the usual permissions (0777 minus the umask). A symlink
-    to a folder is written through (the link is kept); ``path`` naming a file, device or FIFO is refused."""
+    to a folder is written through (the link is kept); ``path`` naming a file, device or FIFO is refused.
+
+    ``keep_others``: the patterns of what the command writes there (as :func:`check_replaceable`'s ``owned``); every
+    other entry of the existing folder is kept (hard-linked into the new folder before the swap, so a kill at any
+    moment leaves the old folder or the new one whole, each with them). Writers of the same ``path`` swap one at a
+    time (a lock on its parent folder, held for the swap only): the folder ends as one writer's whole output."""
     path = output_target(path, folder=True)
     if path.exists() and not path.is_dir():
         raise MassvizError("exists and is not a folder", path)
@@ -185,7 +190,9 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
             os.umask(umask)
             os.chmod(tmp, 0o777 & ~umask)
         yield tmp
-        with deferred():  # the swap runs to its end: the old folder or the new one is in place, never neither
+        with deferred(), _folder_lock(path.parent):  # the swap runs to its end: the old or the new folder is in place
+            if keep_others is not None and path.is_dir():
+                _link_others(path, tmp, keep_others)
             if path.exists():
                 old = Path(tempfile.mkdtemp(dir=path.parent, prefix=_prefix(), suffix=".old"))
                 os.replace(path, old / path.name)
@@ -196,9 +203,62 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     except OSError as err:
         _remove(tmp)
         raise _naming(err, path, tmp) from None
+    except MassvizError as err:  # name the file the user will look for, not the hidden one
+        _remove(tmp)
+        raise _renamed(err, tmp, path) from None
     except BaseException:
         _remove(tmp)
         raise
+
+
+def _renamed(err: MassvizError, tmp, path: Path) -> MassvizError:
+    """``err``, naming ``path``'s file instead when it names one inside the temporary folder ``tmp``."""
+    if tmp is None or err.path is None or not err.path.startswith(str(tmp)):
+        return err
+    message = str(err)[len(err.path) + 2:]
+    return MassvizError(message, path / Path(err.path).relative_to(tmp))
+
+
+@contextmanager
+def _folder_lock(folder: Path) -> Iterator[None]:
+    """An exclusive lock (``flock``) on ``folder`` while the block runs: the swaps of writers of one output beside
+    each other happen one after another."""
+    import fcntl
+
+    fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _link_others(old: Path, new: Path, owned: tuple[str, ...]) -> None:
+    """Hard-link (copy where a link is refused) every entry of ``old`` that is not ``owned`` into ``new`` at the
+    same place; folders that are owned are entered, others linked whole (links are linked as links)."""
+    for folder, dirs, files in os.walk(old):
+        rel_folder = Path(folder).relative_to(old)
+        for name in list(dirs) + files:
+            src, rel = Path(folder) / name, (rel_folder / name).as_posix()
+            if _own(rel, owned) and name in dirs and not src.is_symlink():
+                continue  # entered by the walk
+            if name in dirs:
+                dirs.remove(name)
+            if _own(rel, owned):
+                continue
+            dst = new / rel
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            if src.is_dir() and not src.is_symlink():
+                shutil.copytree(src, dst, symlinks=True, copy_function=_link_or_copy, dirs_exist_ok=True)
+            else:
+                _link_or_copy(src, dst)
+
+
+def _link_or_copy(src, dst) -> None:
+    try:
+        os.link(src, dst, follow_symlinks=False)
+    except OSError:
+        shutil.copy2(src, dst, follow_symlinks=False)
 
 
 @contextmanager
@@ -224,10 +284,7 @@ def staged_files(folder: str | Path) -> Iterator[Path]:
         _remove(stage)
         if created:
             _remove(folder)
-        if err.path is None or not err.path.startswith(str(stage)):
-            raise
-        message = str(err)[len(err.path) + 2:]
-        raise MassvizError(message, folder / Path(err.path).relative_to(stage)) from None
+        raise _renamed(err, stage, folder) from None
     except BaseException:
         _remove(stage)
         if created:
