@@ -161,15 +161,17 @@ def _naming(err: OSError, path: Path, tmp) -> BaseException:
     """An OS error met while writing the temporary ``tmp`` of ``path`` (a full disk: often without a file name, or
     naming the hidden temporary): one ``MassvizError`` naming ``path``. Errors about other files pass unchanged."""
     name = None if err.filename is None else str(err.filename)
-    if name is None or name.startswith(str(tmp)):
+    making = tmp is None and name is not None and Path(name).name.startswith(".mv-")  # making the temporary
+    if name is None or making or (tmp is not None and name.startswith(str(tmp))):
         return MassvizError(f"cannot write ({err.strerror or err})", path)
     return err
 
 
 @contextmanager
 def atomic_dir(path: str | Path, keep_others: tuple[str, ...] | None = None) -> Iterator[Path]:
-    """Yield a new temporary folder beside ``path``; on success it replaces ``path`` (an existing folder is moved
-    aside, the new one renamed into place, then the old one removed). If the block raises, the temporary folder is
+    """Yield a new temporary folder beside ``path``; on success it replaces ``path`` (an existing folder is swapped
+    with the new one in one step where Linux can, else moved aside and the new one renamed into place; then the old
+    one is removed). If the block raises, the temporary folder is
     removed and ``path`` is left as it was. The folder gets the usual permissions (0777 minus the umask). A symlink
     to a folder is written through (the link is kept); ``path`` naming a file, device or FIFO is refused.
 
@@ -193,7 +195,9 @@ def atomic_dir(path: str | Path, keep_others: tuple[str, ...] | None = None) -> 
         with deferred(), _folder_lock(path.parent):  # the swap runs to its end: the old or the new folder is in place
             if keep_others is not None and path.is_dir():
                 _link_others(path, tmp, keep_others)
-            if path.exists():
+            if path.exists() and _exchange(tmp, path):  # one step: a kill leaves the old folder or the new one
+                shutil.rmtree(tmp, ignore_errors=True)
+            elif path.exists():
                 old = Path(tempfile.mkdtemp(dir=path.parent, prefix=_prefix(), suffix=".old"))
                 os.replace(path, old / path.name)
                 os.replace(tmp, path)
@@ -217,6 +221,23 @@ def _renamed(err: MassvizError, tmp, path: Path) -> MassvizError:
         return err
     message = str(err)[len(err.path) + 2:]
     return MassvizError(message, path / Path(err.path).relative_to(tmp))
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap the folders ``a`` and ``b`` in one step (Linux ``renameat2(RENAME_EXCHANGE)``); False where the system
+    or file system cannot (the caller then renames in two steps)."""
+    import ctypes
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    at_fdcwd, rename_exchange = -100, 2
+    return renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0
 
 
 @contextmanager
@@ -377,6 +398,23 @@ def _probe_writable(folder: Path, path: Path) -> None:
         raise MassvizError(f"cannot write in folder {folder} ({err.strerror or err})", path) from None
 
 
+def _check_name_lengths(path: Path) -> None:
+    """Each part of ``path`` that does not exist yet fits the file system's limit on a name (255 bytes on Linux):
+    a longer one is one line before any work, not a failure at the end."""
+    ancestor = _existing_ancestor(path)
+    try:
+        limit = os.pathconf(ancestor, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        limit = 255
+    for part in [path, *path.parents]:
+        if os.path.lexists(part):
+            break
+        size = len(os.fsencode(part.name))
+        if size > limit:
+            raise MassvizError(f"cannot write: the name {'of folder ' + str(part) + ' ' if part != path else ''}is "
+                               f"{size} bytes (at most {limit} on this file system)", path)
+
+
 def _existing_ancestor(path: Path) -> Path:
     for parent in path.parents:
         if parent.exists():
@@ -390,6 +428,7 @@ def check_output_file(path: str | Path, option: str | None = None) -> Path:
     path = Path(path)
     needs = f"; {option} needs a file path" if option else ""
     output_target(path)
+    _check_name_lengths(path)
     path = Path(os.path.realpath(path)) if path.is_symlink() else path
     if path.is_dir():
         raise MassvizError(f"is a directory{needs}", path)
@@ -410,6 +449,7 @@ def check_output_dir(path: str | Path, option: str | None = None) -> Path:
     path = Path(path)
     needs = f"; {option} needs a folder" if option else ""
     output_target(path, folder=True)
+    _check_name_lengths(path)
     if path.exists():
         if not path.is_dir():
             raise MassvizError(f"exists and is not a folder{needs}", path)
