@@ -38,6 +38,8 @@ def ctx(tmp_path_factory, weights):
                                     str(root / "cache"), "--quiet"])
     clean = root / "clean"
     clean.mkdir()
+    code, err = massviz(c, log_argv(c, root / "warm"), clean)  # fills the trace cache: the runs below only read it
+    assert code == 0, err
     counts = {}
     for variant in ("fresh", "force"):  # a run into a new OUT, then one replacing it: each one's commits counted
         code, err = massviz(c, log_argv(c, clean / "out", variant == "force"), clean, KILL_COUNT=clean / "n")
@@ -85,8 +87,7 @@ def hidden_beside(folder: Path) -> list[str]:
 
 # ======================================================================================================= killed
 KILLS = [("fresh", "first", "before"), ("fresh", "middle", "after"), ("fresh", "last", "before"),
-         ("fresh", "last", "after"), ("force", "first", "after"), ("force", "middle", "before"),
-         ("force", "last", "after")]
+         ("fresh", "last", "after"), ("force", "middle", "before"), ("force", "last", "after")]
 
 
 @pytest.mark.slow
@@ -154,7 +155,7 @@ WRITERS = textwrap.dedent("""
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("writers", [3, 4])
+@pytest.mark.parametrize("writers", [3])
 def test_writers_of_one_rrd_dir_at_once_leave_one_writers_whole_output(writers, ctx, tmp_path):
     """N ``log DATASET --rrd-dir OUT --force`` at once over an existing OUT holding a file of the user's: each
     succeeds or says in one line that another one holds OUT; OUT ends as one writer's whole output (every .rrd and
