@@ -169,16 +169,16 @@ def _naming(err: OSError, path: Path, tmp) -> BaseException:
 
 @contextmanager
 def atomic_dir(path: str | Path, keep_others: tuple[str, ...] | None = None) -> Iterator[Path]:
-    """Yield a new temporary folder beside ``path``; on success it replaces ``path`` (an existing folder is swapped
-    with the new one in one step where Linux can, else moved aside and the new one renamed into place; then the old
-    one is removed). If the block raises, the temporary folder is
+    """Yield a new temporary folder beside ``path``; on success it replaces ``path`` (an existing folder is moved
+    aside, the new one renamed into place, then the old one removed). If the block raises, the temporary folder is
     removed and ``path`` is left as it was. The folder gets the usual permissions (0777 minus the umask). A symlink
     to a folder is written through (the link is kept); ``path`` naming a file, device or FIFO is refused.
 
     ``keep_others``: the patterns of what the command writes there (as :func:`check_replaceable`'s ``owned``); every
-    other entry of the existing folder is kept (hard-linked into the new folder before the swap, so a kill at any
-    moment leaves the old folder or the new one whole, each with them). Writers of the same ``path`` swap one at a
-    time (a lock on its parent folder, held for the swap only): the folder ends as one writer's whole output."""
+    other entry of the existing folder is kept (hard-linked into the new folder, which is then swapped with the old
+    one in one step where Linux can: a kill at any moment leaves the old folder or the new one whole, each with
+    them). Writers of the same ``path`` swap one at a time (a lock on its parent folder, held for the swap only): the
+    folder ends as one writer's whole output."""
     path = output_target(path, folder=True)
     if path.exists() and not path.is_dir():
         raise MassvizError("exists and is not a folder", path)
@@ -195,7 +195,9 @@ def atomic_dir(path: str | Path, keep_others: tuple[str, ...] | None = None) -> 
         with deferred(), _folder_lock(path.parent):  # the swap runs to its end: the old or the new folder is in place
             if keep_others is not None and path.is_dir():
                 _link_others(path, tmp, keep_others)
-            if path.exists() and _exchange(tmp, path):  # one step: a kill leaves the old folder or the new one
+            # the user's files kept from the old folder: swapped in one step, so a kill never leaves them only in
+            # a temporary (elsewhere two renames, each a commit a signal waits for)
+            if keep_others is not None and path.exists() and _exchange(tmp, path):
                 shutil.rmtree(tmp, ignore_errors=True)
             elif path.exists():
                 old = Path(tempfile.mkdtemp(dir=path.parent, prefix=_prefix(), suffix=".old"))
@@ -242,13 +244,14 @@ def _exchange(a: Path, b: Path) -> bool:
 
 @contextmanager
 def _folder_lock(folder: Path) -> Iterator[None]:
-    """An exclusive lock (``flock``) on ``folder`` while the block runs: the swaps of writers of one output beside
-    each other happen one after another."""
+    """An exclusive lock (``flock``) on ``folder`` while the block runs, where its file system has locks: the swaps
+    of writers of one output beside each other happen one after another."""
     import fcntl
 
     fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
+        with contextlib.suppress(OSError):  # a file system without locks: the renames alone
+            fcntl.flock(fd, fcntl.LOCK_EX)
         yield
     finally:
         os.close(fd)
