@@ -150,10 +150,11 @@ def _run(parser: argparse.ArgumentParser, argv) -> int:
         parser.print_help(sys.stderr)
         return 2
     try:
-        from massviz.commands._common import check_int_options
+        from massviz.commands._common import check_float_options, check_int_options
 
         try:
             check_int_options(args)
+            check_float_options(args)
             return int(args.func(args) or 0)
         except Exception as err:  # an interrupt turned into another error on its way out is still an interrupt
             stop = interrupt_behind(err)

@@ -141,3 +141,61 @@ def require_pyrealsense2():
     except ImportError:
         missing_reference("pyrealsense2 is missing (the test extra installs it)")
     return pyrealsense2
+
+
+# ------------------------------------------------------------------------------------------------- killed commands
+#: ``os.replace`` wrapped: the process's ``KILL_AT``-th call (``KILL_WHEN``: just before or just after it) kills it
+#: (SIGKILL); without ``KILL_AT`` it only counts. Counted per process id: a fork server's child counts its own calls.
+KILL_HOOK = """
+import os, signal
+real, seen = os.replace, {}
+def replace(src, dst, *args, **kwargs):
+    pid = os.getpid()
+    seen[pid] = seen.get(pid, 0) + 1
+    n, when = int(os.environ.get("KILL_AT", "0")), os.environ.get("KILL_WHEN")
+    if seen[pid] == n and when == "before":
+        os.kill(pid, signal.SIGKILL)
+    out = real(src, dst, *args, **kwargs)
+    if seen[pid] == n and when == "after":
+        os.kill(pid, signal.SIGKILL)
+    return out
+os.replace = replace
+import atexit
+# KILL_COUNT (a file): where a run that was not killed writes how many commits it made
+atexit.register(lambda: os.environ.get("KILL_COUNT") and open(os.environ["KILL_COUNT"], "w").write(
+    str(seen.get(os.getpid(), 0))))
+"""
+#: the command line of a run killed at a commit, in a process of its own
+KILLED_RUN = KILL_HOOK + """
+import sys
+from massviz.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+#: a fork server (``tests/forkserver.py``) whose children run with the hook: the same kills without each run's
+#: imports of torch and massviz (training's too: ``torch.use_deterministic_algorithms`` loads ``torch._dynamo``)
+KILLING_SERVER = KILL_HOOK + f"""
+import sys
+sys.path.insert(0, {str(Path(__file__).resolve().parent)!r})
+from massviz.cli import _quiet_native_logs
+_quiet_native_logs()  # before cv2 loads
+import massviz.training.train, torch._dynamo
+from forkserver import serve
+serve()
+"""
+
+
+def small_recording(dst: Path, frames: int = 3, sample: str = "cup_handover") -> Path:
+    """A recording folder holding the first ``frames`` frames of a bundled sample (rgb/, depth/, gt/, its
+    intrinsics.json, and its meta.json cut to those frames, its id the folder's name)."""
+    import json
+    import shutil
+
+    src = SAMPLES / sample
+    for sub in ("rgb", "depth", "gt"):
+        (dst / sub).mkdir(parents=True)
+        for frame in sorted((src / sub).glob("*.png"))[:frames]:
+            shutil.copyfile(frame, dst / sub / frame.name)
+    shutil.copyfile(src / "intrinsics.json", dst / "intrinsics.json")
+    meta = json.loads((src / "meta.json").read_text())
+    (dst / "meta.json").write_text(json.dumps({**meta, "id": dst.name, "frames": meta["frames"][:frames]}))
+    return dst

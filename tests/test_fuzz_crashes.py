@@ -16,45 +16,12 @@ from pathlib import Path
 
 import pytest
 from forkserver import ForkServer
+from support import KILLED_RUN, KILLING_SERVER
 from test_fuzz import Base, base, copy_sample  # noqa: F401
 from test_fuzz2 import _run_forked, clean_env, patch_set  # noqa: F401
 
 ROOT = Path(__file__).resolve().parents[1]
 
-#: ``os.replace`` wrapped: the process's ``KILL_AT``-th call (``KILL_WHEN``: just before or just after it) kills it
-#: (SIGKILL); without ``KILL_AT`` it only counts. Counted per process id: a fork server's child counts its own calls.
-KILL_HOOK = """
-import os, signal
-real, seen = os.replace, {}
-def replace(src, dst, *args, **kwargs):
-    pid = os.getpid()
-    seen[pid] = seen.get(pid, 0) + 1
-    n, when = int(os.environ.get("KILL_AT", "0")), os.environ.get("KILL_WHEN")
-    if seen[pid] == n and when == "before":
-        os.kill(pid, signal.SIGKILL)
-    out = real(src, dst, *args, **kwargs)
-    if seen[pid] == n and when == "after":
-        os.kill(pid, signal.SIGKILL)
-    return out
-os.replace = replace
-"""
-#: the command line of a run killed at a commit, in a process of its own
-KILLED_RUN = KILL_HOOK + """
-import sys
-from massviz.cli import main
-sys.exit(main(sys.argv[1:]))
-"""
-#: a fork server (``tests/forkserver.py``) whose children run with the hook: the same kills without each run's
-#: imports of torch and massviz (training's too: ``torch.use_deterministic_algorithms`` loads ``torch._dynamo``)
-KILLING_SERVER = KILL_HOOK + f"""
-import sys
-sys.path.insert(0, {str(Path(__file__).resolve().parent)!r})
-from massviz.cli import _quiet_native_logs
-_quiet_native_logs()  # before cv2 loads
-import massviz.training.train, torch._dynamo
-from forkserver import serve
-serve()
-"""
 #: seconds a command may run
 TIMEOUT_S = 300
 

@@ -103,6 +103,31 @@ def unmatched_line(command: str, trace, unmatched) -> str:
             f"(first: frame {unmatched[0].frame}, box {list(unmatched[0].box)})")
 
 
+# -------------------------------------------------------------------------------------------- float option bounds
+#: (lo, hi, lo_open, hi_open) of the float options that have their own bounds; every other float option: finite and
+#: within ±MAX_FLOAT_OPTION.
+FLOAT_OPTION_BOUNDS = {"threshold": (0.0, 1.0, False, True), "b_threshold": (0.0, 1.0, False, True),
+                       "iou": (0.0, 1.0, True, False), "lr": (0.0, 1e3, True, False),
+                       "duration": (0.0, 1e9, True, False), "pitch": (-90.0, 90.0, True, True)}
+#: largest magnitude of any other float option (degrees, seconds: all far below).
+MAX_FLOAT_OPTION = 1e9
+
+
+def check_float_options(args: argparse.Namespace) -> None:
+    """Every float option of a parsed command line finite and within its bounds (:data:`FLOAT_OPTION_BOUNDS`, else
+    ±:data:`MAX_FLOAT_OPTION`), checked by ``massviz.io.untrusted.number`` as the numbers in files are: ``nan``,
+    ``inf`` or ``--iou 0`` is one ``MassvizError`` naming the option, before any work; ``-0`` becomes 0.0."""
+    from massviz.errors import MassvizError
+    from massviz.io.untrusted import number
+
+    for dest, value in vars(args).items():
+        if not isinstance(value, float):
+            continue
+        lo, hi, lo_open, hi_open = FLOAT_OPTION_BOUNDS.get(dest, (-MAX_FLOAT_OPTION, MAX_FLOAT_OPTION, False, False))
+        setattr(args, dest, number(value, f"--{dest.replace('_', '-')}", lo=lo, hi=hi, lo_open=lo_open,
+                                   hi_open=hi_open, error=MassvizError))
+
+
 # ------------------------------------------------------------------------------------------ integer option bounds
 #: bounds of the integer options that have their own (every other integer option: at most MAX_INT_OPTION in size).
 INT_OPTION_BOUNDS = {"threads": (1, 1024), "workers": (1, 1024), "seed": (0, 2**32 - 1)}

@@ -118,8 +118,6 @@ def run(args, b_options=()) -> int:
     from massviz.evaluation.runs import TIE_G, compare_runs, run_scores, write_table
 
     _check(args)
-    if not 0.0 < args.iou <= 1.0:
-        raise MassvizError(f"--iou must be in (0, 1], got {args.iou}")
     a, b = _runs(args, b_options)
     table = compare_runs(a, b, iou=args.iou)
     scores = run_scores(table)

@@ -1,7 +1,8 @@
 """``massviz log DATASET --rrd-dir OUT/``: one .rrd per recording, with recording properties, for a catalog
 (``massviz serve OUT/``). The recordings run on the dataset runner (``--engine local|ray``) like ``estimate``; each
 worker writes its recording's .rrd itself (``massviz.views.rerun_dataset.write_recording``), the driver writes
-``index.csv`` and ``patches.csv`` at the end."""
+``index.csv`` and ``patches.csv`` at the end, all in a hidden folder beside OUT that replaces OUT when the run ends
+(``massviz.io.atomic.atomic_dir``: the files of OUT that are not a dataset's are kept)."""
 from __future__ import annotations
 
 import functools
@@ -46,19 +47,11 @@ def _check_no_links(out: Path) -> None:
                                    "a link in its output (remove the link)", out)
 
 
-def _clear(out: Path) -> None:
-    """Remove what a previous ``--rrd-dir`` run wrote (:data:`OWN_FILES`, plain files only; checked free of links)."""
-    for pattern in OWN_FILES:
-        for p in out.glob(pattern):
-            if p.is_file() and not p.is_symlink():
-                p.unlink()
-
-
 def run_rrd_dir(args) -> int:
     from massviz.commands._common import build
     from massviz.commands._runner import exit_status, open_dataset, run_tasks
     from massviz.errors import MassvizError
-    from massviz.io.atomic import check_output_dir
+    from massviz.io.atomic import atomic_dir, check_output_dir
     from massviz.runners.dataset import Task
     from massviz.views.rerun_dataset import INDEX_NAME, rrd_name, write_index
 
@@ -89,18 +82,19 @@ def run_rrd_dir(args) -> int:
             cls = default_class_of(ann.container_id) if 1 <= ann.container_id <= 9 else None
             truths[t.index] = {"mass_g": ann.mass_g, "id": ann.container_id, **({"class": cls} if cls else {})}
     tasks = [Task(t.index, t.path, t.id, truths.get(t.index)) for t in tasks]
-    out.mkdir(parents=True, exist_ok=True)
-    if args.force:
-        _clear(out)
     view = args.view if any(recordings[t.index].kind == "ccm" for t in tasks) else None
-    collect = functools.partial(collect_rrd, out_dir=str(out.resolve()), full=args.full, view=view, video=args.video)
-    outcomes = run_tasks(args, "log", build(args), tasks, failed, on_error, collect, desc="log",
-                         recordings=recordings)
-    results = [o.value for o in outcomes if o.ok]
-    for r in results:
-        if r.get("warning"):
-            print(r["warning"], file=sys.stderr)
-    index, _ = write_index(out, results)
+    # the whole dataset is written in a hidden folder beside OUT and renamed into place at the end: a killed run
+    # leaves OUT as it was, and of writers at once OUT ends as one writer's whole output
+    with atomic_dir(out, keep_others=OWN_FILES + OWN_DIRS) as stage:
+        collect = functools.partial(collect_rrd, out_dir=str(stage.resolve()), full=args.full, view=view,
+                                    video=args.video)
+        outcomes = run_tasks(args, "log", build(args), tasks, failed, on_error, collect, desc="log",
+                             recordings=recordings)
+        results = [o.value for o in outcomes if o.ok]
+        for r in results:
+            if r.get("warning"):
+                print(r["warning"], file=sys.stderr)
+        index, _ = write_index(stage, results)
     kind = "full" if args.full else "light"
     if len(index):
         rrd, inp = float(index["rrd_bytes"].mean()), float(index["input_bytes"].mean())

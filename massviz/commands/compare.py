@@ -112,8 +112,6 @@ def run(args) -> int:
         if getattr(args, name):
             raise MassvizError(f"--{name.replace('_', '-')} is for two runs of a dataset (two run folders, or "
                                "DATASET --a SETTINGS --b SETTINGS); for one recording use --rrd and --json")
-    if not 0.0 < args.iou <= 1.0:
-        raise MassvizError(f"--iou must be in (0, 1], got {args.iou}")
     overrides = {n: getattr(args, f"b_{n}") for n in B_OPTIONS if getattr(args, f"b_{n}") is not None}
     b_spec = args.b or args.a
     if args.b is None and not overrides:

@@ -66,8 +66,6 @@ def run(args) -> int:
 
     if args.stride != 1:
         raise MassvizError("--stride does not apply to live mode (it processes the newest frame each time)")
-    if args.duration is not None and args.duration <= 0:
-        raise MassvizError(f"--duration must be positive, got {args.duration}")
     if args.rrd and Path(args.rrd).is_dir():
         raise MassvizError("is a directory; --rrd needs a file path", args.rrd)
     if args.rrd and not Path(args.rrd).parent.is_dir():

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 
 from massviz.commands._3d import add_3d_args
@@ -50,15 +49,11 @@ def run(args) -> int:
     from massviz.views.open3d_view import render_png
 
     from massviz.io.atomic import check_output_file
-    from massviz.io.untrusted import number
 
     out = Path(args.out)
     if out.suffix.lower() != ".png":
         raise MassvizError("--out must be a .png file", out)
     width, height = parse_size(args.size)
-    number(args.yaw, "--yaw (degrees)", error=MassvizError)
-    if not (math.isfinite(args.pitch) and -90 < args.pitch < 90):
-        raise MassvizError(f"--pitch must be a finite number of degrees > -90 and < 90, got {args.pitch}")
     check_output_file(out, "--out")
     rec, trace, stage = measured_trace(args, needs_intrinsics="render")
     info = render_png(trace, rec, stage.clouds_of(trace, trace.selection), out, frame_index=args.frame, width=width, height=height, yaw_deg=args.yaw,

@@ -31,7 +31,7 @@ from massviz.core.detector import PAPER_THRESHOLD
 from massviz.core.types import COCO_KEEP, OBJECT_CLASS_ID, Detections, Frame, PackedMask
 from massviz.errors import DataError
 from massviz.io.trace_file import load_trace
-from massviz.io.untrusted import MAX_INDEX, check_image_size, confined, image_header_size, load_json, number
+from massviz.io.untrusted import MAX_INDEX, confined, decode_image, image_header_size, load_json, number
 
 #: largest replay JSON read.
 MAX_REPLAY_JSON_BYTES = 256 << 20
@@ -83,8 +83,7 @@ def _load_json(path: Path) -> tuple[Detections, list[Path], dict[int, tuple[int,
             if declared is not None and declared != (w, h) and (declared[0] < x2 or declared[1] < y2):
                 raise DataError(f"{where} mask {det['mask']} declares {declared[0]}x{declared[1]} pixels, neither the "
                                 f"box's {w}x{h} nor a full frame holding the box; not decoded", path)
-            check_image_size(mpath, DataError, "mask image")
-            img = cv2.imread(str(mpath), cv2.IMREAD_GRAYSCALE)
+            img = decode_image(mpath, "mask image", flags=cv2.IMREAD_GRAYSCALE, formats=("PNG",), error=DataError)
             if img is None:
                 raise DataError(f"{where} cannot read mask {det['mask']}", path)
             if img.shape != (h, w):

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
 import stat
 import tempfile
@@ -68,8 +69,8 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     tmp = None
     try:
         with deferred():  # a signal now would leave the new temporary file behind
-            sweep_stale(path.parent, path.name)
-            fd, tmp = tempfile.mkstemp(prefix=_prefix(path.name), suffix=f".tmp{path.suffix}", dir=path.parent)
+            sweep_stale(path.parent)
+            fd, tmp = tempfile.mkstemp(prefix=_prefix(), suffix=f".tmp{_suffix(path)}", dir=path.parent)
             os.close(fd)
             umask = os.umask(0)
             os.umask(umask)
@@ -84,10 +85,20 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         raise
 
 
-def _prefix(name: str) -> str:
-    """The start of a temporary's name for the output ``name``: hidden, and carrying this process's id (a temporary
-    of a process that is gone, killed before it could remove it, is found by :func:`sweep_stale`)."""
-    return f".{name}.{os.getpid()}."
+def _prefix() -> str:
+    """The start of a temporary's name: hidden, short (``.mv-PID-`` and a few random characters: it fits wherever the
+    output's own name fits, even a name of 255 bytes) and carrying this process's id (a temporary of a process that
+    is gone, killed before it could remove it, is found by :func:`sweep_stale`)."""
+    return f".mv-{os.getpid()}-"
+
+
+#: the longest suffix a temporary keeps from its output's name (writers choose the format by it: ``.png``, ``.rrd``)
+_MAX_SUFFIX = 16
+
+
+def _suffix(path: Path) -> str:
+    """The output's suffix (``.csv``), kept in the temporary's name when short; a long one is dropped."""
+    return path.suffix if len(path.suffix.encode()) <= _MAX_SUFFIX else ""
 
 
 def _alive(pid: int) -> bool:
@@ -100,19 +111,20 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def sweep_stale(folder: str | Path, name: str) -> None:
-    """Remove the temporaries of the output ``name`` in ``folder`` that a process left when it was killed
-    (SIGKILL, a power cut): hidden ``.NAME.PID.*`` files and folders ending ``.tmp*``, ``.part`` or ``.old`` whose
-    process no longer runs. Repeated kills leave at most one run's temporaries, never an accumulation."""
-    import re
+#: the name of a massviz temporary: ``.mv-PID-RANDOM`` then ``.tmp`` (and the output's suffix), ``.part`` or ``.old``
+_TEMPORARY = re.compile(r"\.mv-(\d+)-[^/]*\.(tmp[^/]*|part|old)$")
 
-    pattern = re.compile(rf"\.{re.escape(name)}\.(\d+)\.[^/]*\.(tmp[^/]*|part|old)$")
+
+def sweep_stale(folder: str | Path) -> None:
+    """Remove the temporaries in ``folder`` that a massviz process left when it was killed (SIGKILL, a power cut):
+    hidden ``.mv-PID-*`` files and folders ending ``.tmp*``, ``.part`` or ``.old`` whose process no longer runs.
+    Repeated kills leave at most one run's temporaries, never an accumulation."""
     try:
         entries = list(os.scandir(folder))
     except OSError:
         return
     for entry in entries:
-        m = pattern.match(entry.name)
+        m = _TEMPORARY.match(entry.name)
         if m is None or int(m.group(1)) == os.getpid() or _alive(int(m.group(1))):
             continue
         with deferred():
@@ -149,17 +161,24 @@ def _naming(err: OSError, path: Path, tmp) -> BaseException:
     """An OS error met while writing the temporary ``tmp`` of ``path`` (a full disk: often without a file name, or
     naming the hidden temporary): one ``MassvizError`` naming ``path``. Errors about other files pass unchanged."""
     name = None if err.filename is None else str(err.filename)
-    if name is None or name.startswith(str(tmp)):
+    making = tmp is None and name is not None and Path(name).name.startswith(".mv-")  # making the temporary
+    if name is None or making or (tmp is not None and name.startswith(str(tmp))):
         return MassvizError(f"cannot write ({err.strerror or err})", path)
     return err
 
 
 @contextmanager
-def atomic_dir(path: str | Path) -> Iterator[Path]:
+def atomic_dir(path: str | Path, keep_others: tuple[str, ...] | None = None) -> Iterator[Path]:
     """Yield a new temporary folder beside ``path``; on success it replaces ``path`` (an existing folder is moved
     aside, the new one renamed into place, then the old one removed). If the block raises, the temporary folder is
     removed and ``path`` is left as it was. The folder gets the usual permissions (0777 minus the umask). A symlink
-    to a folder is written through (the link is kept); ``path`` naming a file, device or FIFO is refused."""
+    to a folder is written through (the link is kept); ``path`` naming a file, device or FIFO is refused.
+
+    ``keep_others``: the patterns of what the command writes there (as :func:`check_replaceable`'s ``owned``); every
+    other entry of the existing folder is kept (hard-linked into the new folder, which is then swapped with the old
+    one in one step where Linux can: a kill at any moment leaves the old folder or the new one whole, each with
+    them). Writers of the same ``path`` swap one at a time (a lock on its parent folder, held for the swap only): the
+    folder ends as one writer's whole output."""
     path = output_target(path, folder=True)
     if path.exists() and not path.is_dir():
         raise MassvizError("exists and is not a folder", path)
@@ -167,15 +186,21 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     tmp = None
     try:
         with deferred():  # a signal now would leave the new temporary folder behind
-            sweep_stale(path.parent, path.name)
-            tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=_prefix(path.name), suffix=".part"))
+            sweep_stale(path.parent)
+            tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=_prefix(), suffix=".part"))
             umask = os.umask(0)
             os.umask(umask)
             os.chmod(tmp, 0o777 & ~umask)
         yield tmp
-        with deferred():  # the swap runs to its end: the old folder or the new one is in place, never neither
-            if path.exists():
-                old = Path(tempfile.mkdtemp(dir=path.parent, prefix=_prefix(path.name), suffix=".old"))
+        with deferred(), _folder_lock(path.parent):  # the swap runs to its end: the old or the new folder is in place
+            if keep_others is not None and path.is_dir():
+                _link_others(path, tmp, keep_others)
+            # the user's files kept from the old folder: swapped in one step, so a kill never leaves them only in
+            # a temporary (elsewhere two renames, each a commit a signal waits for)
+            if keep_others is not None and path.exists() and _exchange(tmp, path):
+                shutil.rmtree(tmp, ignore_errors=True)
+            elif path.exists():
+                old = Path(tempfile.mkdtemp(dir=path.parent, prefix=_prefix(), suffix=".old"))
                 os.replace(path, old / path.name)
                 os.replace(tmp, path)
                 shutil.rmtree(old, ignore_errors=True)
@@ -184,9 +209,80 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     except OSError as err:
         _remove(tmp)
         raise _naming(err, path, tmp) from None
+    except MassvizError as err:  # name the file the user will look for, not the hidden one
+        _remove(tmp)
+        raise _renamed(err, tmp, path) from None
     except BaseException:
         _remove(tmp)
         raise
+
+
+def _renamed(err: MassvizError, tmp, path: Path) -> MassvizError:
+    """``err``, naming ``path``'s file instead when it names one inside the temporary folder ``tmp``."""
+    if tmp is None or err.path is None or not err.path.startswith(str(tmp)):
+        return err
+    message = str(err)[len(err.path) + 2:]
+    return MassvizError(message, path / Path(err.path).relative_to(tmp))
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap the folders ``a`` and ``b`` in one step (Linux ``renameat2(RENAME_EXCHANGE)``); False where the system
+    or file system cannot (the caller then renames in two steps)."""
+    import ctypes
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    at_fdcwd, rename_exchange = -100, 2
+    return renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0
+
+
+@contextmanager
+def _folder_lock(folder: Path) -> Iterator[None]:
+    """An exclusive lock (``flock``) on ``folder`` while the block runs, where its file system has locks: the swaps
+    of writers of one output beside each other happen one after another."""
+    import fcntl
+
+    fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        with contextlib.suppress(OSError):  # a file system without locks: the renames alone
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _link_others(old: Path, new: Path, owned: tuple[str, ...]) -> None:
+    """Hard-link (copy where a link is refused) every entry of ``old`` that is not ``owned`` into ``new`` at the
+    same place; folders that are owned are entered, others linked whole (links are linked as links)."""
+    for folder, dirs, files in os.walk(old):
+        rel_folder = Path(folder).relative_to(old)
+        for name in list(dirs) + files:
+            src, rel = Path(folder) / name, (rel_folder / name).as_posix()
+            if _own(rel, owned) and name in dirs and not src.is_symlink():
+                continue  # entered by the walk
+            if name in dirs:
+                dirs.remove(name)
+            if _own(rel, owned):
+                continue
+            dst = new / rel
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            if src.is_dir() and not src.is_symlink():
+                shutil.copytree(src, dst, symlinks=True, copy_function=_link_or_copy, dirs_exist_ok=True)
+            else:
+                _link_or_copy(src, dst)
+
+
+def _link_or_copy(src, dst) -> None:
+    try:
+        os.link(src, dst, follow_symlinks=False)
+    except OSError:
+        shutil.copy2(src, dst, follow_symlinks=False)
 
 
 @contextmanager
@@ -201,8 +297,8 @@ def staged_files(folder: str | Path) -> Iterator[Path]:
     try:
         with deferred():  # a signal now would leave the folder or the stage behind
             folder.mkdir(parents=True, exist_ok=True)
-            sweep_stale(folder, "massviz")
-            stage = Path(tempfile.mkdtemp(dir=folder, prefix=_prefix("massviz"), suffix=".part"))
+            sweep_stale(folder)
+            stage = Path(tempfile.mkdtemp(dir=folder, prefix=_prefix(), suffix=".part"))
         yield stage
         with deferred():  # every file moves in, or (a failure) none: a signal waits for the end of the moves
             for item in sorted(stage.iterdir()):
@@ -212,10 +308,7 @@ def staged_files(folder: str | Path) -> Iterator[Path]:
         _remove(stage)
         if created:
             _remove(folder)
-        if err.path is None or not err.path.startswith(str(stage)):
-            raise
-        message = str(err)[len(err.path) + 2:]
-        raise MassvizError(message, folder / Path(err.path).relative_to(stage)) from None
+        raise _renamed(err, stage, folder) from None
     except BaseException:
         _remove(stage)
         if created:
@@ -308,6 +401,23 @@ def _probe_writable(folder: Path, path: Path) -> None:
         raise MassvizError(f"cannot write in folder {folder} ({err.strerror or err})", path) from None
 
 
+def _check_name_lengths(path: Path) -> None:
+    """Each part of ``path`` that does not exist yet fits the file system's limit on a name (255 bytes on Linux):
+    a longer one is one line before any work, not a failure at the end."""
+    ancestor = _existing_ancestor(path)
+    try:
+        limit = os.pathconf(ancestor, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        limit = 255
+    for part in [path, *path.parents]:
+        if os.path.lexists(part):
+            break
+        size = len(os.fsencode(part.name))
+        if size > limit:
+            raise MassvizError(f"cannot write: the name {'of folder ' + str(part) + ' ' if part != path else ''}is "
+                               f"{size} bytes (at most {limit} on this file system)", path)
+
+
 def _existing_ancestor(path: Path) -> Path:
     for parent in path.parents:
         if parent.exists():
@@ -321,6 +431,7 @@ def check_output_file(path: str | Path, option: str | None = None) -> Path:
     path = Path(path)
     needs = f"; {option} needs a file path" if option else ""
     output_target(path)
+    _check_name_lengths(path)
     path = Path(os.path.realpath(path)) if path.is_symlink() else path
     if path.is_dir():
         raise MassvizError(f"is a directory{needs}", path)
@@ -341,6 +452,7 @@ def check_output_dir(path: str | Path, option: str | None = None) -> Path:
     path = Path(path)
     needs = f"; {option} needs a folder" if option else ""
     output_target(path, folder=True)
+    _check_name_lengths(path)
     if path.exists():
         if not path.is_dir():
             raise MassvizError(f"exists and is not a folder{needs}", path)

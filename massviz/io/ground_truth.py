@@ -16,7 +16,7 @@ import numpy as np
 from massviz.core.flags import ground_truth_source, mask_overlap
 from massviz.core.types import Detections
 from massviz.errors import DataError
-from massviz.io.untrusted import check_image_size, frame_path
+from massviz.io.untrusted import decode_image, frame_path
 
 
 @lru_cache(maxsize=256)
@@ -26,8 +26,8 @@ def read_instance_image(path: str, size: tuple[int, int] | None = None) -> np.nd
     another size than ``size`` (the frames' width, height), is a ``DataError`` naming the file."""
     if not Path(path).is_file():
         return None
-    check_image_size(path, DataError, "ground-truth image", expected=size)
-    img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    img = decode_image(path, "ground-truth image", flags=cv2.IMREAD_UNCHANGED, formats=("PNG",), error=DataError,
+                       expected=size)
     return None if img is None else (img if img.ndim == 2 else img[..., 0])
 
 

@@ -40,7 +40,7 @@ from massviz.errors import RecordingError
 from massviz.io.formats.ccm import CCMRecording, ccm_videos, is_ccm_root, open_ccm
 from massviz.io.formats.common import (IMAGE_SUFFIXES, MAX_FRAME_FILE_BYTES, MAX_JSON_BYTES, RecordingBase,
                                        check_intrinsics, partial_message)
-from massviz.io.formats.folder import FrameFilesRecording, is_folder_recording, open_folder
+from massviz.io.formats.folder import FrameFilesRecording, looks_like_recording, open_folder
 from massviz.io.formats.realsense_decode import SUFFIXES as REALSENSE_SUFFIXES
 
 
@@ -88,9 +88,9 @@ def find_recordings(root: str | Path, view: int = 3) -> list[Path]:
     if is_ccm_root(root):
         raise RecordingError(f"no view{view} under {root} (a CCM root: view{view}/rgb/*.mp4 is missing or empty)",
                              root)
-    if (root / "rgb.mp4").is_file() or (root / "rgb").is_dir():
+    if looks_like_recording(root):
         return [root]  # a recording folder, even an incomplete one: open_recording says what is missing
-    found = sorted(p for p in root.iterdir() if is_folder_recording(p)
+    found = sorted(p for p in root.iterdir() if looks_like_recording(p)
                    or (p.is_file() and p.suffix.lower() in REALSENSE_SUFFIXES))
     if not found:
         raise RecordingError(f"no recordings found (looked for view{view}/rgb/*.mp4, recording folders and RealSense "

@@ -18,7 +18,7 @@ import numpy as np
 
 from massviz.core.types import Frame, Intrinsics, RecordingInfo
 from massviz.errors import RecordingError
-from massviz.io.untrusted import MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE, MAX_INDEX, check_image_size, number
+from massviz.io.untrusted import MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE, MAX_INDEX, decode_image, number
 from massviz.io.untrusted import load_json as untrusted_json
 
 _LOG = logging.getLogger(__name__)
@@ -158,16 +158,13 @@ def _kept(path: Path) -> tuple[bytes, list[int]] | None:
     return (entry[1], ident) if ident == entry[0] else None
 
 
-def read_bytes(path: Path, what: str, *, keep: bool = False, digests: dict | None = None,
-               size: tuple[int, int] | None = None) -> bytes:
-    """A frame file's bytes, read once (its header checked, decoded from memory, and kept for sinks that log them as
-    they are), with ``massviz.io.untrusted.read_bounded`` (the size checked before reading: a sparse 2 TiB file is
+def read_bytes(path: Path, what: str, *, keep: bool = False, digests: dict | None = None) -> bytes:
+    """A frame file's bytes, read once (checked and decoded from memory by ``massviz.io.untrusted.decode_image``, and
+    kept for sinks that log them as they are), with ``massviz.io.untrusted.read_bounded`` (the size checked before reading: a sparse 2 TiB file is
     refused at once). ``keep``: the file is read to check a recording when it is opened; its bytes are kept
     (bounded) for the frame loop's read. ``digests``: a dict that gets ``{absolute path: (identity, BLAKE2b
     digest of the bytes read)}`` (``massviz.io.filehash``), so that the trace cache's content key needs no second
-    read of the file; ``{absolute path: None}`` when the file changed while it was read (a mix of two versions).
-    ``size``: the (width, height) the recording's frames have; a file whose header declares another is refused
-    before it is decoded."""
+    read of the file; ``{absolute path: None}`` when the file changed while it was read (a mix of two versions)."""
     from massviz.io.filehash import bytes_digest, identity
     from massviz.io.untrusted import read_bounded
 
@@ -177,7 +174,6 @@ def read_bytes(path: Path, what: str, *, keep: bool = False, digests: dict | Non
     else:
         data, before, after = read_bounded(path, MAX_FRAME_FILE_BYTES, what, RecordingError, with_stats=True)
         ident = identity(after) if identity(before) == identity(after) else None  # None: changed while read
-        check_image_size(path, RecordingError, what, data=data, expected=size)
         if keep and ident is not None:
             _KEPT[str(path)] = (ident, data)
             while len(_KEPT) > _KEEP_AT_MOST:
@@ -187,8 +183,10 @@ def read_bytes(path: Path, what: str, *, keep: bool = False, digests: dict | Non
     return data
 
 
-def _decode(data: bytes, flags: int):
-    return cv2.imdecode(np.frombuffer(data, np.uint8), flags) if data else None
+def _decode(path: Path, data: bytes, what: str, flags: int, formats: tuple[str, ...], size):
+    """The frame decoded by the one image reader: PNG/JPEG by content, the header's size (the recording's ``size``
+    when known) checked before decoding."""
+    return decode_image(path, what, flags=flags, formats=formats, error=RecordingError, data=data, expected=size)
 
 
 def read_rgb(path: Path, width: int | None = None, height: int | None = None, *, with_bytes: bool = False,
@@ -197,9 +195,9 @@ def read_rgb(path: Path, width: int | None = None, height: int | None = None, *,
 
     EXIF orientation is ignored (``cv2.IMREAD_IGNORE_ORIENTATION``): a frame is used as its pixels are stored, so
     it stays aligned with its depth map. ``keep``, ``digests``: see ``read_bytes``."""
-    data = read_bytes(path, "RGB image", keep=keep, digests=digests,
-                      size=None if width is None else (width, height))
-    bgr = _decode(data, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+    data = read_bytes(path, "RGB image", keep=keep, digests=digests)
+    bgr = _decode(path, data, "RGB image", cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION, ("PNG", "JPEG"),
+                  None if width is None else (width, height))
     if bgr is None:
         raise RecordingError("cannot read image (missing, empty or not an image)", path)
     if width is not None and (bgr.shape[1], bgr.shape[0]) != (width, height):
@@ -212,8 +210,9 @@ def read_depth_png(path: Path, width: int, height: int, *, with_bytes: bool = Fa
                    digests: dict | None = None):
     """Depth of one 16-bit PNG (H×W uint16 mm), checked; ``with_bytes``: (depth, the file's bytes), read once.
     ``keep``, ``digests``: see ``read_bytes``."""
-    data = read_bytes(path, "depth image", keep=keep, digests=digests, size=(width, height))
-    depth = _decode(data, cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
+    data = read_bytes(path, "depth image", keep=keep, digests=digests)
+    depth = _decode(path, data, "depth image", cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION, ("PNG",),
+                    (width, height))
     if depth is None:
         raise RecordingError("cannot read depth image (missing, empty or not a PNG)", path)
     if depth.ndim != 2:

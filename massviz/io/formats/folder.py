@@ -160,8 +160,36 @@ def check_counts(depth_dir: Path, n_depth: int, n_rgb: int) -> None:
                              depth_dir)
 
 
-def is_folder_recording(path: Path) -> bool:
-    return path.is_dir() and ((path / "rgb.mp4").is_file() or (path / "rgb").is_dir())
+#: what a recording folder holds: a folder holding any of them is a recording (opening it says what is wrong)
+RECORDING_ENTRIES = ("rgb", "rgb.mp4", "depth", "meta.json", "intrinsics.json")
+
+
+def looks_like_recording(path: Path) -> bool:
+    """``path`` is a folder meant as a recording: it holds any of :data:`RECORDING_ENTRIES` (whatever they are: a
+    ``rgb/`` that is a symlink loop or a file is a broken recording, not a folder to skip), or it cannot be read (its
+    opening says so). A dataset lists these, so that no broken recording is left out in silence."""
+    import os
+
+    if not path.is_dir():
+        return False
+    if not os.access(path, os.R_OK | os.X_OK):
+        return True
+    return any(os.path.lexists(path / name) for name in RECORDING_ENTRIES)
+
+
+def _not_a_folder(path: Path) -> str | None:
+    """Why ``path``, which exists, is not a folder (a symlink loop, a dangling symlink, a file); None when it is
+    one or is missing."""
+    import os
+
+    if path.is_dir() or not os.path.lexists(path):
+        return None
+    if path.is_symlink():
+        try:
+            os.stat(path)
+        except OSError as err:
+            return f"is a symlink that cannot be followed ({err.strerror or err})"
+    return "is a file, not a folder"
 
 
 def open_folder(folder: Path, allow_partial: bool = False, rgb_only: bool = False) -> FrameFilesRecording:
@@ -181,11 +209,15 @@ def open_folder(folder: Path, allow_partial: bool = False, rgb_only: bool = Fals
         height, width = first.shape[:2]
         n_rgb, fps = len(rgb_files), 30.0
         video = None
+    elif (why := _not_a_folder(rgb_dir)) is not None:
+        raise RecordingError(f"{why}; expected a folder of RGB frames (rgb/*.png|*.jpg)", rgb_dir)
     else:
         what = "empty folder" if not any(folder.iterdir()) else "no rgb.mp4 or rgb/ folder"
         raise RecordingError(f"not a recording ({what}): expected rgb.mp4 or rgb/*.png|*.jpg and depth/*.png",
                              folder)
     depth_dir = folder / "depth"
+    if (why := _not_a_folder(depth_dir)) is not None:
+        raise RecordingError(f"{why}; expected a folder of depth frames (depth/*.png)", depth_dir)
     no_depth = not depth_dir.is_dir()
     if no_depth and not rgb_only:
         raise RecordingError(f"no depth (no depth/ folder): {NO_DEPTH}", folder)

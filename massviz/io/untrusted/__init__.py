@@ -9,7 +9,8 @@ The checks every reader makes on what it reads from a file (see docs/untrusted.m
 * :func:`text_id` / :func:`safe_filename` — ids from data files are text: no control characters, bounded length;
   turned into file names only through ``safe_filename``.
 * :func:`number` — a numeric field is finite, in range and integral where it must be, checked where it is read.
-* :func:`check_image_size` — the size an image *declares* in its header is bounded before it is decoded.
+* :func:`decode_image` — the one reader of an image from a user's folder: its format told by its first bytes, the
+  size and channels its header declares bounded (:func:`check_image_size`), before it is decoded.
 * :func:`read_bounded` — the one bounded file read: the size checked before reading (a sparse 2 TiB file is
   refused at once), a file growing past the bound while read refused; every reader of an untrusted file uses it.
 * :func:`load_json` / :func:`parse_json` — every JSON file from a dataset or a user: size bounded, nesting depth
@@ -20,8 +21,8 @@ The checks every reader makes on what it reads from a file (see docs/untrusted.m
 from __future__ import annotations
 
 from massviz.io.untrusted.bounded import read_bounded
-from massviz.io.untrusted.images import (MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE, check_image_size, image_header_size,
-                                         png_header_size)
+from massviz.io.untrusted.images import (MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE, check_image_size, decode_image,
+                                         image_format, image_header_size, png_header_size)
 from massviz.io.untrusted.jsonfile import MAX_JSON_BYTES, MAX_JSON_DEPTH, MAX_JSON_INT_DIGITS, load_json, parse_json
 from massviz.io.untrusted.npz import MAX_NPZ_BYTES, MAX_NPZ_RATIO, load_npz_checked
 from massviz.io.untrusted.paths import confined, frame_path
@@ -33,5 +34,5 @@ from massviz.io.untrusted.values import MAX_INDEX, json_safe, number
 __all__ = ["read_bounded", "MAX_NPZ_RATIO", "MAX_JSON_BYTES", "MAX_JSON_DEPTH", "MAX_JSON_INT_DIGITS", "parse_json",
            "load_json", "MAX_NPZ_BYTES", "load_npz_checked", "MAX_CALIB_BYTES", "MAX_ID_CHARS", "MAX_IMAGE_SIDE",
            "MAX_IMAGE_PIXELS", "MAX_INDEX", "RestrictedUnpickler", "load_calibration_pickle", "confined", "text_id",
-           "safe_filename", "number", "check_image_size", "image_header_size", "png_header_size", "frame_path",
+           "safe_filename", "number", "check_image_size", "decode_image", "image_format", "image_header_size", "png_header_size", "frame_path",
            "printable", "csv_cell", "csv_safe", "csv_writer", "write_csv", "json_safe"]

@@ -29,9 +29,10 @@ def json_safe(value):
 
 
 def number(value, what: str, source=None, *, lo: float | None = None, hi: float | None = None,
-           lo_open: bool = False, integral: bool = False, error=DataError):
+           lo_open: bool = False, hi_open: bool = False, integral: bool = False, error=DataError):
     """``value`` (from a file or an option) as a float — an int when ``integral`` — checked: a real number (not a
-    bool, not text), finite, integral when asked, within [lo, hi] (``lo_open``: > lo). ``error`` names ``source``."""
+    bool, not text), finite, integral when asked, within [lo, hi] (``lo_open``: > lo, ``hi_open``: < hi). A float
+    zero is +0.0 (``-0`` is read as 0). ``error`` names ``source``."""
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise error(f"{what} must be a number, got {_short(value)}", source)
     try:
@@ -39,7 +40,7 @@ def number(value, what: str, source=None, *, lo: float | None = None, hi: float 
     except OverflowError:
         f = math.inf
     if not math.isfinite(f):
-        raise error(f"{what} must be a finite number, got {_short(value)}", source)
+        raise error(f"{what} must be a finite number{_range(lo, hi, lo_open, hi_open)}, got {_short(value)}", source)
     if integral:
         if isinstance(value, numbers.Integral):
             out = int(value)
@@ -48,9 +49,20 @@ def number(value, what: str, source=None, *, lo: float | None = None, hi: float 
         else:
             raise error(f"{what} must be an integer, got {_short(value)}", source)
     else:
-        out = f
+        out = f + 0.0  # -0.0 + 0.0 is +0.0
     if lo is not None and (out <= lo if lo_open else out < lo):
         raise error(f"{what} must be {'>' if lo_open else '>='} {lo:g}, got {_short(value)}", source)
-    if hi is not None and out > hi:
-        raise error(f"{what} must be <= {hi:g}, got {_short(value)}", source)
+    if hi is not None and (out >= hi if hi_open else out > hi):
+        raise error(f"{what} must be {'<' if hi_open else '<='} {hi:g}, got {_short(value)}", source)
     return out
+
+
+def _range(lo, hi, lo_open: bool, hi_open: bool) -> str:
+    """`` in [lo, hi)`` (or `` > lo``, `` <= hi``) for a message; empty without bounds."""
+    if lo is not None and hi is not None:
+        return f" in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+    if lo is not None:
+        return f" {'>' if lo_open else '>='} {lo:g}"
+    if hi is not None:
+        return f" {'<' if hi_open else '<='} {hi:g}"
+    return ""
