@@ -128,7 +128,7 @@ READER = textwrap.dedent("""
     from massviz.errors import MassvizError
     from massviz.io.formats.common import read_depth_png, read_rgb
     from massviz.io.ground_truth import read_instance_image
-    from massviz.detect.replay import ReplayDetector
+    from massviz.detect.saved import ReplayDetector
 
     def read(kind, path):
         if kind == "rgb":
