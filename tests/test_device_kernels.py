@@ -104,11 +104,18 @@ def test_window_features_compiled_equal_the_eager_function_on_the_cpu():
 
 
 # -------------------------------------------------------------------------------------------------- resample
-def test_device_tables_are_kept_per_device_and_grow_with_new_sides():
+def test_device_tables_are_kept_per_device_and_grow_with_new_sides(monkeypatch):
+    import massviz.core.resample as resample
     from massviz.core.resample import coefficients, device_tables
 
     first, weights = device_tables("cpu", [7, 300])
-    again = device_tables("cpu", [7])
+
+    def made_again(side):
+        raise AssertionError(f"the table of side {side} was made again")
+
+    with monkeypatch.context() as m:
+        m.setattr(resample, "_coefficients", made_again)
+        again = device_tables("cpu", [7, 300])
     assert again[0] is first and again[1] is weights  # nothing made or copied again
     for side in (7, 300):
         f, w = coefficients(side)
