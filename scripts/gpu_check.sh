@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # On a machine with a CUDA GPU, from the repository root, with the Python that has torch (no install needed: the
 # checkout runs from PYTHONPATH): the CUDA tests, then the GPU benchmark (benchmarks/gpu.py: scenarios (a) and (b),
-# 150 distinct 1280x720 frames in every row, warm and cold columns, the paper's loop both ways; ~5 min on an H100).
+# 150 distinct 1280x720 frames in every row, warm and cold columns, the paper's loop both ways; about 8 minutes on
+# an H100 by estimate: the paper's loop alone runs 150 frames four times at ~3 frames/s).
 #   MASSVIZ_SHARED=/path/to/shared bash scripts/gpu_check.sh [benchmark options, e.g. --frames 60]
 # Writes $OUT/tests.log, $OUT/bench.log and $OUT/gpu.json (OUT defaults to out/gpu).
 set -uo pipefail
