@@ -50,18 +50,21 @@ SIDES = ("paper", "fp32", "bf16")
 
 
 # ------------------------------------------------------------------------------------------------------- inputs
-def make_recording(folder: Path, n: int) -> Path:
-    """A 1280x720 massviz recording: rgb.mp4 (mp4v, as CCM) + depth/*.png (mm) + meta.json."""
+def make_recording(folder: Path, n: int, distinct: bool = False, width: int = WIDTH, height: int = HEIGHT) -> Path:
+    """A 1280x720 massviz recording: rgb.mp4 (mp4v, as CCM) + depth/*.png (mm) + meta.json. The objects' path repeats
+    every 17 frames; ``distinct``: the background moves too (one pixel a frame), so every frame differs."""
     import cv2
     import numpy as np
 
+    WIDTH, HEIGHT = width, height  # noqa: N806 - the module's size, overridden
     rng = np.random.default_rng(0)
     (folder / "depth").mkdir(parents=True)
     writer = cv2.VideoWriter(str(folder / "rgb.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (WIDTH, HEIGHT))
-    wall = rng.integers(40, 200, (HEIGHT // 8, WIDTH // 8, 3), dtype=np.uint8).repeat(8, 0).repeat(8, 1)
+    wall = rng.integers(40, 200, (-(-HEIGHT // 8), -(-WIDTH // 8), 3), dtype=np.uint8).repeat(8, 0).repeat(8, 1)
+    wall = wall[:HEIGHT, :WIDTH]
     yy, xx = np.mgrid[0:HEIGHT, 0:WIDTH]
     for i in range(n):
-        rgb = wall.copy()
+        rgb = np.roll(wall, i, axis=1) if distinct else wall.copy()
         # textured depth (sensor-like noise): masks then have distinct mean distances. With flat surfaces many
         # detections tie in d, and the paper's np.where look-up picks the first of a tie for every tied rank (the
         # same patch several times) where massviz takes distinct detections (README: deliberate differences).
@@ -69,6 +72,8 @@ def make_recording(folder: Path, n: int) -> Path:
         for j, (w, h, c) in enumerate([(120, 200, (200, 40, 40)), (90, 150, (40, 200, 60)), (160, 110, (50, 60, 220))]):
             x = 150 + 350 * j + (12 * i) % 204  # the same path for the first 17 frames, then again
             y = 250 + 30 * j
+            if x + w > WIDTH or y + h > HEIGHT:  # a smaller frame (a quick test run): the objects that fit
+                continue
             rgb[y:y + h, x:x + w] = c
             depth[y:y + h, x:x + w] = 650 + 80 * j - 5 * (i % 17) + rng.integers(0, 40, (h, w))
         writer.write(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
@@ -102,15 +107,10 @@ def make_weights(path: Path, scenario: str) -> Path:
 
 
 # ------------------------------------------------------------------------------------------------------ workers
-def paper_loop(recording: Path, detector_weights: Path, mass_weights: Path, k: int = 5, threshold: float = 0.4,
-               device: str = "cpu"):
-    """The paper's inference loop (module docstring). Returns (estimate, chosen [(frame, box)], detections).
-    ``device``: where its model, frames and mass CNN run (``cuda``: the paper's loop on a GPU, its outputs copied
-    back as its code does; ``benchmarks/gpu.py``)."""
-    import cv2
-    import numpy as np
+def paper_models(detector_weights: Path, mass_weights: Path, device: str = "cpu"):
+    """The paper's two models as its code builds them: torchvision's Mask R-CNN (box_score_thresh 0.05) and the mass
+    CNN, on ``device``."""
     import torch
-    import torchvision.transforms.functional as TF
     from torchvision.models.detection import maskrcnn_resnet50_fpn
 
     from massviz.io.checkpoint import load_checkpoint
@@ -118,7 +118,21 @@ def paper_loop(recording: Path, detector_weights: Path, mass_weights: Path, k: i
     model = maskrcnn_resnet50_fpn(weights=None, weights_backbone=None, num_classes=91)  # box_score_thresh 0.05
     model.load_state_dict(torch.load(detector_weights, map_location="cpu", weights_only=True))
     model.eval().to(device)
-    mass = load_checkpoint(mass_weights).to(device)
+    return model, load_checkpoint(mass_weights).to(device)
+
+
+def paper_loop(recording: Path, detector_weights: Path, mass_weights: Path, k: int = 5, threshold: float = 0.4,
+               device: str = "cpu", models=None, times: list | None = None):
+    """The paper's inference loop (module docstring). Returns (estimate, chosen [(frame, box)], detections).
+    ``device``: where its model, frames and mass CNN run (``cuda``: the paper's loop on a GPU, its outputs copied
+    back as its code does; ``benchmarks/gpu.py``); ``models``: ``paper_models``' pair, built before (else here);
+    ``times``: a list the loop appends ``time.perf_counter()`` to after each frame and at its end."""
+    import cv2
+    import numpy as np
+    import torch
+    import torchvision.transforms.functional as TF
+
+    model, mass = models if models is not None else paper_models(detector_weights, mass_weights, device)
     depth_files = sorted((recording / "depth").glob("*.png"))
     cap = cv2.VideoCapture(str(recording / "rgb.mp4"))
     count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
@@ -150,6 +164,10 @@ def paper_loop(recording: Path, detector_weights: Path, mass_weights: Path, k: i
                 patches.append(rgb[y1:y2, x1:x2].copy())
                 masks.append(full[j])
                 where.append((index, [x1, y1, x2, y2]))
+        if times is not None:
+            if device.startswith("cuda"):
+                torch.cuda.synchronize()
+            times.append(time.perf_counter())
     cap.release()
     if not dist:
         return -1.0, [], 0, None
@@ -166,13 +184,15 @@ def paper_loop(recording: Path, detector_weights: Path, mass_weights: Path, k: i
                "chosen": [where[c] for c in distinct]}
     else:
         tie = None
+    if times is not None:
+        times.append(time.perf_counter())
     return float(np.mean(preds)), [where[c] for c in chosen], len(dist), tie
 
 
 def massviz_run(recording: Path, detector_weights: Path, mass_weights: Path, precision: str, trace_out: Path):
-    from massviz.io.checkpoint import load_checkpoint
     from massviz.core.pipeline import run
     from massviz.detect.maskrcnn import MaskRCNNDetector
+    from massviz.io.checkpoint import load_checkpoint
     from massviz.io.recording import open_recording
     from massviz.io.trace_file import save_trace
 
@@ -249,6 +269,7 @@ def main() -> int:
     sys.path.insert(0, str(ROOT))
     from massviz.detect.maskrcnn import bf16_supported
     from massviz.evaluation.compare import compare_traces
+    from massviz.io.trace_file import load_trace
 
     sides = [s for s in SIDES if s != "bf16" or (not args.no_bf16 and bf16_supported())]
     if "bf16" not in sides and not args.no_bf16:

@@ -199,3 +199,16 @@ def small_recording(dst: Path, frames: int = 3, sample: str = "cup_handover") ->
     meta = json.loads((src / "meta.json").read_text())
     (dst / "meta.json").write_text(json.dumps({**meta, "id": dst.name, "frames": meta["frames"][:frames]}))
     return dst
+
+
+def random_mask_case(n, seed=0, width=200, height=150):
+    """Mask R-CNN-like outputs for ``n`` detections in a ``width`` x ``height`` frame: (probabilities (n, 1, 28, 28),
+    float boxes (n, 4) inside the frame, the generator, to draw more from it)."""
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    probs = torch.rand(n, 1, 28, 28, generator=g)
+    xy = torch.rand(n, 2, generator=g) * torch.tensor([width - 2.0, height - 2.0])
+    wh = torch.rand(n, 2, generator=g) * torch.tensor([width / 2.0, height / 2.0]) + 0.3
+    boxes = torch.cat([xy, torch.minimum(xy + wh, torch.tensor([width - 0.01, height - 0.01]))], 1)
+    return probs, boxes, g

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from support import run_massviz
+from support import random_mask_case, run_massviz
 
 from massviz.core.model import preprocess_patch
 from massviz.core.pipeline import run
@@ -72,11 +72,7 @@ def test_resize_boxes_equals_pillow_for_every_side_up_to_260_and_large_crops():
 
 # ---------------------------------------------------------------------------------------- mask windows, on the CPU
 def _mask_case(n, seed=0, width=200, height=150):
-    g = torch.Generator().manual_seed(seed)
-    probs = torch.rand(n, 1, 28, 28, generator=g)
-    xy = torch.rand(n, 2, generator=g) * torch.tensor([width - 2.0, height - 2.0])
-    wh = torch.rand(n, 2, generator=g) * torch.tensor([width / 2.0, height / 2.0]) + 0.3
-    boxes = torch.cat([xy, torch.minimum(xy + wh, torch.tensor([width - 0.01, height - 0.01]))], 1)
+    probs, boxes, g = random_mask_case(n, seed, width, height)
     edge = torch.tensor([[0.0, 0.0, width - 0.5, height - 0.5], [3.2, 4.7, 3.9, 5.1], [width - 9.5, height - 9.5,
                                                                                         width - 0.1, height - 0.1]])
     return torch.cat([probs, torch.rand(3, 1, 28, 28, generator=g)]), torch.cat([boxes, edge]), width, height

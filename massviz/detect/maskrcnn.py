@@ -193,10 +193,10 @@ class MaskWindows:
     ``index``, ``paste_mask_crops``' mask as a (height, width) window of a bool tensor (top-left aligned; False past
     its box), for many detections in one set of tensor operations.
 
-    The arithmetic is torchvision's paste (``expand_masks``, ``expand_boxes``, bilinear resize without aligned corners,
-    threshold 0.5), written as gathers over all the boxes at once, in float32 as PyTorch's CUDA kernel computes it;
-    a pixel can differ from ``paste_mask_crops`` only where its probability is within float rounding of 0.5
-    (tests/test_device_path.py)."""
+    The arithmetic is ``massviz.core.windows``' (torchvision's paste as gathers over all the boxes at once, in
+    float32 as PyTorch's CUDA kernel computes it); a pixel can differ from ``paste_mask_crops`` only where its
+    probability is within float rounding of 0.5 (tests/test_device_path.py). ``padded``, ``expanded``, ``im_h``,
+    ``im_w`` and ``threshold`` are what ``massviz.core.windows.window_features`` takes."""
 
     def __init__(self, probs: torch.Tensor, boxes: torch.Tensor, im_h: int, im_w: int,
                  threshold: float = MASK_THRESHOLD, padding: int = 1):
@@ -215,50 +215,25 @@ class MaskWindows:
     def __len__(self) -> int:
         return len(self.padded)
 
-    @staticmethod
-    def _axis(start, lo, hi, size, n_in, limit):
-        """Along one axis, for window positions 0..size-1 of boxes starting at ``start``: the two input cells, their
-        weights and whether the canvas holds the position ([lo, hi] of the expanded box, inside the image)."""
-        pos = start[:, None] + torch.arange(size, device=start.device)[None, :]  # image coordinate
-        out_len = (hi - lo + 1).clamp(min=1)  # the resized mask's length
-        j = pos - lo[:, None]  # index into the resized mask
-        inside = (j >= 0) & (j < out_len[:, None]) & (pos < limit)
-        scale = torch.full_like(out_len, n_in, dtype=torch.float32) / out_len.float()
-        src = (scale[:, None] * (j.float() + 0.5) - 0.5).clamp(min=0)
-        i0 = src.to(torch.int64).clamp(max=n_in - 1)  # src >= 0: truncation is floor
-        lam = src - i0.float()
-        i1 = torch.where(i0 < n_in - 1, i0 + 1, i0)
-        return i0.clamp(min=0), i1.clamp(min=0), 1 - lam, lam, inside
-
     def windows(self, index, xyxy, height: int, width: int) -> torch.Tensor:
         """(len(index), height, width) bool on the device: detection ``index[i]``'s mask in its integer box
-        ``xyxy[i]`` (x1, y1, x2, y2; host arrays or tensors), top-left aligned, False past the box."""
+        ``xyxy[i]`` (x1, y1, x2, y2; host arrays or tensors), top-left aligned, False past the box
+        (``massviz.core.windows.paste_windows``)."""
+        from massviz.core.windows import paste_windows
+
         idx = index if isinstance(index, torch.Tensor) else torch.from_numpy(np.asarray(index, dtype=np.int64))
         box = xyxy if isinstance(xyxy, torch.Tensor) else torch.from_numpy(np.asarray(xyxy, np.int64).reshape(-1, 4))
         idx, box = idx.to(self.device), box.to(self.device, torch.int64)
-        m = self.padded[idx]  # (k, S, S)
-        ex = self.expanded[idx]
-        n_in = m.shape[-1]
-        y0, y1, wy0, wy1, y_in = self._axis(box[:, 1], ex[:, 1], ex[:, 3], height, n_in, self.im_h)
-        x0, x1, wx0, wx1, x_in = self._axis(box[:, 0], ex[:, 0], ex[:, 2], width, n_in, self.im_w)
-        k = torch.arange(len(idx), device=self.device)[:, None, None]
-        rows = torch.arange(n_in, device=self.device)[None, :, None]
-        # along x for every row of the padded mask, then along y: CUDA's h0 * (w0 * a + w1 * b) + h1 * (...)
-        across = wx0[:, None, :] * m[k, rows, x0[:, None, :]] + wx1[:, None, :] * m[k, rows, x1[:, None, :]]
-        value = (wy0[:, :, None] * across[k, y0[:, :, None], torch.arange(width, device=self.device)]
-                 + wy1[:, :, None] * across[k, y1[:, :, None], torch.arange(width, device=self.device)])
-        in_box = ((torch.arange(height, device=self.device)[None, :] < (box[:, 3] - box[:, 1])[:, None])[:, :, None]
-                  & (torch.arange(width, device=self.device)[None, :] < (box[:, 2] - box[:, 0])[:, None])[:, None, :])
-        return (value > self.threshold) & y_in[:, :, None] & x_in[:, None, :] & in_box
+        return paste_windows(self.padded[idx], self.expanded[idx], box, height, width, self.im_h, self.im_w,
+                             self.threshold)
 
 
 class MaskCropTransform(GeneralizedRCNNTransform):
     """torchvision's ``GeneralizedRCNNTransform`` whose ``postprocess`` uses ``paste_mask_crops`` instead of
     full-image mask pasting: boxes are rescaled as torchvision does; ``masks`` is replaced by ``mask_crops`` (bool
-    arrays, one per box). With ``paste = False`` the masks stay the mask head's probabilities (n, 1, 28, 28) on the
-    device (``MaskWindows`` pastes them later)."""
-
-    paste = True
+    arrays, one per box). ``postprocess(..., paste=False)`` leaves the masks as the mask head's probabilities
+    (n, 1, 28, 28) on the device (``MaskWindows`` pastes them later); ``forward_detections`` calls it so, per call,
+    with no state of the module changed."""
 
     @classmethod
     def of(cls, stock) -> "MaskCropTransform":
@@ -266,14 +241,30 @@ class MaskCropTransform(GeneralizedRCNNTransform):
         return cls(stock.min_size, stock.max_size, stock.image_mean, stock.image_std, stock.size_divisible,
                    stock.fixed_size, _skip_resize=stock._skip_resize).train(stock.training)
 
-    def postprocess(self, result, image_shapes, original_image_sizes):
+    def postprocess(self, result, image_shapes, original_image_sizes, paste: bool = True):
         if self.training:
             return result
         for pred, im_s, o_im_s in zip(result, image_shapes, original_image_sizes):
             pred["boxes"] = resize_boxes(pred["boxes"], im_s, o_im_s)
-            if "masks" in pred and self.paste:
+            if "masks" in pred and paste:
                 pred["mask_crops"] = paste_mask_crops(pred.pop("masks"), pred["boxes"], *o_im_s)
         return result
+
+
+def forward_detections(model: torch.nn.Module, images: list[torch.Tensor], paste: bool = True) -> list[dict]:
+    """The eval forward of a ``runtime_model`` (torchvision's ``GeneralizedRCNN.forward``: transform, backbone, RPN,
+    RoI heads, post-processing) with the masks pasted into their boxes on the host (``paste``) or left on the
+    device as probabilities. Nothing shared is changed, so two threads may run it at once."""
+    from collections import OrderedDict
+
+    sizes = [tuple(int(v) for v in img.shape[-2:]) for img in images]
+    batch, _ = model.transform(images)
+    features = model.backbone(batch.tensors)
+    if isinstance(features, torch.Tensor):
+        features = OrderedDict([("0", features)])
+    proposals, _ = model.rpn(batch, features)
+    detections, _ = model.roi_heads(features, proposals, batch.image_sizes)
+    return model.transform.postprocess(detections, batch.image_sizes, sizes, paste=paste)
 
 
 def _float32(x):
@@ -466,11 +457,10 @@ class MaskRCNNDetector:
 
     def _forward(self, frames: list[Frame]) -> list[Detections]:
         model = self.runtime
-        model.transform.paste = True
         with torch.inference_mode(), faithful_fp32(self.device, self.precision == "fp32"):
             images = [to_unit_float(torch.from_numpy(f.rgb).to(self.device).permute(2, 0, 1))  # = ToTensor()
                       for f in frames]
-            outputs = model(images)
+            outputs = forward_detections(model, images, paste=True)
             return [outputs_to_detections(o, f.index, self.threshold, self.classes) for o, f in zip(outputs, frames)]
 
     def detect_device(self, frames: list[Frame], rgb: torch.Tensor) -> tuple[list[Detections], MaskWindows]:
@@ -478,12 +468,9 @@ class MaskRCNNDetector:
         each frame's ``Detections`` (boxes, scores, classes; masks not filled) and one ``MaskWindows`` of all their
         masks, in order. One copy to the host (the boxes, scores and classes of every frame)."""
         model = self.runtime
-        model.transform.paste = False
-        try:
-            with torch.inference_mode(), faithful_fp32(self.device, self.precision == "fp32"):
-                outputs = model([to_unit_float(rgb[i].permute(2, 0, 1)) for i in range(len(frames))])  # ToTensor
-        finally:
-            model.transform.paste = True
+        with torch.inference_mode(), faithful_fp32(self.device, self.precision == "fp32"):
+            images = [to_unit_float(rgb[i].permute(2, 0, 1)) for i in range(len(frames))]  # = ToTensor()
+            outputs = forward_detections(model, images, paste=False)
         with torch.inference_mode():
             counts = [len(o["scores"]) for o in outputs]
             boxes = torch.cat([o["boxes"].float() for o in outputs]) if outputs else torch.zeros((0, 4))
