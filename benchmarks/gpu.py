@@ -85,7 +85,6 @@ def detector_worker(args) -> dict:
 
 def paper_worker(args) -> dict:
     import torch
-
     from vs_paper_loop import paper_loop
 
     t0 = time.perf_counter()
@@ -216,7 +215,8 @@ def main() -> int:
     if args.worker:
         return worker(args)
     if args.variants:
-        from vs_paper_loop import make_recording as make, make_weights as weights_for
+        from vs_paper_loop import make_recording as make
+        from vs_paper_loop import make_weights as weights_for
 
         with tempfile.TemporaryDirectory(prefix="massviz-gpu-") as tmp:
             args.recording = make(Path(tmp) / "rec", args.frames)

@@ -170,9 +170,9 @@ def paper_loop(recording: Path, detector_weights: Path, mass_weights: Path, k: i
 
 
 def massviz_run(recording: Path, detector_weights: Path, mass_weights: Path, precision: str, trace_out: Path):
-    from massviz.io.checkpoint import load_checkpoint
     from massviz.core.pipeline import run
     from massviz.detect.maskrcnn import MaskRCNNDetector
+    from massviz.io.checkpoint import load_checkpoint
     from massviz.io.recording import open_recording
     from massviz.io.trace_file import save_trace
 
@@ -249,6 +249,7 @@ def main() -> int:
     sys.path.insert(0, str(ROOT))
     from massviz.detect.maskrcnn import bf16_supported
     from massviz.evaluation.compare import compare_traces
+    from massviz.io.trace_file import load_trace
 
     sides = [s for s in SIDES if s != "bf16" or (not args.no_bf16 and bf16_supported())]
     if "bf16" not in sides and not args.no_bf16:
