@@ -22,34 +22,18 @@ import cv2
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
 ARTIFACTS = Path(os.environ.get("MASSVIZ_TEST_ARTIFACTS", ROOT / "test-artifacts")) / "screenshots"
-
-
 CHROMIUM = Path(os.environ.get("MASSVIZ_CHROMIUM", "/usr/bin/chromium"))
-
-
 CHROMIUM_ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
                  "--disable-quic", "--disable-dev-shm-usage", "--disable-renderer-backgrounding",
                  "--disable-background-timer-throttling", "--disable-backgrounding-occluded-windows"]
-
-
 LOCAL_URL = re.compile(r"^(https?://(127\.0\.0\.1|localhost)(:\d+)?/|data:|blob:)")
-
-
 VIEWER = {"width": 1280, "height": 800}
-
-
 LOAD_TIMEOUT_S = 120
-
-
 #: console lines of Rerun's own page offline (web fonts, the welcome screen's examples), not about massviz's data
 BENIGN = re.compile(r"net::ERR_FAILED|ERR_NAME_NOT_RESOLVED|ERR_INTERNET_DISCONNECTED|Failed to fetch|"
                     r"Failed to load examples|fonts\.g", re.I)
-
-
 OUR_ENTITIES = re.compile(r"/(camera|world|patches|predictions|log|summary|timings)\b")
 
 
@@ -258,13 +242,9 @@ def offline_page(browser, viewport: dict):
 KERNEL_IDLE = """() => { const w = window.jupyterapp && window.jupyterapp.shell.currentWidget;
   const k = w && w.sessionContext && w.sessionContext.session && w.sessionContext.session.kernel;
   return !!k && k.status === 'idle'; }"""
-
-
 ALL_RUN = """(n) => { const w = window.jupyterapp.shell.currentWidget;
   const cells = w.content.widgets.filter(c => c.model.type === 'code').slice(0, n);
   return cells.every(c => c.model.executionCount !== null) && w.sessionContext.session.kernel.status === 'idle'; }"""
-
-
 ERRORS = """() => [...document.querySelectorAll('.jp-RenderedText[data-mime-type="application/vnd.jupyter.error"]')]
   .map(e => e.innerText)"""
 
@@ -300,19 +280,13 @@ def open_and_run(page, lab: str, name: str, upto: str | None = None) -> float:
 
 #: the widget panel of a notebook (the first output VBox; in 03 the one with toggle buttons)
 PANEL = ".jp-OutputArea-output .widget-vbox"
-
-
 FAILURE_PANEL = ".jp-OutputArea-output .widget-vbox:has(.widget-toggle-buttons)"
-
-
 STATE_FN = """function panelState(sel) { const p = document.querySelector(sel);
   const html = [...p.querySelectorAll('.widget-html-content')].map(e => e.innerText);
   return {estimate: html.find(t => / · K=\\d+, threshold /.test(t)) || '',
           tables: [...p.querySelectorAll('table')].map(t => t.innerText),
           tiles: [...p.querySelectorAll('img')].filter(i => i.offsetParent !== null)  // shown: not the spares
                   .map(i => i.src.length + ':' + i.src.slice(-64))}; }"""
-
-
 PANEL_STATE = f"(sel) => {{ {STATE_FN}; return panelState(sel); }}"
 
 

@@ -529,14 +529,8 @@ def make_base(root: Path) -> Base:
 
 # --- annotation and prediction CSVs -----------------------------------------------------------------------------
 ANN_HEADER = "id,container id,width at the top,width at the bottom,height,depth,container capacity,container mass"
-
-
 ANN_ROWS = ["0,1,92,60,110,-1,480,9", "1,4,80,60,150,-1,300,120", "2,7,140,70,200,100,-1,30"]
-
-
 PRED_HEADER = "Configuration ID,Container mass"
-
-
 PRED_ROWS = ["0,10", "1,100", "2,31"]
 
 

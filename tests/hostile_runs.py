@@ -23,22 +23,13 @@ from fakes import Base, visible_lines
 from forkserver import ForkServer
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-
 #: peak resident memory a hostile case may reach (python + torch + the pipeline on 3 frames: ~0.5-0.7 GB; an
 #: unbounded compression bomb reaches 1.9-2.5 GB).
 MEM_BOUND_MB = 1200
-
-
 #: wall time a case may take (a case takes 5-25 s on 2 busy cores; a hang is killed at this bound).
 TIME_BOUND_S = 150
-
-
 #: a non-finite number as text: what must never appear in an output or on the terminal.
 NON_FINITE = re.compile(r"(?<![A-Za-z_])(nan|NaN|NAN|-?inf|-?Inf|-?Infinity)(?![A-Za-z_])")
-
-
 #: characters that may appear raw on the terminal (everything else below 0x20, DEL and C1 must come escaped).
 RAW_CONTROL = re.compile(r"[\x00-\x08\x0b\x0c\x0e-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069]")
 
