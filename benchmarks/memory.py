@@ -82,9 +82,9 @@ def build_recording(folder: Path, n: int, layout: str, size: tuple[int, int]) ->
 
 def child(args) -> None:
     """Run the pipeline once and print one JSON line with this process's peak RSS."""
+    from massviz.app import process
     from massviz.detect import make_detector
     from massviz.io.checkpoint import load_checkpoint
-    from massviz.app import process
     from massviz.io.recording import open_recording
 
     t0 = time.perf_counter()

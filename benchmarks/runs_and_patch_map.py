@@ -115,6 +115,8 @@ def main(argv=None) -> int:
     tmp = None if args.out else tempfile.mkdtemp(prefix="massviz-runs-")
     work = Path(args.out or tmp)
     try:
+        from types import SimpleNamespace
+
         from dataset_scale import build
 
         from massviz.commands._warm import cached_indexes, locate_all, warm_pipeline
@@ -122,10 +124,9 @@ def main(argv=None) -> int:
         from massviz.evaluation.runs import compare_runs, run_from_indexes, run_scores
         from massviz.io.recording import find_recordings
         from massviz.io.trace_file import load_trace
-        from types import SimpleNamespace
 
         cache, out = work / "cache", work / "dataset" / "all"
-        paths = build(out, cache, args.n, env)
+        build(out, cache, args.n, env)
         cli = SimpleNamespace(cache=str(cache), no_cache=False, detector="depth", weights=env["MASSVIZ_WEIGHTS"],
                               detector_weights=None, replay=None, precision="fp32", threshold=0.4, k=5, stride=1)
         pipeline = warm_pipeline(cli, 0.4)
@@ -163,7 +164,7 @@ def main(argv=None) -> int:
         print(line("the same, warm (read from the cache)", times), flush=True)
         features = np.stack([f for e in warm for f in e.values()])
         for method in ("pca", "auto"):
-            (xy, used), times = timed(lambda: layout_2d(features, method), 1)
+            (xy, used), times = timed(lambda method=method: layout_2d(features, method), 1)
             print(line(f"2D layout of {len(features)} patches: {used}", times), flush=True)
         import pandas as pd
 

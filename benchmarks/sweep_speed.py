@@ -23,14 +23,14 @@ def main() -> int:
     p.add_argument("--repeat", type=int, default=5, help="timed repetitions (default: 5)")
     args = p.parse_args()
 
-    from massviz.io.cache import TraceCache
-    from massviz.detect import make_detector
-    from massviz.io.checkpoint import load_checkpoint
     from massviz.app import process
-    from massviz.io.recording import find_recordings, open_recording
+    from massviz.detect import make_detector
     from massviz.evaluation.sweep import best_pair, parse_range, sweep
-    from massviz.views.score_plot import plot_heatmap
+    from massviz.io.cache import TraceCache
+    from massviz.io.checkpoint import load_checkpoint
+    from massviz.io.recording import find_recordings, open_recording
     from massviz.io.weights import resolve_weights
+    from massviz.views.score_plot import plot_heatmap
 
     model = load_checkpoint(resolve_weights(args.weights))
     detector = make_detector("depth", 0.4)

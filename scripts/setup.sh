@@ -72,6 +72,8 @@ if [ "$job" = demo ]; then
   .venv/bin/massviz log data_samples/cup_handover --detector depth --rrd out/cup_handover.rrd
   echo "setup: open it with: .venv/bin/massviz view out/cup_handover.rrd (a browser page; with a display: .venv/bin/rerun out/cup_handover.rrd)" >&2
 else
+  # lint first (pyproject.toml [tool.ruff]: pyflakes, import sorting, bugbear): a finding fails the job
+  .venv/bin/ruff check .
   set +e
   # two workers (pytest-xdist; 2 cores in CI), a test file whole on one: its module fixtures (the Ray cluster, a
   # JupyterLab, the executed notebooks, dozens of CLI runs) are made once; files are handed out heaviest first

@@ -88,7 +88,6 @@ def sample_cache(tmp_path_factory, shared_dir: Path, samples_dir: Path) -> Path:
 
     if not (samples_dir / "cup_handover" / "meta.json").is_file():
         pytest.skip("the bundled samples (data_samples/) are missing")
-    import os
 
     from filelock import FileLock, Timeout
 

@@ -18,6 +18,8 @@ ones inside functions) and fail on an arrow that breaks it.
 * no two modules of the package have the same file name (``__init__.py`` and the commands, which mirror the CLI's
   verbs, aside): a module is named for its job, and a name means one job;
 * library code names no repository-relative path and never switches matplotlib's backend.
+* no file of the test suite imports a test module (``test_*``): what tests share is in helper modules
+  (``tests/fakes.py``, ``tests/support.py``, ...) and fixtures in ``tests/conftest.py``.
 
 Each check is a function of the graph (or of a file), and ``test_the_checks_catch_*`` feed it a bad one.
 """
@@ -544,3 +546,35 @@ def test_one_per_frame_mapping_for_log_and_live():
     assert {f: c for f, c in callers.items() if c} == {"views/rerun/frame_logger.py": sorted(PER_FRAME)}
     assert calls_of("def f(s, r, fr):\n    log_depth(s, fr.depth)\n    r.log_frame(s, fr)\n", PER_FRAME) == {
         "log_depth", "log_frame"}
+
+
+TESTS = PKG.parent / "tests"
+
+
+def imported_test_modules(path: Path) -> list[str]:
+    """The test modules (``test_*``) the file ``path`` imports, at any depth of the file (``import``, ``from ...
+    import``, ``importlib.import_module("...")``)."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    names = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names += [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            names += [node.module] if node.module else [a.name for a in node.names]  # ``from . import test_x``
+        elif (isinstance(node, ast.Call) and getattr(node.func, "attr", getattr(node.func, "id", "")) in
+              ("import_module", "__import__") and node.args and isinstance(node.args[0], ast.Constant)):
+            names.append(str(node.args[0].value))
+    return sorted({n for n in names if n.split(".")[0].startswith("test_")})
+
+
+def test_no_test_module_imports_another():
+    imported = {p.name: imported_test_modules(p) for p in sorted(TESTS.glob("*.py"))}
+    assert {name: found for name, found in imported.items() if found} == {}
+
+
+def test_the_checks_catch_a_test_module_importing_another(tmp_path):
+    bad = tmp_path / "test_bad.py"
+    bad.write_text("import json\nfrom fakes import scene\nfrom test_recording import write_recording\n\n\n"
+                   "def test_x():\n    import test_pipeline\n    from . import test_selection\n"
+                   "    importlib.import_module('test_live')\n")
+    assert imported_test_modules(bad) == ["test_live", "test_pipeline", "test_recording", "test_selection"]

@@ -24,9 +24,17 @@ from urllib.parse import quote, unquote
 import cv2
 import numpy as np
 import pytest
-from test_browser import (ARTIFACTS, BENIGN, check_docs_picture, find, lab, offline_page,  # noqa: F401
-                          open_and_run, settle, shot, wait_for_image)
-from test_dataset_catalog import env, logged  # noqa: F401
+
+from browser_support import (
+    BENIGN,
+    check_docs_picture,
+    find,
+    offline_page,
+    open_and_run,
+    settle,
+    shot,
+    wait_for_image,
+)
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]  # ~50 s: a dataset of 4 recordings, a server, JupyterLab
 
@@ -39,7 +47,7 @@ SERVER_PORT_BOX = (0, 85, 195, 112)
 
 
 @pytest.fixture(scope="module")
-def served(logged, env):  # noqa: F811
+def served(logged, env):
     """``massviz serve OUT`` of ``massviz log DATASET --rrd-dir OUT`` (tests/test_dataset_catalog.py ``logged``): (web
     viewer URL, dataset URL, OUT)."""
     import psutil
@@ -95,7 +103,7 @@ def first_row_middle(image: np.ndarray, header_y: int) -> int:
     return int(header_y + (ys[gaps[0]] + ys[gaps[0] + 1]) // 2)
 
 
-def test_viewer_shows_the_dataset_table_and_opens_a_recording(browser, served, samples_dir):  # noqa: F811
+def test_viewer_shows_the_dataset_table_and_opens_a_recording(browser, served, samples_dir):
     web, dataset_url, out = served
     header = cv2.imread(str(HEADER))
     with offline_page(browser, {"width": 1400, "height": 900}) as (page, messages, _):
@@ -153,7 +161,7 @@ def test_viewer_shows_the_dataset_table_and_opens_a_recording(browser, served, s
     print("console errors:", errors[:5])
 
 
-def test_notebook_04_grid_and_a_filter_in_the_browser(browser, lab, samples_dir):  # noqa: F811
+def test_notebook_04_grid_and_a_filter_in_the_browser(browser, lab, samples_dir):
     from massviz.io.recording import open_recording
 
     with offline_page(browser, {"width": 1280, "height": 1000}) as (page, messages, _):

@@ -22,9 +22,22 @@ import sys
 from pathlib import Path
 
 import pytest
-from sample_traces import WEIGHTS, sample_cache
-from test_browser import (ALL_RUN, BENIGN, ERRORS, FAILURE_PANEL, KERNEL_IDLE, PANEL_STATE, free_port, offline_page,
-                          server, shot, until)
+
+from browser_support import (
+    ALL_RUN,
+    BENIGN,
+    ERRORS,
+    FAILURE_PANEL,
+    KERNEL_IDLE,
+    PANEL_STATE,
+    free_port,
+    offline_page,
+    server,
+    shot,
+    until,
+)
+from support import WEIGHTS
+from support import sample_cache as fill_sample_cache
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
@@ -52,7 +65,7 @@ def readme_lab(tmp_path_factory, shared_dir, samples_dir):
     shutil.copytree(ROOT / "notebooks", root / "notebooks")
     shutil.copytree(ROOT / "scripts", root / "scripts")
     (root / "data_samples").symlink_to(samples_dir)
-    cache = sample_cache(tmp_path_factory, shared_dir, samples_dir)
+    cache = fill_sample_cache(tmp_path_factory, shared_dir, samples_dir)
     user = root / "user"
     env = {k: v for k, v in os.environ.items() if k not in ("RERUN_NOTEBOOK_ASSET", "JUPYTER_CONFIG_PATH")}
     env.update(MASSVIZ_WEIGHTS=str(shared_dir / WEIGHTS), MASSVIZ_CACHE_DIR=str(cache), PYTHONWARNINGS="ignore",

@@ -15,8 +15,17 @@ import time
 import cv2
 import numpy as np
 import pytest
-from test_browser import (BENIGN, check_docs_picture, lab, offline_page, open_and_run, record_timing,  # noqa: F401
-                          settle, shot, wait_for_image)
+
+from browser_support import (
+    BENIGN,
+    check_docs_picture,
+    offline_page,
+    open_and_run,
+    record_timing,
+    settle,
+    shot,
+    wait_for_image,
+)
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]  # ~90 s on 2 cores: JupyterLab, a kernel, the inline viewer
 
@@ -36,7 +45,7 @@ WATCH = """(sel) => { window.__t0 = null; window.__t1 = null;
 def settle_clip(page, name: str, clip: dict, timeout: float = 10.0) -> np.ndarray:
     """Screenshots of the page's region ``clip`` until two in a row are the same (or ``timeout``), saved as
     ``name``."""
-    from test_browser import ARTIFACTS, picture_difference
+    from browser_support import ARTIFACTS, picture_difference
 
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     path = ARTIFACTS / f"{name}.png"
@@ -51,7 +60,7 @@ def settle_clip(page, name: str, clip: dict, timeout: float = 10.0) -> np.ndarra
         page.wait_for_timeout(1000)
 
 
-def test_notebook_05_map_selection_and_open_in_the_browser(browser, lab, samples_dir):  # noqa: F811
+def test_notebook_05_map_selection_and_open_in_the_browser(browser, lab, samples_dir):
     from massviz.io.recording import open_recording
 
     with offline_page(browser, {"width": 1280, "height": 1700}) as (page, messages, _):

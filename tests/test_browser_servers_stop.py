@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 import pytest
+
 from support import CLEARED_ENV, ROOT, require_pyrealsense2, run_massviz
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]

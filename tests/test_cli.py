@@ -15,8 +15,8 @@ import cv2
 import numpy as np
 import pytest
 
+from fakes import OPEN_ERRORS, corrupt_middle_depth
 from support import run_massviz as massviz
-from test_recording import OPEN_ERRORS, corrupt_middle_depth
 
 pytestmark = pytest.mark.slow  # every test runs massviz as subprocesses (dozens of recordings)
 
@@ -154,7 +154,7 @@ def test_estimate_ccm_writes_the_challenge_csv(ccm_runs, shared_dir, weights):
         header, *rows = read_csv(base / f"{name}.csv")
         assert header == readme_columns(shared_dir) and len(header) == 20
         assert len(rows) == 1 and len(rows[0]) == 20
-        row = dict(zip(header, rows[0]))
+        row = dict(zip(header, rows[0], strict=False))
         assert row["Configuration ID"] == "0"
         assert row["Container mass"] == mass
         assert float(row["Execution time"]) > 0

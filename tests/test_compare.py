@@ -10,22 +10,15 @@ from massviz.cli import main
 from massviz.core.trace import Trace
 from massviz.core.types import COCO_KEEP, Detections
 from massviz.evaluation.compare import box_iou, compare_traces, match_boxes
-from massviz.io.recording import open_recording
 from massviz.io.trace_file import save_trace
 
 CUP, BOTTLE = COCO_KEEP["cup"], COCO_KEEP["bottle"]
 
 
-@pytest.fixture(scope="module")
-def recording(samples_dir):
-    if not (samples_dir / "cup_handover").is_dir():
-        pytest.skip("the bundled samples (data_samples/) are missing")
-    return open_recording(samples_dir / "cup_handover")
-
 
 def make_trace(recording, rows, precision):
     """rows: (frame, class, score, box, d, pred); full-box masks; selection by the library (K 2, threshold 0.4)."""
-    frame, cls, score, xyxy, d, pred = (list(c) for c in zip(*rows))
+    frame, cls, score, xyxy, d, pred = (list(c) for c in zip(*rows, strict=False))
     masks = [np.ones((y2 - y1, x2 - x1), bool) for x1, y1, x2, y2 in xyxy]
     dets = Detections(frame=frame, xyxy=xyxy, score=score, class_id=cls, masks=masks, d=d,
                       a=[0.1] * len(rows), b=[0.2] * len(rows), pred=pred)
@@ -71,7 +64,7 @@ def test_reports_exactly_the_differences_put_in(traces):
     c = compare_traces(a, b)
     assert c.settings == [("precision", "fp32", "bf16")]
     assert c.frames_only_a == [] and c.frames_only_b == []
-    assert sorted(zip(c.match_a.tolist(), c.match_b.tolist())) == [(0, 0), (1, 1), (3, 3)]
+    assert sorted(zip(c.match_a.tolist(), c.match_b.tolist(), strict=False)) == [(0, 0), (1, 1), (3, 3)]
     assert c.unmatched_a.tolist() == [2] and c.unmatched_b.tolist() == [2]
     order = np.argsort(c.match_a)
     np.testing.assert_allclose(c.match_iou[order], [1.0, 1.0, 38 / 42])

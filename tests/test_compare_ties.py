@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
-from support import run_massviz
 
 from massviz.evaluation.runs import TIE_G, outcomes, run_scores
+from support import run_massviz
 
 
 def comparison(est_a, est_b, gt=10.0, in_runs="both") -> pd.DataFrame:

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import functools
 import math
-import os
 import re
 import shutil
 import signal
@@ -14,50 +13,22 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from types import SimpleNamespace
 
 import pandas as pd
 import pytest
-from support import run_massviz, samples_and_618, session_base
+
+from support import run_massviz
 
 pytestmark = pytest.mark.slow  # a dataset of 4 recordings, servers, subprocesses of massviz
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the frontal camera of CCM recording 618 (../shared/ccm_real/618/calib/c3_calib.pickle, rgb)
-INTR_618 = {"fx": 922.7552, "fy": 922.7061, "cx": 640.0656, "cy": 354.5494, "width": 1280, "height": 720}
 PROPS = ("id", "container_class", "gt_mass_g", "estimate_g", "rel_error", "score", "n_flagged", "cues", "detector",
          "k", "threshold", "stride", "weights_id", "view", "source")
 
 
 massviz = functools.partial(run_massviz, check=True)  # every call here must succeed unless check=False
 
-
-@pytest.fixture(scope="module")
-def env(weights):
-    return {**os.environ, "MASSVIZ_WEIGHTS": str(weights)}
-
-
-@pytest.fixture(scope="session")
-def logged(tmp_path_factory, shared_dir, samples_dir, weights) -> SimpleNamespace:
-    """The samples and CCM 618 as one folder of massviz recordings (``dataset``: frames linked, not copied), logged
-    with ``massviz log DATASET --rrd-dir OUT --cache CACHE`` (``out``, ``cache``, the command's ``stderr``) once per
-    session: under xdist the first worker to need it logs it, the other waits for it (tests/test_browser_dataset.py
-    serves the same OUT). Tests only read OUT; the trace cache is this module's (its extract and log runs use it)."""
-    from filelock import FileLock
-
-    root = session_base(tmp_path_factory) / "massviz-logged-dataset"
-    done = SimpleNamespace(dataset=root / "ds", out=root / "out", cache=root / "cache", log=root / "log.stderr")
-    with FileLock(str(root) + ".lock"):
-        if not done.log.is_file():
-            if root.exists():
-                shutil.rmtree(root)
-            root.mkdir()
-            samples_and_618(done.dataset, shared_dir, samples_dir, INTR_618)
-            run = massviz("log", done.dataset, "--detector", "depth", "--rrd-dir", done.out, "--cache", done.cache,
-                          "--quiet", env={"MASSVIZ_WEIGHTS": str(weights)})
-            done.log.write_text(run.stderr)
-    done.stderr = done.log.read_text()
-    return done
 
 
 @pytest.fixture(scope="module")
@@ -124,8 +95,8 @@ def test_light_recordings_read_well_in_the_catalog(rrd_dir):
     of frames 31/35 were empty), and a predictions plot without the legend that covered it."""
     import rerun.blueprint as rrb
 
-    from rrd_reader import rrd_rows
     from massviz.views.rerun_dataset import light_blueprint
+    from rrd_reader import rrd_rows
 
     out, _ = rrd_dir
     for rrd in sorted(out.glob("*.rrd")):
@@ -192,7 +163,8 @@ def test_serve_answers_a_segment_table_query_and_leaves_nothing_running(rrd_dir)
         assert both["same"].all(), both
         assert schema.field("property:massviz:open").metadata[b"rerun:component_type"] == b"rerun.components.Url"
         # a DataFusion query: the recordings with flagged chosen patches
-        from datafusion import col, functions as f
+        from datafusion import col
+        from datafusion import functions as f
 
         flagged = ds.segment_table().filter(f.array_element(col("property:massviz:n_flagged"), 1) > 0) \
             .select("rerun_segment_id").to_pandas()
@@ -221,7 +193,7 @@ def test_the_open_links_take_the_best_frame_from_the_recordings_without_a_usable
     with catalog(tmp_path) as cat:
         links = cat.sql('SELECT rerun_segment_id AS id, "property:massviz:open"[1] AS open FROM segments')
     assert len(links) == 2
-    for rec, link in zip(links["id"], links["open"]):
+    for rec, link in zip(links["id"], links["open"], strict=False):
         assert link.endswith(f"?segment_id={rec}#when=frame@{expected[rec]}"), link
 
 

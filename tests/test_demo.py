@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+
 from support import run_massviz
 
 pytestmark = pytest.mark.slow  # the README's demo command as a subprocess

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from massviz.core.detector import Detector
-from massviz.detect.depth import DepthDetector
 from massviz.core.types import OBJECT_CLASS_ID, Frame, Rejection
+from massviz.detect.depth import DepthDetector
 
 NAMES = ["cup_handover", "glass_handover", "box_handover"]
 CONTAINER, PITCHER = 1, 2

@@ -16,9 +16,9 @@ import threading
 import numpy as np
 import pytest
 import torch
-from support import random_mask_case
 
 from massviz.core.types import Detections, Frame
+from support import random_mask_case
 
 CUDA = torch.cuda.is_available()
 needs_cuda = pytest.mark.skipif(not CUDA, reason="no CUDA GPU")

@@ -13,12 +13,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from support import random_mask_case, run_massviz
 
 from massviz.core.model import preprocess_patch
 from massviz.core.pipeline import run
 from massviz.core.resample import coefficients, resize_boxes
 from massviz.io.recording import open_recording
+from support import random_mask_case, run_massviz
 
 CUDA = torch.cuda.is_available()
 needs_cuda = pytest.mark.skipif(not CUDA, reason="no CUDA GPU")
@@ -41,7 +41,7 @@ def _boxes(rng, n, width, height, sides=None):
 
 def _pillow(frames, frame_of, boxes):
     return torch.stack([preprocess_patch(frames[f].cpu().numpy()[y1:y2, x1:x2]) for f, (x1, y1, x2, y2)
-                        in zip(frame_of, boxes)])
+                        in zip(frame_of, boxes, strict=False)])
 
 
 # ------------------------------------------------------------------------------------------------ resize, on the CPU
@@ -122,12 +122,6 @@ def samples(samples_dir):
     return [open_recording(samples_dir / n) for n in ("cup_handover", "box_handover")]
 
 
-@pytest.fixture(scope="module")
-def model(weights):
-    from massviz.io.checkpoint import load_checkpoint
-
-    return load_checkpoint(weights)
-
 
 def _same_detections(a, b, rtol=1e-4):
     da, db = a.detections, b.detections
@@ -155,8 +149,7 @@ def test_device_kernels_on_the_cpu_equal_the_exact_path_with_the_depth_detector(
 
 @pytest.mark.slow
 def test_device_kernels_on_the_cpu_with_mask_rcnn_masks_on_the_device(samples, model):
-    from test_speed import rig
-
+    from fakes import rig
     from massviz.detect.maskrcnn import MaskRCNNDetector
 
     rec = samples[0]
@@ -254,8 +247,7 @@ def test_cuda_faithful_fp32_detection_is_deterministic_and_batches_agree(samples
     """What --precision fp32 guarantees on CUDA: the same frames give the same bits run after run (IEEE fp32,
     deterministic cuDNN); a batch of frames may round differently from single frames, within float rounding (why the
     faithful default batch on CUDA is 1)."""
-    from test_speed import rig
-
+    from fakes import rig
     from massviz.core.device import upload
     from massviz.detect.maskrcnn import MaskRCNNDetector
 
@@ -267,18 +259,18 @@ def test_cuda_faithful_fp32_detection_is_deterministic_and_batches_agree(samples
     frames = [rec.read_frame(i) for i in (0, 9, 18, 27)]
     one = [det.detect(f) for f in frames]
     again = [det.detect(f) for f in frames]
-    for a, b in zip(one, again):
+    for a, b in zip(one, again, strict=False):
         assert np.array_equal(a.xyxy, b.xyxy) and np.array_equal(a.score, b.score)
         assert all(np.array_equal(a.mask(i), b.mask(i)) for i in range(len(a)))
     many = det.detect_batch(frames)
     identical = all(len(a) == len(b) and np.array_equal(a.xyxy, b.xyxy) and np.array_equal(a.score, b.score)
-                    for a, b in zip(one, many))
-    for a, b in zip(one, many):
+                    for a, b in zip(one, many, strict=False))
+    for a, b in zip(one, many, strict=False):
         assert len(a) == len(b)
         np.testing.assert_allclose(b.score, a.score, atol=1e-4)
         assert np.abs(b.xyxy - a.xyxy).max(initial=0) <= 1
     dets, windows = det.detect_device(frames, upload([f.rgb for f in frames], "cuda"))
-    for a, b in zip(many, dets):
+    for a, b in zip(many, dets, strict=False):
         assert np.array_equal(a.xyxy, b.xyxy) and np.array_equal(a.score, b.score)
     print(f"CUDA fp32: batch of 4 bit-identical to single frames: {identical}")
 
@@ -311,7 +303,7 @@ def test_depth_decoded_by_several_threads_gives_the_same_frames_and_errors_in_pl
         one = list(rec.frames(stride=stride))
         many = list(rec.frames(stride=stride, workers=3))
         assert [f.index for f in many] == [f.index for f in one]
-        assert all(np.array_equal(a.depth, b.depth) and np.array_equal(a.rgb, b.rgb) for a, b in zip(one, many))
+        assert all(np.array_equal(a.depth, b.depth) and np.array_equal(a.rgb, b.rgb) for a, b in zip(one, many, strict=False))
     copy = tmp_path / "rec"
     shutil.copytree(samples_dir / "box_handover", copy)
     bad = sorted((copy / "depth").glob("*.png"))[7]

@@ -24,7 +24,9 @@ import sys
 from pathlib import Path
 
 import pytest
-from sample_traces import WEIGHTS, sample_cache
+
+from support import WEIGHTS
+from support import sample_cache as fill_sample_cache
 
 ROOT = Path(__file__).resolve().parents[1]
 SHELL = ("bash", "sh", "console", "shell")
@@ -172,7 +174,7 @@ def test_json_block_parses(b):
 @pytest.fixture(scope="module")
 def workdir(tmp_path_factory, shared_dir, samples_dir):
     """A user's folder: data_samples beside, the reference weights in $MASSVIZ_WEIGHTS, the session's trace cache."""
-    cache = sample_cache(tmp_path_factory, shared_dir, samples_dir)
+    cache = fill_sample_cache(tmp_path_factory, shared_dir, samples_dir)
     root = tmp_path_factory.mktemp("docs")
     (root / "data_samples").symlink_to(samples_dir)
     env = {**os.environ, "MASSVIZ_WEIGHTS": str(shared_dir / WEIGHTS), "MASSVIZ_CACHE_DIR": str(cache),

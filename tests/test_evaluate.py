@@ -14,8 +14,6 @@ from pathlib import Path
 
 import pytest
 
-from massviz.io.atomic import atomic_path
-from massviz.io.challenge_csv import write_challenge_csv
 from massviz.cli import main
 from massviz.errors import DataError
 from massviz.evaluation.metrics import (
@@ -25,7 +23,9 @@ from massviz.evaluation.metrics import (
     score,
     score_from_estimates,
 )
+from massviz.io.atomic import atomic_path
 from massviz.io.ccm_annotations import read_annotations
+from massviz.io.challenge_csv import write_challenge_csv
 
 # The challenge CSV header, copied from /work/shared/ccm/README.md.
 README_COLUMNS = (
@@ -314,7 +314,7 @@ def _read_csv(path: Path) -> list[list[str]]:
 
 def test_baseline_random_is_seeded_mersenne_twister(tmp_path, ann3, capsys):
     paths = [tmp_path / name for name in ("a.csv", "b.csv", "c.csv")]
-    for path, seed in zip(paths, ("7", "7", "8")):
+    for path, seed in zip(paths, ("7", "7", "8"), strict=False):
         assert main(["baseline", "random", "--annotations", str(ann3), "--out", str(path), "--seed", seed]) == 0
     assert paths[0].read_bytes() == paths[1].read_bytes() != paths[2].read_bytes()
     rows = _read_csv(paths[0])

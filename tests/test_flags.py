@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from support import run_massviz as _run
 
 from massviz.core.flags import analyse, ground_truth_overlap
 from massviz.core.trace import Trace, analyse_trace
@@ -24,6 +23,7 @@ from massviz.evaluation.failures import track_of
 from massviz.evaluation.tuning import retune
 from massviz.io.trace_file import load_trace, save_trace
 from massviz.views.widgets import FailurePanel, Tuner
+from support import run_massviz as _run
 
 ROOT = Path(__file__).resolve().parents[1]
 SETTINGS = [(1, 5), (1, 3), (1, 12), (2, 5), (3, 8), (6, 5), (6, 3)]  # (stride, K)
@@ -160,7 +160,7 @@ def test_cues_alone_still_flag_the_pitcher(traces):
         assert all(p.ground_truth is None for p in bare.flags.patches)
     # cue-only precision and recall against the ground truth over several strides and K on all three samples
     tp = fp = fn = 0
-    for name, tr in traces.items():
+    for tr in traces.values():
         for stride, k in SETTINGS:
             cur = retune(tr, k=k, stride=stride)
             for p in analyse(cur, ground_truth=False).patches:

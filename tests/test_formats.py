@@ -6,15 +6,14 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from fakes import copy_sample, run_cli, snapshot, visible_lines
 from massviz.core.recording_protocol import Recording
 from massviz.io.recording import open_recording
-from test_fuzz import copy_sample, run_cli, snapshot, visible_lines
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "data_samples" / "cup_handover"

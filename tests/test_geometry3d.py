@@ -10,17 +10,17 @@ import numpy as np
 import open3d as o3d
 import pytest
 
+from massviz.cli import main
+from massviz.core.trace import Trace, analyse_trace
+from massviz.core.types import Detections
+from massviz.errors import MassvizError
+from massviz.io.recording import open_recording
+from massviz.io.trace_file import load_trace, save_trace
 from massviz.measure3d import geometry as G
 from massviz.measure3d import stage as S
 from massviz.views import open3d_view as O3
 from massviz.views.rerun import log_trace_with_clouds
 from rrd_reader import rrd_contents
-from massviz.cli import main
-from massviz.errors import MassvizError
-from massviz.io.recording import open_recording
-from massviz.core.trace import Trace, analyse_trace
-from massviz.io.trace_file import load_trace, save_trace
-from massviz.core.types import Detections
 
 CCM_BOX = (672, 262, 776, 408)  # x1, y1, x2, y2 of the held pasta box in frame index 1 of ccm_real
 

@@ -6,7 +6,6 @@ clear line, exit 2, nothing written.
 """
 from __future__ import annotations
 
-import argparse
 import os
 import subprocess
 import sys
@@ -17,6 +16,18 @@ import cv2
 import numpy as np
 import pytest
 
+from fakes import (
+    DETECTIONS,
+    PLAYED,
+    SAMPLE,
+    FastModel,
+    ListDetector,
+    live_pipeline,
+    realsense_bad_files,
+    scene,
+    session_args,
+    write_recording,
+)
 from massviz.core.pipeline import FramePipeline, run
 from massviz.core.selection import estimate_mass, select_k_nearest
 from massviz.core.trace import Trace
@@ -25,24 +36,8 @@ from massviz.errors import MassvizError
 from massviz.io.recording import open_recording
 from massviz.io.trace_file import load_trace, save_trace
 from massviz.runners.camera_loop import LatestSlot
-from support import CLEARED_ENV, run_massviz as massviz
-from test_pipeline import DETECTIONS, scene
-from test_recording import write_recording
-from test_selection import ListDetector
-
-ROOT = Path(__file__).resolve().parents[1]
-SAMPLE = ROOT / "data_samples" / "cup_handover"
-#: the frames of cup_handover the live tests play (the container comes nearest in 19..29; 12 frames keep them quick)
-PLAYED = list(range(18, 30))
-
-
-class FastModel:
-    """d / 10 grams: a stand-in for the mass CNN where the test is about live mechanics, not the CNN."""
-
-    weights_id = "fast-model"
-
-    def predict(self, patches, features):
-        return (np.asarray(features, np.float64).reshape(-1, 3)[:, 2] / 10).astype(np.float32)
+from support import CLEARED_ENV, ROOT
+from support import run_massviz as massviz
 
 
 class SlowDetector:
@@ -120,51 +115,6 @@ def test_latest_slot_keeps_only_the_newest_and_counts_drops():
     assert (slot.arrived, slot.dropped) == (5, 4)
 
 
-# ------------------------------------------------------------------------------------------------ RealSense live
-@pytest.fixture(scope="module")
-def rs():
-    from test_realsense import need_realsense
-
-    return need_realsense()
-
-
-@pytest.fixture(scope="module")
-def played(tmp_path_factory) -> Path:
-    """The played frames of cup_handover as a recording folder of their own (the offline reference)."""
-    sample = open_recording(SAMPLE)
-    frames = list(sample.frames(indices=PLAYED))
-    root = tmp_path_factory.mktemp("played") / "played"
-    return write_recording(root, [f.rgb for f in frames], [f.depth for f in frames],
-                           intrinsics=sample.intrinsics.to_dict(), meta={"id": "played", "fps": 10})
-
-
-@pytest.fixture(scope="module")
-def played_db3(rs, played, tmp_path_factory) -> Path:
-    """A .db3 of the played frames, recorded at 10 fps in real time (so real-time playback takes 1.2 s)."""
-    from massviz.io.formats.realsense_write import write_realsense
-
-    return write_realsense(open_recording(played), tmp_path_factory.mktemp("db3") / "played.db3", pace=True)
-
-
-@pytest.fixture(scope="module")
-def depth_detector():
-    from massviz.detect import make_detector
-
-    return make_detector("depth", 0.4)
-
-
-def pipeline(detector, tmp_path: Path, model=None):
-    from massviz.app import Pipeline, PipelineOptions
-    from massviz.io.cache import TraceCache
-
-    return Pipeline(PipelineOptions(detector="depth"), detector, model or FastModel(), TraceCache(tmp_path / "cache"))
-
-
-def session_args(**kw) -> argparse.Namespace:
-    base = dict(file=None, rrd=None, spawn=False, connect=None, serve_web=False, save=None, duration=None,
-                quiet=True, web_port=9090, grpc_port=9876)
-    return argparse.Namespace(**{**base, **kw})
-
 
 LIVE_ENTITIES = {"/camera", "/camera/rgb", "/camera/depth", "/camera/detections", "/camera/masks", "/patches/0",
                  "/predictions/running_estimate", "/predictions/estimate", "/latency/total", "/latency/overhead",
@@ -190,7 +140,7 @@ def test_live_file_in_real_time(rs, played_db3, played, depth_detector, tmp_path
     from massviz.io.formats.realsense_live import open_file_stream
     from rrd_reader import rrd_entities
 
-    p = pipeline(depth_detector, tmp_path)
+    p = live_pipeline(depth_detector, tmp_path)
     args = session_args(file=str(played_db3), rrd=str(tmp_path / "live.rrd"), save=str(tmp_path / "rec"))
     t0 = time.perf_counter()
     assert run_session(args, p, open_file_stream(played_db3), "played") == 0
@@ -223,7 +173,7 @@ def test_live_software_camera_stand_in(rs, played, depth_detector, tmp_path, cap
     stream = open_device_stream(cam.device, "software camera", on_stop=cam.stop)
     started = stream.start
     stream.start = lambda sink: (started(sink), cam.start())[0]  # frames flow once the session listens
-    p = pipeline(depth_detector, tmp_path)
+    p = live_pipeline(depth_detector, tmp_path)
     args = session_args(rrd=str(tmp_path / "cam.rrd"), save=str(tmp_path / "cam_rec"), duration=2.5)
     assert run_session(args, p, stream, "camera-sw") == 0
     err = capsys.readouterr().err
@@ -288,14 +238,12 @@ def test_cli_live_file_then_massviz_log_replays_the_session(weights, rs, played_
 
 @pytest.mark.slow
 def test_cli_bad_sources_one_line_exit_2_nothing_written(rs, tmp_path):
-    from test_realsense import _bad_files
-
     sample = open_recording(SAMPLE)
     db3 = tmp_path / "ok.db3"
     from massviz.io.formats.realsense_write import write_realsense
 
     write_realsense(sample, db3)
-    bad = _bad_files(rs, tmp_path, db3, sample)
+    bad = realsense_bad_files(rs, tmp_path, db3, sample)
     cases = {name: ("--file", path) for name, (path, _) in bad.items() if name in ("truncated", "no depth",
                                                                                   "no colour")}
     if not len(rs.context().query_devices()):
@@ -433,7 +381,7 @@ def test_serve_web_serves_a_viewer_on_localhost_and_ends_with_the_session(rs, pl
     watcher = threading.Thread(target=watch, daemon=True)
     watcher.start()
     args = session_args(file=str(played_db3), serve_web=True, web_port=ports[0], grpc_port=ports[1])
-    assert run_session(args, pipeline(depth_detector, tmp_path), open_file_stream(played_db3), "played") == 0
+    assert run_session(args, live_pipeline(depth_detector, tmp_path), open_file_stream(played_db3), "played") == 0
     watcher.join(5)
     err = capsys.readouterr().err
     url = re.search(r"web viewer at (\S+)", err).group(1)

@@ -1,4 +1,4 @@
-"""Issue 22 item 1: live patch tiles follow the K nearest. A live session from a paced .db3 of ``cup_handover``
+"""Live patch tiles follow the K nearest. A live session from a paced .db3 of ``cup_handover``
 (``massviz live --file X.db3 --detector depth --rrd live.rrd``, run in-process as the command runs it) is read back
 from its .rrd: at every processed frame, tile ``/patches/<rank>`` shows the detection holding that rank in the
 running selection then (the trace's ``running_selections``), and the last value of each tile is the final
@@ -6,15 +6,12 @@ selection; no rank of the final selection is without data. At the end the tiles 
 flags and the command prints the flag warning, as ``massviz log`` does."""
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
+from fakes import flagged_session, live_pipeline, session_args
 from massviz.io.recording import open_recording
 from rrd_reader import rrd_rows
-from test_live import depth_detector, played, played_db3, rs, session_args  # noqa: F401 - fixtures
-from test_live import pipeline as live_pipeline
 
 
 def tile_at(rows: list[dict], time: int) -> dict | None:
@@ -45,7 +42,7 @@ def test_live_tiles_show_the_current_k_nearest(rs, played_db3, depth_detector, t
     assert k_final >= 2  # the recording has more than one patch to hold, so ranks can change
     tiles = {r: rrd_rows(tmp_path / "live.rrd", f"/patches/{r}") for r in range(trace.k)}
     changes = 0
-    for number, selection in zip(numbers, running):
+    for number, selection in zip(numbers, running, strict=False):
         for r in range(trace.k):
             state = tile_at(tiles[r], number)
             if r >= len(selection):
@@ -63,24 +60,8 @@ def test_live_tiles_show_the_current_k_nearest(rs, played_db3, depth_detector, t
         assert rows, f"/patches/{r} was never logged"
         assert rows[-1]["d_mm"] == [pytest.approx(float(trace.detections.d[int(i)]), abs=0.01)]
     # the ranks did change during the session (else this test would prove nothing about stale tiles)
-    assert any(not np.array_equal(a[: len(b)], b[: len(a)]) for a, b in zip(running, running[1:]))
+    assert any(not np.array_equal(a[: len(b)], b[: len(a)]) for a, b in zip(running, running[1:], strict=False))
 
-
-def flagged_session(played_db3, tmp_path) -> Path:
-    """``massviz live --file played.db3 --rrd live.rrd`` (in-process) where the nearest chosen patch is flagged: a
-    box on the table's front edge at ~0.8 m touching the bottom edge (frame 0 only; the ``border`` cue flags it
-    whatever its track), then one at ~1.1 m on every frame (the container's track). Returns the .rrd."""
-    from test_selection import ListDetector
-
-    from massviz.commands.live import run_session
-    from massviz.io.formats.realsense_live import open_file_stream
-
-    per_frame = {i: [((150, 100, 250, 200), 0.9, None)] for i in range(60)}
-    per_frame[0] = [((100, 210, 200, 270), 0.9, None), *per_frame[0]]
-    p = live_pipeline(ListDetector(per_frame), tmp_path)
-    args = session_args(file=str(played_db3), rrd=str(tmp_path / "live.rrd"))
-    assert run_session(args, p, open_file_stream(played_db3), "played") == 0
-    return tmp_path / "live.rrd"
 
 
 @pytest.mark.slow

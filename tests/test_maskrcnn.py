@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 import torch
 
+from massviz.core.types import COCO_KEEP, Frame
 from massviz.detect import make_detector
 from massviz.detect.maskrcnn import MASK_THRESHOLD, MaskRCNNDetector, build_model
 from massviz.errors import WeightsError
-from massviz.core.types import COCO_KEEP, Frame
 
 pytestmark = pytest.mark.slow  # Mask R-CNN (random weights) on CPU frames
 

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fakes import DistanceModel
 from massviz.core.measurement import Measurement
 from massviz.core.pipeline import run
 from massviz.detect import make_detector
@@ -20,7 +21,6 @@ from massviz.io.recording import open_recording
 from massviz.io.trace_file import load_trace, save_trace
 from massviz.measure3d import geometry as G
 from massviz.measure3d.stage import MeasureStage
-from test_selection import DistanceModel
 
 ROOT = Path(__file__).resolve().parents[1]
 CUP = ROOT / "data_samples" / "cup_handover"
@@ -186,6 +186,7 @@ def test_import_massviz_does_not_load_open3d():
     assert out.stdout.strip() == "False"
 
 
+@pytest.mark.slow  # a fresh interpreter runs massviz estimate (what it imports is the point)
 @pytest.mark.parametrize("recording", ["../shared/ccm_real/618", "data_samples/cup_handover"])
 def test_estimate_of_a_recording_never_loads_open3d(recording, shared_dir, weights, tmp_path):
     # uncached; cup_handover has intrinsics (the recordings the measure stage would measure)

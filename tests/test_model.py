@@ -13,10 +13,10 @@ from torchvision import transforms
 from torchvision.transforms import InterpolationMode
 from torchvision.transforms import functional as TF
 
-from massviz.io import weights as W
-from massviz.errors import WeightsError
 from massviz.core.model import MassNet, Ranges, preprocess_patch, preprocess_patches, square_pad
 from massviz.core.predictor import MassPredictor
+from massviz.errors import WeightsError
+from massviz.io import weights as W
 from massviz.io.checkpoint import load_checkpoint, save_checkpoint
 
 # The README's table (shared/weights/corsmal_visual/README.md), written out independently of massviz.io.weights.

@@ -3,7 +3,6 @@ bad-model-file paths through the CLI (one line naming the file, exit 2, nothing 
 frames: tests/test_real_ccm.py."""
 from __future__ import annotations
 
-import struct
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +23,7 @@ def test_preprocess_letterboxes_and_normalises_bgr():
     assert blob.shape == (2, 3, 416, 416) and blob.dtype == np.float32
     top = (416 - int(720 * 416 / 1280)) // 2  # 234 rows of content, centred
     content = [(50 - N.MEAN[0]) / N.STD[0], (100 - N.MEAN[1]) / N.STD[1], (200 - N.MEAN[2]) / N.STD[2]]  # B, G, R
-    pad = [-m / s for m, s in zip(N.MEAN, N.STD)]
+    pad = [-m / s for m, s in zip(N.MEAN, N.STD, strict=False)]
     for c in range(3):
         assert blob[0, c, 208, 208] == pytest.approx(content[c], abs=1e-4)
         assert blob[0, c, top + 1, 3] == pytest.approx(content[c], abs=1e-4)

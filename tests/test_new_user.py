@@ -6,7 +6,6 @@ nothing was written.
 from __future__ import annotations
 
 import itertools
-import json
 import os
 import subprocess
 import sys
@@ -15,8 +14,10 @@ from pathlib import Path
 import nbformat
 import numpy as np
 import pytest
-from sample_traces import WEIGHTS, sample_cache
-from support import no_other_ray
+
+from fakes import run_cli_as_user
+from support import WEIGHTS, no_other_ray
+from support import sample_cache as fill_sample_cache
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -27,7 +28,7 @@ def cup(tmp_path_factory, shared_dir, samples_dir):
     from massviz.app import process_recordings
     from massviz.io.recording import open_recording
 
-    cache = sample_cache(tmp_path_factory, shared_dir, samples_dir)
+    cache = fill_sample_cache(tmp_path_factory, shared_dir, samples_dir)
     rec = open_recording(samples_dir / "cup_handover")
     [trace] = process_recordings([rec], detector="depth", weights=str(shared_dir / WEIGHTS), cache=str(cache),
                                  threshold=0.4, quiet=True)
@@ -124,8 +125,8 @@ def test_3d_commands_without_intrinsics_exit_2_up_front_and_write_nothing(comman
     shutil.copytree(samples_dir / "cup_handover", rec)
     (rec / "intrinsics.json").unlink()
     out = tmp_path / out
-    run = massviz_cli(command, rec, "--detector", "depth", "--out", out, "--no-cache", "--quiet",
-                      "--weights", tmp_path / "missing.torch")
+    run = run_cli_as_user(command, rec, "--detector", "depth", "--out", out, "--no-cache", "--quiet",
+                          "--weights", tmp_path / "missing.torch")
     assert run.returncode == 2, (run.returncode, run.stderr)
     lines = run.stderr.strip().splitlines()
     assert len(lines) == 1 and "no_intrinsics" in lines[0], lines
@@ -137,7 +138,7 @@ def test_score_per_container_table_has_no_nan(tmp_path):
     ann, pred = tmp_path / "ann.csv", tmp_path / "pred.csv"
     ann.write_text("id,container id,container mass\n0,1,10\n1,1,12\n2,5,30\n3,9,100\n")
     pred.write_text("Configuration ID,Container mass\n0,11\n1,-1\n2,-1\n3,-1\n")  # containers 5, 9: none estimated
-    run = massviz_cli("score", pred, "--annotations", ann)
+    run = run_cli_as_user("score", pred, "--annotations", ann)
     assert run.returncode == 0, run.stderr
     assert "per container:" in run.stdout and "nan" not in run.stdout.lower(), run.stdout
     rows = run.stdout.split("per container:")[1].strip().splitlines()[1:]
@@ -161,7 +162,7 @@ def test_ray_error_names_massviz_option(samples_dir, tmp_path, shared_dir, tmp_p
 
 @pytest.mark.slow
 def test_extract_error_names_the_real_file(tmp_path, shared_dir):
-    from test_fuzz import make_ccm
+    from fakes import make_ccm
 
     video = make_ccm(tmp_path / "ccm")
     out = tmp_path / "patches"
@@ -175,11 +176,10 @@ def test_extract_error_names_the_real_file(tmp_path, shared_dir):
 
 @pytest.mark.slow
 def test_live_summary_says_how_many_of_k(samples_dir, shared_dir, tmp_path):
-    from test_realsense import need_realsense
+    from fakes import need_realsense
 
     need_realsense()
-    from test_recording import write_recording
-
+    from fakes import write_recording
     from massviz.io.formats.realsense_write import write_realsense
     from massviz.io.recording import open_recording
 

@@ -8,6 +8,7 @@ import sys
 
 import numpy as np
 import pandas as pd
+
 from support import ROOT
 
 

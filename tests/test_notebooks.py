@@ -183,7 +183,7 @@ def test_notebook_outputs_are_not_cluttered(executed, name):
         assert not any(line in m for m in CLIENT_LOG.get(name, [])), f"{name}: {line!r} logged while running"
 
 
-# ------------------------------------------------------------------------- notebook 03's panel after Run All (#22)
+# ------------------------------------------------------------------------- notebook 03's panel after Run All
 def _widget_states(book) -> dict:
     return book.metadata.get("widgets", {}).get("application/vnd.jupyter.widget-state+json", {}).get("state", {})
 
@@ -211,7 +211,7 @@ def _descendants(states: dict, model_id: str) -> list[dict]:
 
 
 def test_notebook_03_panel_after_run_all_is_as_displayed(executed):
-    """Issue 22, item 3: a later cell must not change the interactive panel cell 9 displayed: after Run All it
+    """A later cell must not change the interactive panel cell 9 displayed: after Run All it
     still shows the worst recording with every patch on "keep", the lifted pitcher flagged (not "excluded" and
     "not flagged" in green) and the estimate with the pitcher (57.4 g)."""
     book = executed["03_failure_cases.ipynb"]
@@ -232,7 +232,7 @@ def test_notebook_03_panel_after_run_all_is_as_displayed(executed):
 
 
 def test_notebook_03_prints_the_real_exclusions_path(executed):
-    """Issue 22, item 3: the re-estimate command names the file the notebook wrote (not a bare file name)."""
+    """The re-estimate command names the file the notebook wrote (not a bare file name)."""
     import re
 
     from massviz.evaluation.failures import load_exclusions

@@ -7,6 +7,7 @@ import tomllib
 
 from packaging.requirements import Requirement
 from packaging.version import Version
+
 from support import ROOT
 
 

@@ -69,7 +69,7 @@ def test_embeddings_are_cached_beside_the_trace_and_reused(setup):
     again = patch_map(runs, counting, cache=cache)
     assert counting.embedded == 0  # all 30 read from the files beside the traces
     same = again.patches.set_index("patch_id").loc[first.patches["patch_id"]]
-    for pid, f in zip(first.patches["patch_id"], first.features):
+    for pid, f in zip(first.patches["patch_id"], first.features, strict=False):
         assert np.array_equal(again.features[again.patches.index[again.patches["patch_id"] == pid][0]], f)
     assert len(same) == 15
     emb.write_bytes(b"not an npz")  # a damaged file is computed again, never fatal

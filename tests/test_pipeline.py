@@ -7,43 +7,19 @@ import json
 import numpy as np
 import pytest
 
-from massviz.io.cache import TraceCache
-from massviz.errors import MassvizError
-from massviz.io.checkpoint import load_checkpoint
-from massviz.app import process
-from massviz.app import PipelineOptions
+from fakes import DETECTIONS, SCENE_H, SCENE_N, SCENE_W, DistanceModel, ListDetector, scene
+from massviz.app import PipelineOptions, process
 from massviz.core.pipeline import FramePipeline, run
 from massviz.core.selection import Selection
-from massviz.io.recording import open_recording
 from massviz.core.trace import Trace
+from massviz.errors import MassvizError
+from massviz.io.cache import TraceCache
+from massviz.io.checkpoint import load_checkpoint
 from massviz.io.trace_file import load_trace, save_trace
-from test_recording import write_recording
-from test_selection import DistanceModel, ListDetector
 
-W, H, N = 64, 48, 6
+W, H, N = SCENE_W, SCENE_H, SCENE_N
 
 
-def scene():
-    """Frames with a textured background; depth 2000 mm except a block per frame at a known distance."""
-    rng = np.random.default_rng(3)
-    rgbs = [rng.integers(0, 256, (H, W, 3), dtype=np.uint8) for _ in range(N)]
-    depths = []
-    for i in range(N):
-        depth = np.full((H, W), 2000, np.uint16)
-        depth[10:40, 5:30] = 1500 - 70 * i  # the detection at (5, 10, 30, 40) gets nearer every frame
-        depth[5:25, 40:60] = 900 + 50 * i  # the one at (40, 5, 60, 25) gets further
-        depths.append(depth)
-    return rgbs, depths
-
-
-# frame -> [(box, score, mask)]: two detections per frame with different scores, one frame with none
-DETECTIONS = {i: [((5, 10, 30, 40), 0.5 + 0.08 * i, None), ((40, 5, 60, 25), 0.9 - 0.1 * i, None)]
-              for i in range(N) if i != 4}
-
-
-@pytest.fixture(scope="module")
-def model(weights):
-    return load_checkpoint(weights)
 
 
 @pytest.fixture(scope="module")
@@ -56,11 +32,6 @@ def fast():
     """A stand-in model (d / 10 grams) for the tests about selection and caching, not about the CNN."""
     return DistanceModel()
 
-
-@pytest.fixture(scope="module")
-def rec(tmp_path_factory):
-    rgbs, depths = scene()
-    return open_recording(write_recording(tmp_path_factory.mktemp("pipe") / "scene", rgbs, depths))
 
 
 def expected(model, threshold: float, k: int, stride: int = 1):
@@ -89,7 +60,7 @@ def test_run_builds_the_trace(rec, model):
     rows, preds, est = expected(model, 0.4, 3)
     dets = trace.detections
     assert trace.frames.tolist() == list(range(N))
-    assert [(int(f), b.tolist(), float(d)) for f, b, d in zip(dets.frame, dets.xyxy, dets.d)] == \
+    assert [(int(f), b.tolist(), float(d)) for f, b, d in zip(dets.frame, dets.xyxy, dets.d, strict=False)] == \
         [(f, list(b), d) for f, b, d in rows]
     np.testing.assert_allclose(dets.pred, preds, rtol=1e-5)
     assert len(trace.selection) == 3
@@ -378,7 +349,7 @@ def test_step_takes_what_a_frame_stage_computed_on_a_batch(rec, fast):
     plain, given = (FramePipeline(det, fast, k=5, recording=rec.info()) for _ in range(2))
     frames = list(rec.frames())
     staged = FrameStage(det, fast, batch=3).process(frames[:3]) + FrameStage(det, fast).process(frames[3:])
-    for frame, item in zip(frames, staged):
+    for frame, item in zip(frames, staged, strict=False):
         plain.step(frame)
         given.step(frame, staged=item)
     a, b = plain.finish(), given.finish()

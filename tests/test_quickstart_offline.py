@@ -7,6 +7,7 @@ import subprocess
 import sys
 
 import pytest
+
 from support import ROOT, WEIGHTS, run_massviz
 
 pytestmark = pytest.mark.slow  # set-up's weights step and the quickstart, as subprocesses

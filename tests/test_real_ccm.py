@@ -143,7 +143,7 @@ def test_batched_nanodet_equals_frame_by_frame(real, nanodet):
         frames.append(Frame(i, cv2.imread(str(p))[..., ::-1].copy(),
                             cv2.imread(str(p).replace("/rgb/", "/depth/"), cv2.IMREAD_UNCHANGED)))
     batched = nanodet.detect_batch(frames)
-    for f, b in zip(frames, batched):
+    for f, b in zip(frames, batched, strict=False):
         one = nanodet.detect(f)
         np.testing.assert_array_equal(one.xyxy, b.xyxy)
         np.testing.assert_allclose(one.score, b.score, rtol=1e-4)
@@ -349,7 +349,7 @@ def test_nanodet_default_cut_keeps_every_held_cup_frame(real):
     assert det.threshold == DEFAULT_THRESHOLDS["nanodet"] == 0.3
     frames = _video_frames(real)
     found, other, scores = set(), 0, {}
-    for f, dets in zip(frames, (d for i in range(0, len(frames), 8) for d in det.detect_batch(frames[i:i + 8]))):
+    for f, dets in zip(frames, (d for i in range(0, len(frames), 8) for d in det.detect_batch(frames[i:i + 8])), strict=False):
         cx, cy = _red_centre(f.rgb)
         for i in range(len(dets)):
             x1, y1, x2, y2 = dets.xyxy[i]
@@ -369,6 +369,7 @@ def _red_centre(rgb: np.ndarray) -> tuple[float, float]:
 
 
 # ------------------------------------------------------------------------------------------ RGB-only recordings
+@pytest.mark.slow  # three massviz processes and NanoDet on 12 frames of 1280x720
 def test_rgb_only_recording_estimate_says_what_is_missing_log_shows_detections_and_tracks(real, tmp_path):
     """618's video without depth (the first 12 frames as REC/rgb.mp4): estimate is one line naming the folder and
     what would be needed; log runs NanoDet and the tracker on RGB alone (no mass); the library gives the same."""

@@ -8,7 +8,6 @@ pyrealsense2 is in the test extra: without it these tests are skipped, and under
 from __future__ import annotations
 
 import csv
-import os
 import sys
 from pathlib import Path
 
@@ -16,28 +15,11 @@ import cv2
 import numpy as np
 import pytest
 
-from massviz.core.types import Frame, Intrinsics
+from fakes import SAMPLE, realsense_bad_files
+from massviz.core.types import Intrinsics
 from massviz.errors import MassvizError, RecordingError
 from massviz.io.recording import open_recording
 from support import run_massviz as massviz
-
-ROOT = Path(__file__).resolve().parents[1]
-SAMPLE = ROOT / "data_samples" / "cup_handover"
-
-
-def need_realsense():
-    try:
-        import pyrealsense2 as rs
-    except ImportError:
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail("pyrealsense2 is missing (the test extra installs it)")
-        pytest.skip("pyrealsense2 is not installed")
-    return rs
-
-
-@pytest.fixture(scope="module")
-def rs():
-    return need_realsense()
 
 
 @pytest.fixture(scope="module")
@@ -80,43 +62,6 @@ def test_a_written_db3_plays_back_like_a_camera(cup_db3, sample):
     assert len(arrivals) == n
     assert arrivals[-1] - arrivals[0] >= 0.9 * (n - 1) / fps, arrivals[-1] - arrivals[0]
 
-
-def write_streams(rs, path: Path, frames, intr: Intrinsics, streams=("depth", "color")) -> Path:
-    """A .db3 with only some streams, written with pyrealsense2 directly (software_device + recorder)."""
-    ri = rs.intrinsics()
-    ri.width, ri.height, ri.fx, ri.fy, ri.ppx, ri.ppy = intr.width, intr.height, intr.fx, intr.fy, intr.cx, intr.cy
-    ri.model, ri.coeffs = rs.distortion.none, [0.0] * 5
-    sd = rs.software_device()
-    sensors = {}
-    for uid, (name, kind, fmt, bpp) in enumerate([("depth", rs.stream.depth, rs.format.z16, 2),
-                                                  ("color", rs.stream.color, rs.format.rgb8, 3)]):
-        if name not in streams:
-            continue
-        sensor = sd.add_sensor(name.title())
-        vs = rs.video_stream()
-        vs.type, vs.index, vs.uid, vs.width, vs.height, vs.fps, vs.bpp, vs.fmt, vs.intrinsics = \
-            kind, 0, uid, intr.width, intr.height, 30, bpp, fmt, ri
-        profile = sensor.add_video_stream(vs).as_video_stream_profile()
-        if name == "depth":
-            sensor.add_read_only_option(rs.option.depth_units, 0.001)
-        sensors[name] = (sensor, profile, bpp)
-    recorder = rs.recorder(str(path), sd)
-    for sensor, profile, _ in sensors.values():
-        sensor.open(profile)
-        sensor.start(lambda f: None)
-    for i, frame in enumerate(frames):
-        for name, (sensor, profile, bpp) in sensors.items():
-            data = np.ascontiguousarray(frame.depth if name == "depth" else frame.rgb)
-            f = rs.software_video_frame()
-            f.pixels, f.stride, f.bpp, f.timestamp, f.frame_number, f.profile = \
-                data, intr.width * bpp, bpp, i * 1000 / 30, i, profile
-            f.domain = rs.timestamp_domain.hardware_clock
-            sensor.on_video_frame(f)
-    for sensor, _, _ in sensors.values():
-        sensor.stop()
-        sensor.close()
-    del recorder
-    return path
 
 
 # --------------------------------------------------------------------------------------------------- round trip
@@ -184,28 +129,10 @@ def test_unregistered_depth_goes_through_librealsense_align(rs, sample, tmp_path
         assert np.median(np.abs(got.depth[both].astype(int) - want.depth[both])) == 0
 
 
-# ----------------------------------------------------------------------------------------------------- bad input
-def _bad_files(rs, base: Path, cup_db3: Path, sample) -> dict[str, tuple[Path, str]]:
-    data = cup_db3.read_bytes()
-    frames = list(sample.frames(indices=[0, 1]))
-    cases = {
-        "truncated": (base / "truncated.db3", "not a readable RealSense recording"),
-        "empty": (base / "empty.db3", "not a readable RealSense recording"),
-        "not a bag": (base / "junk.bag", "not a readable RealSense recording"),
-        "no depth": (base / "colour_only.db3", "no depth stream"),
-        "no colour": (base / "depth_only.db3", "no colour stream"),
-    }
-    cases["truncated"][0].write_bytes(data[: len(data) * 2 // 3])
-    cases["empty"][0].write_bytes(b"")
-    cases["not a bag"][0].write_bytes(b"#ROSBAG V2.0\n" + bytes(range(256)) * 8)
-    write_streams(rs, cases["no depth"][0], frames, sample.intrinsics, streams=("color",))
-    write_streams(rs, cases["no colour"][0], frames, sample.intrinsics, streams=("depth",))
-    return cases
-
 
 @pytest.fixture(scope="module")
 def bad_files(rs, tmp_path_factory, cup_db3, sample):
-    return _bad_files(rs, tmp_path_factory.mktemp("rs_bad"), cup_db3, sample)
+    return realsense_bad_files(rs, tmp_path_factory.mktemp("rs_bad"), cup_db3, sample)
 
 
 def test_bad_files_are_one_clear_recording_error(bad_files):

@@ -5,7 +5,6 @@ Recordings are built in tmp_path from numpy arrays, so every expected pixel is k
 """
 from __future__ import annotations
 
-import json
 import re
 import types
 from pathlib import Path
@@ -14,59 +13,9 @@ import cv2
 import numpy as np
 import pytest
 
+from fakes import OPEN_ERRORS, H, W, bad_missing_depth, corrupt_middle_depth, depth_frames, rgb_frames, write_recording
 from massviz.errors import RecordingError
 from massviz.io.recording import find_recordings, open_recording
-
-W, H = 32, 24
-
-
-def rgb_frames(n: int, width: int = W, height: int = H) -> list[np.ndarray]:
-    """n distinct RGB frames: flat colour per frame plus a gradient, so frames and channels are told apart."""
-    out = []
-    for i in range(n):
-        img = np.zeros((height, width, 3), np.uint8)
-        img[..., 0] = (40 * i + 10) % 256
-        img[..., 1] = np.arange(width, dtype=np.uint8)[None, :] * 3
-        img[..., 2] = 200 - 20 * i
-        out.append(img)
-    return out
-
-
-def depth_frames(n: int, width: int = W, height: int = H) -> list[np.ndarray]:
-    """n 16-bit depth maps (mm) with values above 255, so an 8-bit read would show."""
-    return [np.full((height, width), 1000 + 100 * i, np.uint16) + np.arange(width, dtype=np.uint16)[None, :]
-            for i in range(n)]
-
-
-def write_video(path: Path, rgbs, fps: float = 30.0) -> Path:
-    h, w = rgbs[0].shape[:2]
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
-    assert writer.isOpened()
-    for rgb in rgbs:
-        writer.write(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-    writer.release()
-    return path
-
-
-def write_recording(root: Path, rgbs, depths, *, video: bool = False, intrinsics: dict | None = None,
-                    meta: dict | None = None) -> Path:
-    """A massviz recording folder: rgb/NNNNNN.png (or rgb.mp4), depth/NNNNNN.png, intrinsics.json, meta.json."""
-    root.mkdir(parents=True, exist_ok=True)
-    if video:
-        write_video(root / "rgb.mp4", rgbs)
-    else:
-        (root / "rgb").mkdir()
-        for i, rgb in enumerate(rgbs):
-            assert cv2.imwrite(str(root / "rgb" / f"{i:06d}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-    (root / "depth").mkdir()
-    for i, depth in enumerate(depths):
-        assert cv2.imwrite(str(root / "depth" / f"{i:06d}.png"), depth)
-    if intrinsics is not None:
-        (root / "intrinsics.json").write_text(json.dumps(intrinsics))
-    if meta is not None:
-        (root / "meta.json").write_text(json.dumps(meta))
-    return root
-
 
 INTR = {"fx": 30.0, "fy": 31.0, "cx": 16.0, "cy": 12.0, "width": W, "height": H}
 
@@ -86,7 +35,7 @@ def test_folder_of_pngs(folder):
     assert rec.meta["container"]["mass_g"] == 12.5
     frames = list(rec.frames())
     assert [f.index for f in frames] == [0, 1, 2, 3, 4]
-    for f, rgb, depth in zip(frames, rgb_frames(5), depth_frames(5)):
+    for f, rgb, depth in zip(frames, rgb_frames(5), depth_frames(5), strict=False):
         np.testing.assert_array_equal(f.rgb, rgb)  # RGB order, lossless
         assert f.depth.dtype == np.uint16
         np.testing.assert_array_equal(f.depth, depth)
@@ -155,95 +104,6 @@ def test_ccm_layout(shared_dir):
         assert err[i] < 5 and err[i] < err[1 - i]  # decoded frame i is the i-th lossless frame, in RGB order
     assert find_recordings(root, view=1) == [root / "view1" / "rgb" / "000000.mp4"]
 
-
-# ------------------------------------------------------------------------------------------------------- bad inputs
-def _png(path: Path, array) -> None:
-    assert cv2.imwrite(str(path), array)
-
-
-def bad_missing_depth(root: Path) -> tuple[Path, Path, str]:
-    write_recording(root, rgb_frames(3), [])
-    (root / "depth").rmdir()
-    return root, root, r"no depth \(no depth/ folder\): massviz estimates mass from RGB-D: .* 'massviz log REC"
-
-
-def bad_fewer_depth(root: Path):
-    write_recording(root, rgb_frames(3), depth_frames(2))
-    return root, root / "depth", "2 depth frames for 3 RGB frames"
-
-
-def bad_depth_8bit(root: Path):
-    write_recording(root, rgb_frames(2), depth_frames(2))
-    _png(root / "depth" / "000000.png", np.full((H, W), 200, np.uint8))
-    return root, root / "depth" / "000000.png", "16-bit.*8-bit"
-
-
-def bad_depth_size(root: Path):
-    write_recording(root, rgb_frames(2), depth_frames(2, W // 2, H // 2))
-    return root, root / "depth" / "000000.png", f"depth image declares {W // 2}x{H // 2} pixels but the recording's frames are {W}x{H}; not decoded"
-
-
-def bad_depth_rgb(root: Path):
-    write_recording(root, rgb_frames(2), depth_frames(2))
-    _png(root / "depth" / "000000.png", np.zeros((H, W, 3), np.uint16) + 1000)
-    return root, root / "depth" / "000000.png", "single-channel.*3 channels"
-
-
-def bad_video_garbage(root: Path):
-    write_recording(root, rgb_frames(1), depth_frames(2), video=True)
-    (root / "rgb.mp4").write_bytes(np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes())
-    return root, root / "rgb.mp4", "cannot decode video"
-
-
-def bad_video_empty(root: Path):
-    write_recording(root, rgb_frames(1), depth_frames(2), video=True)
-    (root / "rgb.mp4").write_bytes(b"")
-    return root, root / "rgb.mp4", "empty"
-
-
-def bad_empty_folder(root: Path):
-    root.mkdir()
-    return root, root, "empty folder"
-
-
-def bad_missing_path(root: Path):
-    return root, root, "no such file or directory"
-
-
-def bad_intrinsics_json(root: Path):
-    write_recording(root, rgb_frames(2), depth_frames(2))
-    (root / "intrinsics.json").write_text('{"fx": 30, "fy": ')
-    return root, root / "intrinsics.json", "not valid JSON"
-
-
-def bad_intrinsics_keys(root: Path):
-    write_recording(root, rgb_frames(2), depth_frames(2), intrinsics={"fx": 30.0, "fy": 31.0})
-    return root, root / "intrinsics.json", "intrinsics need"
-
-
-def bad_meta_json(root: Path):
-    write_recording(root, rgb_frames(2), depth_frames(2))
-    (root / "meta.json").write_text("[1, 2")
-    return root, root / "meta.json", "not valid JSON"
-
-
-def bad_meta_fps(root: Path):
-    write_recording(root, rgb_frames(2), depth_frames(2))
-    (root / "meta.json").write_text('{"fps": "thirty"}')
-    return root, root / "meta.json", "'fps' must be a number"
-
-
-#: each builder writes a broken recording under a root and returns (path to open, file the error must name, what).
-OPEN_ERRORS = [bad_missing_depth, bad_fewer_depth, bad_depth_8bit, bad_depth_size, bad_depth_rgb, bad_video_garbage,
-               bad_video_empty, bad_empty_folder, bad_missing_path, bad_intrinsics_json, bad_intrinsics_keys,
-               bad_meta_json, bad_meta_fps]
-
-
-def corrupt_middle_depth(root: Path):
-    """Opens fine (only the first depth frame is checked up front); frame 2's depth is not a PNG."""
-    write_recording(root, rgb_frames(4), depth_frames(4))
-    (root / "depth" / "000002.png").write_bytes(b"\x89PNG\r\n\x1a\n truncated")
-    return root, root / "depth" / "000002.png", "cannot read depth image"
 
 
 @pytest.mark.parametrize("build", OPEN_ERRORS, ids=lambda f: f.__name__[4:])

@@ -20,17 +20,17 @@ import pytest
 import rerun as rr
 import rerun.blueprint as rrb
 
-from massviz.views import rerun as RR
-from massviz.views.rerun import entities as E
 from massviz.core.patches import model_view
-from massviz.errors import MassvizError
 from massviz.core.pipeline import run
+from massviz.core.types import COCO_KEEP, Detections, Intrinsics
+from massviz.errors import MassvizError
 from massviz.io.meta import write_intrinsics
 from massviz.io.recording import open_recording
 from massviz.measure3d.geometry import depth_to_points
 from massviz.runners.trace_to_rerun import log_trace
+from massviz.views import rerun as RR
+from massviz.views.rerun import entities as E
 from rrd_reader import rrd_contents, rrd_entities
-from massviz.core.types import COCO_KEEP, Detections, Intrinsics
 
 W, H, N = 64, 48, 4
 CONTRACT = {"/camera", "/camera/rgb", "/camera/depth", "/camera/detections", "/camera/masks", "/world",

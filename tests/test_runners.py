@@ -18,10 +18,10 @@ import time
 from pathlib import Path
 
 import pytest
-from support import end_processes, no_other_ray, started_since
 
 from massviz.cli import main
 from massviz.runners.dataset import EXIT_SOME_FAILED, FAULT_ENV, REPORT_FORMAT
+from support import end_processes, no_other_ray, started_since
 
 SAMPLES = ("box_handover", "cup_handover", "glass_handover")
 N_SYNTHETIC = 52

@@ -9,8 +9,16 @@ import pytest
 
 from massviz.errors import MassvizError
 from massviz.evaluation.compare import compare_traces
-from massviz.evaluation.runs import (compare_runs, filter_comparison, parse_settings, patch_changes, run_from_cache,
-                                     run_from_traces, run_scores, write_table)
+from massviz.evaluation.runs import (
+    compare_runs,
+    filter_comparison,
+    parse_settings,
+    patch_changes,
+    run_from_cache,
+    run_from_traces,
+    run_scores,
+    write_table,
+)
 
 
 @pytest.fixture(scope="module")
@@ -32,7 +40,7 @@ def test_the_table_has_the_deltas_of_per_recording_compare(two_runs):
     table = compare_runs(a, b)
     assert list(table.index) == list(table.sort_values("abs_delta_rel_error", ascending=False).index)
     assert set(table.index) == {"box_handover", "cup_handover", "glass_handover"}
-    for ta, tb in zip(a.traces, b.traces):
+    for ta, tb in zip(a.traces, b.traces, strict=False):
         c = compare_traces(ta, tb)
         row = table.loc[ta.recording.id]
         assert row["delta_estimate_g"] == pytest.approx(c.estimate_delta, abs=1e-9)
@@ -103,7 +111,7 @@ def test_a_run_from_the_cache_indexes_equals_the_run_from_full_traces(two_runs, 
                                cache=str(sample_cache), threshold=0.4, quiet=True)
     ia, ib = run_from_indexes(indexes, k=5, threshold=0.4), run_from_indexes(indexes, k=3, threshold=0.4)
     for full, light in ((a, ia), (b, ib)):
-        for tf, tl in zip(full.traces, light.traces):
+        for tf, tl in zip(full.traces, light.traces, strict=False):
             assert list(tf.selection) == list(tl.selection) and tf.estimate == tl.estimate
             assert [(p.detection, p.flagged, p.ground_truth) for p in tf.flags.patches] == \
                 [(p.detection, p.flagged, p.ground_truth) for p in tl.flags.patches]

@@ -15,11 +15,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from support import samples_and_618
 
 from massviz.core.selection import NearestOrder, estimate_mass
 from massviz.evaluation.sweep import SweepTable, sweep
 from massviz.evaluation.tuning import retune
+from support import samples_and_618
 
 ROOT = Path(__file__).resolve().parents[1]
 WEIGHTS = "weights/corsmal_visual/Encoder_pool_aug_158.torch"

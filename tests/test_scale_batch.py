@@ -6,19 +6,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from support import samples_and_618
 
 from massviz.core.pipeline import run
+from support import samples_and_618
 
 #: the frontal camera of CCM recording 618 (as tests/test_scale.py)
 INTR_618 = {"fx": 923.3, "fy": 923.3, "cx": 640.0, "cy": 360.0, "width": 1280, "height": 720}
 
-
-@pytest.fixture(scope="module")
-def model(weights):
-    from massviz.io.checkpoint import load_checkpoint
-
-    return load_checkpoint(weights)
 
 
 def _patches(n_groups: int, seed: int = 0):
@@ -33,7 +27,7 @@ def _patches(n_groups: int, seed: int = 0):
     for j in range(n_groups):
         n = sizes[j % len(sizes)]
         boxes = [(x, y, x + int(rng.integers(8, 150)), y + int(rng.integers(8, 150)))
-                 for x, y in zip(rng.integers(0, 480, n), rng.integers(0, 200, n))]
+                 for x, y in zip(rng.integers(0, 480, n), rng.integers(0, 200, n), strict=False)]
         feats = np.stack([rng.uniform(0.05, 0.3, n), rng.uniform(0.05, 0.3, n), rng.uniform(300, 900, n)], axis=1)
         out.append(([crop(rgb, np.array(b)) for b in boxes], feats))
     return out
@@ -50,7 +44,7 @@ def test_predict_groups_is_predict_per_group_bit_for_bit(model, precision):
     for size in (2, 5, 14):
         got = [x for s in range(0, len(groups), size) for x in m.predict_groups(groups[s:s + size])]
         assert len(got) == len(want)
-        for g, w in zip(got, want):
+        for g, w in zip(got, want, strict=False):
             assert g.dtype == w.dtype and np.array_equal(g, w)  # equal, not close
     # the convolutions of one patch alone do differ from in company: why predict_groups keeps lone rows alone
     p, f = next((p, f) for p, f in groups if len(p) >= 2)
@@ -86,7 +80,7 @@ def test_groups_whose_rows_sum_to_16n_plus_1_are_predicted(model, sizes):
               for n in sizes]
     got = model.predict_groups(groups, 16)
     assert [len(g) for g in got] == list(sizes)
-    for g, (p, f) in zip(got, groups):
+    for g, (p, f) in zip(got, groups, strict=False):
         assert np.array_equal(g, model.predict(p, f))
 
 

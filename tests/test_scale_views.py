@@ -106,7 +106,7 @@ def test_the_failure_panel_on_indexes_shows_what_it_shows_on_full_traces(indexes
 
 def test_the_chosen_counts_are_the_selections(sample_traces):
     from massviz.evaluation.sweep import SweepTable
-    from massviz.evaluation.tuning import retune, retuned_selection, original_selection
+    from massviz.evaluation.tuning import original_selection, retune, retuned_selection
 
     table = SweepTable(sample_traces)
     seen = set()
@@ -114,7 +114,7 @@ def test_the_chosen_counts_are_the_selections(sample_traces):
         for k in (1, 5, 40):
             for stride in (1, 4):
                 got = table.chosen(threshold, k, stride)
-                for t, n in zip(sample_traces, got):
+                for t, n in zip(sample_traces, got, strict=False):
                     sel = retune(t, k=k, threshold=threshold, stride=stride)
                     assert n == len(sel.selection)
                     assert np.array_equal(retuned_selection(t, k=k, threshold=threshold, stride=stride),
@@ -135,7 +135,7 @@ def test_the_dataset_tables_numbers_are_the_vectorised_sweeps(indexes, sample_tr
     assert {(t.threshold, t.k, t.stride) for t in sample_traces} == {(0.4, 5, 1)}
     table = SweepTable(indexes)
     estimates, chosen = table.estimates(0.4, 5), table.chosen(0.4, 5)
-    for t, est, n in zip(sample_traces, estimates, chosen):
+    for t, est, n in zip(sample_traces, estimates, chosen, strict=False):
         row = recordings.loc[t.recording.id]
         assert row["estimate_g"] == est and row["k"] == n == len(t.selection) and est > 0
         true = t.ground_truth_mass

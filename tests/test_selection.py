@@ -9,45 +9,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from massviz.core.pipeline import run
-from massviz.io.recording import open_recording
+from fakes import DistanceModel, ListDetector, write_recording
 from massviz.core.features import box_ratios, compute_features, mask_distance
+from massviz.core.pipeline import run
 from massviz.core.selection import estimate_mass, select_k_nearest
-from massviz.core.types import COCO_KEEP, Detections
-from test_recording import write_recording
-
-
-class ListDetector:
-    """Detections given per frame index: {frame: [(xyxy, score, mask-or-None), ...]}; counts its detect() calls."""
-
-    name = "list"
-
-    def __init__(self, per_frame: dict, threshold: float = 0.4, class_id: int = COCO_KEEP["cup"]):
-        self.per_frame, self.threshold, self.class_id, self.calls = per_frame, float(threshold), class_id, 0
-
-    def settings(self) -> dict:
-        return {"per_frame": repr(sorted(self.per_frame.items(), key=lambda kv: kv[0]))}
-
-    def detect(self, frame) -> Detections:
-        self.calls += 1
-        rows = [r for r in self.per_frame.get(frame.index, []) if r[1] > self.threshold]
-        masks = [np.ones((b[3] - b[1], b[2] - b[0]), bool) if m is None else m for b, _, m in rows]
-        return Detections(frame=[frame.index] * len(rows), xyxy=[r[0] for r in rows], score=[r[1] for r in rows],
-                          class_id=[self.class_id] * len(rows), masks=masks)
-
-
-class DistanceModel:
-    """Predicts d / 10 grams (so every estimate can be computed by hand); records what it was given."""
-
-    weights_id = "distance-model"
-
-    def __init__(self):
-        self.seen = []
-
-    def predict(self, patches, features):
-        feats = np.asarray(features, np.float64).reshape(-1, 3)
-        self.seen.append((list(patches), feats))
-        return (feats[:, 2] / 10).astype(np.float32)
+from massviz.core.types import Detections
+from massviz.io.recording import open_recording
 
 
 # ---------------------------------------------------------------------------------------------------------- features

@@ -8,10 +8,11 @@ import socket
 import time
 
 import pytest
-from support import SAMPLES, WEIGHTS, run_massviz
 
+from fakes import run_cli_as_user
 from massviz.errors import MassvizError
 from massviz.io.endpoint import host_port, reach, reach_grpc
+from support import SAMPLES, WEIGHTS, run_massviz
 
 
 def error_lines(stderr: str) -> list[str]:
@@ -94,7 +95,7 @@ def test_estimate_with_a_ray_address_where_nothing_answers(samples_dir, shared_d
 def test_live_connect_where_no_viewer_listens(closed_port, weights, tmp_path):
     """``massviz live --connect URL`` with nothing at URL: one line naming --connect and the URL before the session
     starts (Rerun's sink retried in the background, then dropped the session's data)."""
-    from test_realsense import need_realsense
+    from fakes import need_realsense
 
     need_realsense()
     from massviz.io.formats.realsense_write import write_realsense
@@ -116,7 +117,7 @@ def test_live_connect_where_no_viewer_listens(closed_port, weights, tmp_path):
 def test_a_silent_camera_is_one_line_naming_the_option(monkeypatch, weights, tmp_path, capsys):
     """A camera that delivers no frame: the session ends after ``SILENCE_S`` with one line naming ``--camera`` and
     the serial, nothing written (a stand-in camera: librealsense's ``software_device`` that is never fed)."""
-    from test_realsense import need_realsense
+    from fakes import need_realsense
 
     need_realsense()
     from massviz.cli import main
@@ -145,7 +146,7 @@ def test_view_bad_input_is_one_line(tmp_path):
     not_rrd = tmp_path / "notes.rrd"
     not_rrd.write_text("hello")
     for path, why in ((tmp_path / "missing.rrd", "no such .rrd file"), (not_rrd, "not a Rerun .rrd file")):
-        run = run_massviz("view", path)
+        run = run_cli_as_user("view", path)
         assert run.returncode == 2 and error_lines(run.stderr) == [f"massviz view: error: {path}: {why}"
                                                                   + (" (make one with: massviz log REC --rrd OUT.rrd)"
                                                                      if "not a" in why else "")], run.stderr

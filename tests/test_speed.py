@@ -13,38 +13,16 @@ import numpy as np
 import pytest
 import torch
 
+from fakes import rig, rig_sizes
 from massviz.core.pipeline import run
-from massviz.core.types import COCO_KEEP, Frame
+from massviz.core.prefetch import Prefetcher
+from massviz.core.types import Frame
 from massviz.detect.maskrcnn import MaskRCNNDetector, bf16_supported, fold_batchnorm, paste_mask_crops
 from massviz.errors import MassvizError
-from massviz.core.prefetch import Prefetcher
-from massviz.io.recording import open_recording
 
-CUP = COCO_KEEP["cup"]
 STRIDE = 9  # frames 0, 9, 18, 27 of cup_handover
-BIAS = 3.9  # cup logit: some boxes score above 0.4, most below
-PROPOSALS = (200, 100)
 
 
-def rig(det: MaskRCNNDetector, width: int, height: int) -> MaskRCNNDetector:
-    m = rig_sizes(det, width, height).model
-    g = torch.Generator().manual_seed(1)
-    with torch.no_grad():
-        cls = m.roi_heads.box_predictor.cls_score
-        cls.weight.mul_(0.01)
-        cls.bias.zero_()
-        cls.weight[CUP] = torch.randn(cls.weight.shape[1], generator=g) * 0.01
-        cls.bias[CUP] = BIAS
-        m.rpn.head.bbox_pred.weight.mul_(0.01)
-        m.roi_heads.box_predictor.bbox_pred.weight.mul_(0.01)
-    return det
-
-
-@pytest.fixture(scope="module")
-def recording(samples_dir):
-    if not (samples_dir / "cup_handover").is_dir():
-        pytest.skip("the bundled samples (data_samples/) are missing")
-    return open_recording(samples_dir / "cup_handover")
 
 
 @pytest.fixture(scope="module")
@@ -60,13 +38,6 @@ def weights_file(tmp_path_factory, recording):
 def detector(weights_file, recording, **kw) -> MaskRCNNDetector:
     return rig_sizes(MaskRCNNDetector(weights=weights_file, device="cpu", **kw), recording.width, recording.height)
 
-
-def rig_sizes(det, width: int, height: int):
-    """torchvision resizes to a third of the sample (160x90) and keeps fewer proposals: a cheap forward."""
-    m = det.model
-    m.transform.min_size, m.transform.max_size = (height // 3,), width // 3
-    m.rpn._pre_nms_top_n["testing"], m.rpn._post_nms_top_n["testing"] = PROPOSALS
-    return det
 
 
 @pytest.fixture(scope="module")
@@ -442,7 +413,7 @@ def test_a_model_built_for_loaded_weights_skips_random_init_and_is_the_same_mode
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
     cells_a, cells_b = loaded.rpn.anchor_generator.cell_anchors, stock.rpn.anchor_generator.cell_anchors
     assert len(cells_a) == len(cells_b) == 5
-    assert all(x.device.type == "cpu" and torch.equal(x, y) for x, y in zip(cells_a, cells_b))
+    assert all(x.device.type == "cpu" and torch.equal(x, y) for x, y in zip(cells_a, cells_b, strict=False))
     image = torch.rand(3, 90, 160)
     loaded.transform.min_size, loaded.transform.max_size = (90,), 160
     stock.transform.min_size, stock.transform.max_size = (90,), 160

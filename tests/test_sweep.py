@@ -7,12 +7,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from massviz.core.trace import Trace
+from massviz.core.types import Detections
 from massviz.errors import MassvizError
 from massviz.evaluation.metrics import score_from_estimates
 from massviz.evaluation.sweep import SweepTable, annotations_from_meta, best_pair, parse_range, sweep
 from massviz.views.score_plot import plot_heatmap
-from massviz.core.trace import Trace
-from massviz.core.types import Detections
 
 
 def make_trace(rng, n, mass, cls="cup", detect_threshold=0.3, rec_id="r"):

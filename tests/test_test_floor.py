@@ -1,5 +1,6 @@
 """The test floor itself: conftest's guard ends and reports a process a test leaves behind (also an orphan whose
-parent has exited, as a server behind a wrapper would be), and passes a session that ends what it starts."""
+parent has exited, as a server behind a wrapper would be), and passes a session that ends what it starts; a test not
+marked ``slow`` that starts a massviz process fails before the process starts."""
 from __future__ import annotations
 
 import subprocess
@@ -58,3 +59,17 @@ def test_a_session_that_ends_its_processes_passes(tmp_path):
             proc.wait()
     """)
     assert run.returncode == 0 and "1 passed" in run.stdout and "error" not in run.stdout, run.stdout + run.stderr
+
+
+
+@pytest.mark.parametrize("argv", [["-m", "massviz", "--help"], ["massviz", "--version"],
+                                  ["-c", "import sys\nfrom massviz.cli import main\nsys.exit(main(['--help']))"],
+                                  [str(TESTS / "forkserver.py")]],
+                         ids=["python-m-massviz", "console-script", "python-c-main", "fork-server"])
+def test_a_fast_test_that_starts_massviz_fails(argv):
+    """conftest's ``fast_tests_start_no_massviz``: this test is not marked slow, so starting a massviz process fails
+    it (``pytest.fail``, before anything is started); a Python process that only imports massviz is not a command."""
+    cmd = argv if argv[0] == "massviz" else [sys.executable, *argv]
+    with pytest.raises(pytest.fail.Exception, match="is not marked slow but starts a massviz process"):
+        subprocess.run(cmd, capture_output=True, timeout=60)
+    assert subprocess.run([sys.executable, "-c", "import massviz.cli"], timeout=60).returncode == 0

@@ -9,18 +9,16 @@ import numpy as np
 import pytest
 
 import massviz.core.trace as trace_module
+from fakes import DETECTIONS, DistanceModel, ListDetector, write_recording
 from massviz.app import process
 from massviz.commands._common import flag_warning
 from massviz.core.pipeline import run
-from massviz.core.selection import NotEstimated, REJECTED_PREFIX, Selection, why_not_estimated
+from massviz.core.selection import REJECTED_PREFIX, NotEstimated, Selection, why_not_estimated
 from massviz.core.trace import Event, Trace, analyse_trace, frame_results
 from massviz.core.types import Detections, Rejection
 from massviz.errors import MassvizError
 from massviz.io.recording import open_recording
 from massviz.io.trace_file import load_trace, save_trace
-from test_pipeline import DETECTIONS, scene
-from test_recording import write_recording
-from test_selection import DistanceModel, ListDetector
 
 
 @pytest.fixture
@@ -36,11 +34,6 @@ def analyses(monkeypatch):
     monkeypatch.setattr(trace_module, "analyse", counted)
     return calls
 
-
-@pytest.fixture(scope="module")
-def rec(tmp_path_factory):
-    rgbs, depths = scene()
-    return open_recording(write_recording(tmp_path_factory.mktemp("stages") / "scene", rgbs, depths))
 
 
 def made(rec) -> Trace:
@@ -185,12 +178,12 @@ def test_a_finished_trace_gives_a_sink_the_results_the_run_gave(rec):
                 on_frame=lambda frame, result: seen.append(result))
     replayed = [r for _, r in frame_results(trace, rec.frames(indices=[int(f) for f in trace.frames]))]
     assert len(replayed) == len(seen) == len(trace.frames)
-    for a, b in zip(seen, replayed):
+    for a, b in zip(seen, replayed, strict=False):
         assert a.offset == b.offset and a.frame.index == b.frame.index
         assert a.selection.tolist() == b.selection.tolist() and a.running_estimate == b.running_estimate
         assert a.active.tolist() == b.active.tolist() == np.flatnonzero(a.detections.score > 0.6).tolist()
         assert a.detections.xyxy.tolist() == b.detections.xyxy.tolist()
-        assert all(np.array_equal(p, q) for p, q in zip(a.patches, b.patches))
+        assert all(np.array_equal(p, q) for p, q in zip(a.patches, b.patches, strict=False))
     assert any(len(r.active) < len(r.detections) for r in seen)  # the threshold removed some: the check can fail
 
 

@@ -10,13 +10,24 @@ import torch
 from PIL import Image
 
 from massviz.cli import main
+from massviz.core.model import MassNet
 from massviz.errors import DataError, MassvizError
-from massviz.core.model import MassNet, Ranges
 from massviz.io.checkpoint import load_checkpoint
 from massviz.training.train import (
-    AUGMENT_FACTOR, FOLDS, INDEX_COLUMNS, INDEX_NAME, PatchDataset, TrainConfig, annotation_for, compute_ranges,
-    fit, make_augmentation, read_index, split_recordings, train_run)
-
+    AUGMENT_FACTOR,
+    FOLDS,
+    INDEX_COLUMNS,
+    INDEX_NAME,
+    PatchDataset,
+    TrainConfig,
+    annotation_for,
+    compute_ranges,
+    fit,
+    make_augmentation,
+    read_index,
+    split_recordings,
+    train_run,
+)
 
 
 def make_patch_set(root, n_recordings=10, per_recording=3, seed=0):
@@ -53,7 +64,7 @@ def test_fold_leaves_its_containers_out(split):
     index = pd.DataFrame({"recording": [f"{r:03d}" for r in range(90)],
                           "container_id": [r % 9 + 1 for r in range(90)]})
     s = split_recordings(index, split, seed=3)
-    by_rec = dict(zip(index["recording"], index["container_id"]))
+    by_rec = dict(zip(index["recording"], index["container_id"], strict=False))
     assert {by_rec[r] for r in s.test} == set(FOLDS[split])
     assert not {by_rec[r] for r in s.train + s.val} & set(FOLDS[split])
     assert len(s.test) == 30 and len(s.val) == 12 and len(s.train) == 48  # 80:20 of the 60 others
@@ -97,7 +108,7 @@ def test_augmentation_keeps_shape_and_range_and_multiplies_the_set(patch_set):
     data = PatchDataset(patch_set, index.iloc[:4], ranges, AUGMENT_FACTOR["fold1"], make_augmentation())
     assert len(data) == 12
     items = [data[i] for i in range(len(data))]
-    for image, feats, target in items:
+    for image, _feats, _target in items:
         assert image.shape == (3, 112, 112) and image.dtype == torch.float32
         assert 0.0 <= float(image.min()) and float(image.max()) <= 1.0
     plain = PatchDataset(patch_set, index.iloc[:4], ranges)

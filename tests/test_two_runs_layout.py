@@ -3,10 +3,10 @@ predictions plot, each patch tile captioned and titled with its run."""
 from __future__ import annotations
 
 import rerun.blueprint as rrb
-from rrd_reader import rrd_rows
 
 from massviz.views.palette import FLAGGED_COLOUR, rgb255
 from massviz.views.rerun_runs import B_ROOT, RUN_COLOURS, two_runs_blueprint, write_two_runs
+from rrd_reader import rrd_rows
 
 
 def packed(rgb) -> int:

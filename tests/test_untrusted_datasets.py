@@ -14,9 +14,9 @@ import shutil
 from pathlib import Path
 
 import pytest
-from support import small_recording
 
 from massviz import cli
+from support import small_recording
 
 
 def _loop(path: Path) -> None:

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from support import ROOT
 
 #: the peak resident memory a child that refuses a bomb may reach (the interpreter with OpenCV and massviz's readers:

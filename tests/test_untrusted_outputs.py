@@ -18,6 +18,7 @@ import textwrap
 from pathlib import Path
 
 import pytest
+
 from forkserver import ForkServer
 from support import KILLING_SERVER, ROOT, small_recording
 

@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fakes import DistanceModel
 from massviz.core.pipeline import run
 from massviz.detect import make_detector
 from massviz.io.recording import open_recording
 from massviz.views.rerun import log_trace_with_clouds
 from rrd_reader import rrd_rows
-from test_selection import DistanceModel
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -82,7 +82,7 @@ def test_scrubbing_back_shows_the_patch_chosen_so_far(logged):
     rec, trace, out = logged
     frames = [int(f) for f in trace.frames]
     tiles = {r: rrd_rows(out, f"/patches/{r}") for r in range(trace.k)}
-    for f, selection in zip(frames, trace.running_selections()):
+    for f, selection in zip(frames, trace.running_selections(), strict=False):
         for r in range(trace.k):
             state = None
             for row in tiles[r]:

@@ -2,8 +2,9 @@
 are refused from their header, before anything is decoded; smaller cases (a RealSense file whose duration is not a
 number, a checkpoint of complex tensors) give massviz's one line and nothing else.
 
-Each bomb case runs ``massviz`` in a process of its own and is held to test_fuzz2's promise (one line naming the
-file, exit 2, nothing written) with a tighter memory bound: :data:`BOMB_MEM_MB`.
+Each bomb case runs ``massviz`` in a process of its own (so it is ``slow``) and is held to
+``hostile_runs.check_promise`` (one line naming the file, exit 2, nothing written) with a tighter memory bound:
+:data:`BOMB_MEM_MB`.
 """
 from __future__ import annotations
 
@@ -14,8 +15,9 @@ from pathlib import Path
 from typing import Callable
 
 import pytest
-from test_fuzz import Base, base, copy_sample, cup_box  # noqa: F401
-from test_fuzz2 import Case, check_promise, pipeline_argv, run_massviz, snapshot
+
+from fakes import Base, copy_sample, cup_box
+from hostile_runs import Case, check_promise, folder_state, pipeline_argv, run_massviz
 
 #: peak resident memory a run that meets a bomb may add to a clean run of the same command (the imports alone take
 #: 0.5-0.8 GB, depending on the libraries installed; the bombs decoded before they were refused added 0.5-2.5 GB).
@@ -110,15 +112,15 @@ BOMBS = {
 }
 
 
-@pytest.mark.parametrize("name", [pytest.param(n, marks=() if i < 2 else pytest.mark.slow)
-                                  for i, n in enumerate(BOMBS)])
+@pytest.mark.slow  # a massviz process: its peak memory is measured
+@pytest.mark.parametrize("name", list(BOMBS))
 def test_a_decompression_bomb_is_refused_from_its_header(name, base, clean_peak_mb, tmp_path):
     work = tmp_path / "w"
     work.mkdir()
     (work / "home").mkdir()
     case = BOMBS[name](work, base)
     case.name = name
-    before = snapshot(work, tuple(work / w for w in ("cache", "usercache", "xdg", "home", "tmpdir")))
+    before = folder_state(work, tuple(work / w for w in ("cache", "usercache", "xdg", "home", "tmpdir")))
     run = run_massviz(case.argv, work)
     check_promise(case, run, work, before)
     bound = max(BOMB_MEM_MB, clean_peak_mb + BOMB_EXTRA_MB)

@@ -4,8 +4,11 @@ detected, never used and never accumulated. Two processes writing the same outpu
 
 The kill points are generated: the ``n``-th rename by which a command puts a finished file in place (its outputs and
 its cache entries alike), just before it or just after it, in a process of its own with ``os.replace`` wrapped (a
-real SIGKILL): ``python -c`` for a test's first case, a child of a fork server that installed the wrapper
-(``killing_server``, ``tests/forkserver.py``) for the others. The clean runs compared with are ``python -m massviz``.
+real SIGKILL). Each case names its runner: ``subprocess`` (``python -c``, a fresh interpreter; a test's first case)
+or ``forked`` (a child of a fork server that installed the wrapper: ``killing_server``, ``tests/forkserver.py``). The
+clean runs compared with are ``python -m massviz``. Every case starts massviz processes: the module is ``slow``. The
+kill points exist: :data:`COMMITS` (how many commits each command makes) is checked in-process by
+``test_each_command_makes_the_commits_its_kill_points_name``, and a killed run that ends on its own fails its case.
 """
 from __future__ import annotations
 
@@ -15,10 +18,13 @@ import sys
 from pathlib import Path
 
 import pytest
+
+from fakes import Base, copy_sample
 from forkserver import ForkServer
+from hostile_runs import clean_env, run_forked
 from support import KILLED_RUN, KILLING_SERVER
-from test_fuzz import Base, base, copy_sample  # noqa: F401
-from test_fuzz2 import _run_forked, clean_env, patch_set  # noqa: F401
+
+pytestmark = pytest.mark.slow  # every case starts massviz processes (a SIGKILL needs a process of its own)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -49,7 +55,7 @@ def massviz(argv, work: Path, kill_at: int | None = None, when: str = "before",
 def _forked_run(server: ForkServer, argv, work: Path, env: dict) -> subprocess.CompletedProcess:
     logs = work.parent / f"{work.name}.logs"  # beside ``work``: its checks see only what the command left
     logs.mkdir(exist_ok=True)
-    run = _run_forked(server, argv, work, env, logs, TIMEOUT_S)
+    run = run_forked(server, argv, work, env, logs, TIMEOUT_S)
     assert not run.killed, f"massviz {' '.join(map(str, argv))} ran more than {TIMEOUT_S} s"
     return subprocess.CompletedProcess(argv, run.code, run.stdout, run.stderr)
 
@@ -61,10 +67,14 @@ def killing_server():
     server.close()
 
 
-def server_for(request) -> ForkServer | None:
-    """Where a case's runs are forked from: ``killing_server`` for a case marked slow; none (subprocesses) for the
-    first case of a test."""
-    return request.getfixturevalue("killing_server") if request.node.get_closest_marker("slow") else None
+#: where a case's runs happen: a fresh interpreter each, or children of ``killing_server``
+RUNNERS = ("subprocess", "forked")
+
+
+def server_for(runner: str, request) -> ForkServer | None:
+    """The fork server of a ``forked`` case (``killing_server``); none for a ``subprocess`` case."""
+    assert runner in RUNNERS, runner
+    return request.getfixturevalue("killing_server") if runner == "forked" else None
 
 
 def pipeline(b: Base, work: Path, command: str, *extra) -> list:
@@ -111,14 +121,14 @@ def hidden(folder: Path) -> list[str]:
 
 
 @pytest.fixture(scope="module")
-def clean_results(base, patch_set, tmp_path_factory) -> dict:
+def clean_results(base, sample_patch_set, tmp_path_factory) -> dict:
     """Each command's clean result (computed on first use)."""
     out = {}
 
     def get(command):
         if command not in out:
             work = tmp_path_factory.mktemp(f"clean_{command}")
-            argv, target = command_case(command, work, base, patch_set)
+            argv, target = command_case(command, work, base, sample_patch_set)
             run = massviz(argv, work)
             assert run.returncode == 0, run.stderr
             out[command] = result(command, target)
@@ -126,26 +136,54 @@ def clean_results(base, patch_set, tmp_path_factory) -> dict:
     return get
 
 
-KILL_CASES = [(c, n, w) for c in ("estimate", "extract", "cloud", "train", "log") for n in (1, 2, 3)
+#: the commits (renames into place: outputs and cache entries) each command's case makes on a fresh folder
+COMMITS = {"estimate": 6, "extract": 5, "cloud": 13, "train": 2, "log": 4}
+#: where a command is killed: its first three commits and its last
+KILL_POINTS = {c: sorted({n for n in (1, 2, 3) if n <= total} | {total}) for c, total in COMMITS.items()}
+KILL_CASES = [(c, n, w) for c in ("estimate", "extract", "cloud", "train", "log") for n in KILL_POINTS[c]
               for w in ("before", "after")]
 
 
-@pytest.mark.parametrize("command,nth,when", [
-    pytest.param(*case, id=f"sigkill-{case[0]}-at-commit-{case[1]}-{case[2]}",
-                 marks=() if i == 0 else pytest.mark.slow) for i, case in enumerate(KILL_CASES)])
-def test_a_command_killed_at_a_commit_then_run_again_equals_a_clean_run(command, nth, when, base, patch_set,
-                                                                         clean_results, tmp_path, request):
-    """The first case's runs are ``python`` subprocesses; the others' (marked slow) are forked from
-    ``killing_server``. The clean runs they are compared with are subprocesses."""
+def test_each_command_makes_the_commits_its_kill_points_name(base, sample_patch_set, tmp_path, monkeypatch):
+    """The premise of the kill cases, in-process: each command's case commits (``os.replace``) exactly
+    :data:`COMMITS` times, so every kill point of :data:`KILL_POINTS` is reached."""
+    from fakes import run_cli
+
+    real, made = os.replace, []
+
+    def replace(src, dst, *args, **kwargs):
+        made.append(dst)
+        return real(src, dst, *args, **kwargs)
+
+    monkeypatch.setattr(os, "replace", replace)
+    counted = {}
+    for command in COMMITS:
+        work = tmp_path / command
+        work.mkdir()
+        argv, _ = command_case(command, work, base, sample_patch_set)
+        made.clear()
+        code, _, err = run_cli(argv)
+        assert code == 0, err
+        counted[command] = len(made)
+    assert counted == COMMITS
+
+
+@pytest.mark.parametrize("command,nth,when,runner", [
+    pytest.param(*case, "subprocess" if i == 0 else "forked", id=f"sigkill-{case[0]}-at-commit-{case[1]}-{case[2]}")
+    for i, case in enumerate(KILL_CASES)])
+def test_a_command_killed_at_a_commit_then_run_again_equals_a_clean_run(command, nth, when, runner, base,
+                                                                         sample_patch_set, clean_results, tmp_path,
+                                                                         request):
+    """A case's runs are ``python`` subprocesses or forked from ``killing_server`` (``runner``). The clean runs
+    they are compared with are subprocesses."""
     work = tmp_path / "w"
     work.mkdir()
-    argv, out = command_case(command, work, base, patch_set)
-    forked = server_for(request)
+    argv, out = command_case(command, work, base, sample_patch_set)
+    forked = server_for(runner, request)
     # killed twice at a command's first commit (what the kills leave must not accumulate), once at a later one
     for _ in range(2 if nth == 1 else 1):
         killed = massviz(argv, work, kill_at=nth, when=when, forked=forked)
-        if killed.returncode == 0:  # fewer commits than nth: nothing to kill
-            pytest.skip(f"{command} made fewer than {nth} commits")
+        assert killed.returncode != 0, f"{command} ended on its own before its commit {nth}: not killed (see COMMITS)"
         assert killed.returncode == -9, killed.stderr
     again = massviz(argv, work, forked=forked)
     assert again.returncode == 0, again.stderr
@@ -159,14 +197,14 @@ DAMAGE = {"truncated": lambda data: data[: len(data) // 2], "garbage": lambda da
           "empty": lambda data: b""}
 
 
-@pytest.mark.parametrize("damage", [pytest.param(d, marks=() if i == 0 else pytest.mark.slow)
-                                    for i, d in enumerate(DAMAGE)])
-def test_a_damaged_cache_entry_is_detected_recomputed_and_said_once(damage, base, tmp_path, request):
-    """The first case's runs are subprocesses; the others' are forked from ``killing_server`` (no kill)."""
+@pytest.mark.parametrize("damage,runner", [pytest.param(d, "subprocess" if i == 0 else "forked", id=d)
+                                           for i, d in enumerate(DAMAGE)])
+def test_a_damaged_cache_entry_is_detected_recomputed_and_said_once(damage, runner, base, tmp_path, request):
+    """A case's runs are subprocesses or forked from ``killing_server`` (``runner``; no kill)."""
     work = tmp_path / "w"
     work.mkdir()
     argv, out = command_case("estimate", work, base, tmp_path)
-    forked = server_for(request)
+    forked = server_for(runner, request)
     first = massviz(argv, work, forked=forked)
     assert first.returncode == 0, first.stderr
     clean = result("estimate", out)
@@ -189,10 +227,8 @@ def _two_at_once(argv_a, argv_b, work: Path):
     return [(p.wait(timeout=300), p.stderr.read()) for p in procs]
 
 
-@pytest.mark.parametrize("command", ["extract", pytest.param("cloud", marks=pytest.mark.slow),
-                                     pytest.param("train", marks=pytest.mark.slow),
-                                     pytest.param("log-rrd-dir", marks=pytest.mark.slow)])
-def test_two_processes_writing_the_same_output_leave_one_whole(command, base, patch_set, clean_results, tmp_path):
+@pytest.mark.parametrize("command", ["extract", "cloud", "train", "log-rrd-dir"])
+def test_two_processes_writing_the_same_output_leave_one_whole(command, base, sample_patch_set, clean_results, tmp_path):
     """Both succeed and the output is one run's, whole; or one says in one line why it did not write."""
     work = tmp_path / "w"
     work.mkdir()
@@ -200,7 +236,7 @@ def test_two_processes_writing_the_same_output_leave_one_whole(command, base, pa
         rec = copy_sample(work / "rec")
         argv, out = pipeline(base, work, "log", rec, "--rrd-dir", work / "ds"), work / "ds"
     else:
-        argv, out = command_case(command, work, base, patch_set)
+        argv, out = command_case(command, work, base, sample_patch_set)
     runs = _two_at_once(argv, argv, work)
     for code, err in runs:
         assert "Traceback" not in err and "internal error" not in err, err

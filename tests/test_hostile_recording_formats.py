@@ -3,13 +3,11 @@ header bombs), frame folders with gaps, dangling links or directories among the 
 100,000 frames, and degenerate RealSense files (extrinsics, intrinsics, URI-like names, names with control
 characters).
 
-Every refused case goes through the same promise checks as tests/test_fuzz.py: exit code 2, one error line that
+Every refused case goes through the same promise checks as tests/test_hostile_inputs.py: exit code 2, one error line that
 starts with the culprit file, no traceback or internal error, no output written, nothing changed in the work
 folder; memory and time are bounded where the case is a bomb (measured)."""
 from __future__ import annotations
 
-import io
-import json
 import os
 import re
 import shutil
@@ -23,7 +21,7 @@ import cv2
 import numpy as np
 import pytest
 
-from test_fuzz import SAMPLE, copy_sample, png_header_only, run_cli, snapshot, visible_lines
+from fakes import SAMPLE, copy_sample, png_header_only, run_cli, snapshot, visible_lines
 
 ROOT = Path(__file__).resolve().parents[1]
 #: peak resident memory allowed for opening a recording whose frame declares gigapixels (the open itself is ~150 MB)
@@ -313,8 +311,8 @@ def frames():
 def write_db3(path: Path, frames, **rig) -> Path:
     """A .db3 of the sample's first frames through a ``SoftwareRig`` (``rig``: its keyword arguments, e.g.
     degenerate intrinsics or extrinsics)."""
-    from massviz.io.formats.realsense_write import SoftwareRig
     from massviz.io.formats.realsense_decode import import_rs
+    from massviz.io.formats.realsense_write import SoftwareRig
 
     intr, fs = frames
     intr = rig.pop("intrinsics", intr)

@@ -20,8 +20,9 @@ import stat
 from pathlib import Path
 
 import pytest
-from test_fuzz import Base, base, copy_sample  # noqa: F401
 
+from fakes import Base, copy_sample
+from hostile_runs import Case, check_promise, folder_state, pipeline_argv, run_massviz
 from massviz import cli
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -278,9 +279,6 @@ def test_a_formula_id_reaches_no_csv_as_a_formula(command, rec_id, base, tmp_pat
 
 
 # ============================================================================== a signal while an output is committed
-from test_fuzz2 import patch_set  # noqa: E402,F401 - the 4-recording patch set of the training cases
-
-
 def signal_at_commit(monkeypatch, out: Path, sig: int, nth: int = 1) -> list:
     """Send ``sig`` to this process right after the ``nth`` rename that moves something into or out of ``out`` (the
     renames that put a finished output in place): the worst moment for an interrupt."""
@@ -324,12 +322,12 @@ def test_a_signal_while_cloud_moves_its_files_in_leaves_all_or_none(sig, nth, ba
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 @pytest.mark.parametrize("nth", [1, 2])
-def test_a_signal_while_train_swaps_its_run_folder_leaves_a_whole_run(sig, nth, patch_set, tmp_path, capsys,
+def test_a_signal_while_train_swaps_its_run_folder_leaves_a_whole_run(sig, nth, sample_patch_set, tmp_path, capsys,
                                                                       monkeypatch):
     work = tmp_path / "w"
     work.mkdir()
     run = work / "run"
-    argv = ["train", patch_set, "--out", run, "--epochs", "1", "--augment", "1", "--quiet", "--force"]
+    argv = ["train", sample_patch_set, "--out", run, "--epochs", "1", "--augment", "1", "--quiet", "--force"]
     code, err = run_cli(argv, capsys)
     assert code == 0, err
     whole = sorted(os.listdir(run))
@@ -342,9 +340,6 @@ def test_a_signal_while_train_swaps_its_run_folder_leaves_a_whole_run(sig, nth, 
 
 
 # ================================================================================= a full disk while an .rrd is written
-from test_fuzz2 import Case, check_promise, pipeline_argv, run_massviz, snapshot  # noqa: E402
-
-
 @pytest.fixture
 def small_disk(tmp_path):
     """A 2 MiB tmpfs (root, where mounting is allowed); None elsewhere."""
@@ -375,9 +370,10 @@ def _fsize(nbytes: int):
 
 
 #: room left on the disk (KiB): more than the first write massviz checks (64 KiB), less than the .rrd (~1 MB).
-FULL_DISK_ROOM = [300, pytest.param(150, marks=pytest.mark.slow), pytest.param(600, marks=pytest.mark.slow)]
+FULL_DISK_ROOM = [300, 150, 600]
 
 
+@pytest.mark.slow  # a massviz process (a file-size limit where no small disk can be mounted)
 @pytest.mark.parametrize("room", FULL_DISK_ROOM)
 def test_log_rrd_onto_a_disk_that_fills_up_ends_with_one_line(room, base, small_disk, tmp_path):
     """Rerun's file writer dies on the first failed write and never answers a flush again (a hang in one run of
@@ -394,7 +390,7 @@ def test_log_rrd_onto_a_disk_that_fills_up_ends_with_one_line(room, base, small_
         out, preexec, what = work / "o.rrd", _fsize(room << 10), r"\(File too large\)$"
     argv = pipeline_argv(work, base, "log", rec, "--rrd", out, cache=False)
     case = Case("log-rrd-disk-fills-up", argv, out, what, [out], preexec=preexec)
-    before = snapshot(work, tuple(work / w for w in ("usercache", "xdg", "home", "tmpdir")))
+    before = folder_state(work, tuple(work / w for w in ("usercache", "xdg", "home", "tmpdir")))
     run = run_massviz(argv, work, preexec=preexec, timeout=90)
     check_promise(case, run, work, before)
     if small_disk is not None:

@@ -1,242 +1,57 @@
-"""Hostile inputs beyond test_fuzz.py's: numbers the JSON parser refuses, checkpoints that compute inf/NaN,
+"""Hostile inputs beyond test_hostile_inputs.py's, each in a process of its own: numbers the JSON parser refuses, checkpoints that compute inf/NaN,
 outputs that are not regular files, a full disk, signals, terminal escapes, compression bombs, scores and tables,
 trace files from elsewhere, arguments.
 
 Every case runs ``massviz`` in a process of its own (its peak RSS sampled, its wall time bounded): the first case of
 each class, and every case with a signal or a resource limit, as a real ``python -m massviz`` subprocess; the others
 forked from a server that imported massviz and torch once (``tests/forkserver.py``: the same ``main``, environment,
-folder, files and exit; 2-3 s less per case). Each is held to the same promise (:func:`check_promise`): the expected
+folder, files and exit; 2-3 s less per case). Each is held to the same promise (``hostile_runs.check_promise``): the
+expected
 exit code, exactly one error line naming the right file and saying what is wrong, no traceback / internal error, no
 non-finite number in stdout, stderr or any file written, nothing left in or beside the outputs (no hidden
 temporaries), nothing written outside the case's folder (its TMPDIR stays empty), no raw control character on the
-terminal, peak memory under :data:`MEM_BOUND_MB` and wall time under :data:`TIME_BOUND_S`. Cases are generated per
-class (parametrised generators); the first case of each class runs by default, the others are marked ``slow``. The
-last tests call the library on the same fixtures: only massviz's error types may come out.
+terminal, peak memory under ``MEM_BOUND_MB`` and wall time under ``TIME_BOUND_S``. Cases are generated per class
+(parametrised generators), each with its runner (``subprocess`` or ``forked``); they start massviz processes, so they
+are ``slow``. The last tests call the library on the same fixtures: only massviz's error types may come out.
 """
 from __future__ import annotations
 
-import contextlib
 import json
-import math
 import os
 import re
 import resource
 import shutil
 import signal
 import stat
-import subprocess
 import sys
-import threading
 import time
 import zipfile
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 import pytest
-from forkserver import ForkServer
 
-from test_fuzz import ANN_HEADER, ANN_ROWS, PRED_HEADER, PRED_ROWS, Base, base, copy_sample, csv_text  # noqa: F401
+from fakes import ANN_HEADER, ANN_ROWS, PRED_HEADER, PRED_ROWS, Base, copy_sample, csv_text
+from forkserver import ForkServer
+from hostile_runs import (
+    MEM_BOUND_MB,
+    RAW_CONTROL,
+    Case,
+    Run,
+    check_promise,
+    clean_env,
+    folder_state,
+    pipeline_argv,
+    run_massviz,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
-#: peak resident memory a hostile case may reach (python + torch + the pipeline on 3 frames: ~0.5-0.7 GB; an
-#: unbounded compression bomb reaches 1.9-2.5 GB).
-MEM_BOUND_MB = 1200
-#: wall time a case may take (a case takes 5-25 s on 2 busy cores; a hang is killed at this bound).
-TIME_BOUND_S = 150
-#: a non-finite number as text: what must never appear in an output or on the terminal.
-NON_FINITE = re.compile(r"(?<![A-Za-z_])(nan|NaN|NAN|-?inf|-?Inf|-?Infinity)(?![A-Za-z_])")
-#: characters that may appear raw on the terminal (everything else below 0x20, DEL and C1 must come escaped).
-RAW_CONTROL = re.compile(r"[\x00-\x08\x0b\x0c\x0e-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069]")
-
-
-# ============================================================================================================ runner
-@dataclass
-class Run:
-    code: int
-    stdout: str
-    stderr: str
-    peak_mb: float
-    seconds: float
-    killed: bool = False
-    signalled: bool = False  # ``send`` was sent while the process still ran
-
-
-def clean_env() -> dict:
-    """This process's environment without the variables that change what a command prints or which weights it
-    loads (the case's own are added by the caller)."""
-    return {k: v for k, v in os.environ.items() if k not in ("MASSVIZ_DEBUG", "MASSVIZ_WEIGHTS", "RUST_LOG")}
-
-
-def run_massviz(argv, case_dir: Path, *, preexec: Callable | None = None, when: Callable[[], bool] | None = None,
-                send: int | None = None, timeout: float = TIME_BOUND_S, forked: ForkServer | None = None) -> Run:
-    """``python -m massviz ARGV`` in a subprocess with TMPDIR inside ``case_dir`` (checked empty after) and HOME too;
-    its peak RSS (its VmHWM, sampled every 20 ms while it runs) and wall time are measured. With ``send``, the signal
-    is sent as soon as ``when()`` holds (polled), i.e. while the command is writing. With ``forked`` (and no signal
-    or ``preexec``) the process is forked from that server instead (``tests/forkserver.py``: the same ``main``,
-    environment, folder and files, without the imports)."""
-    env = clean_env()
-    tmpdir = case_dir / "tmpdir"
-    tmpdir.mkdir(exist_ok=True)
-    # torch's own compile cache (``torch._dynamo``, which torchvision imports: Mask R-CNN, training) goes to
-    # $TMPDIR/torchinductor_$USER unless TORCHINDUCTOR_CACHE_DIR says where; it is torch's, not a massviz temporary,
-    # so it goes with the other caches (and is not inherited from this process, whose imports would decide it)
-    env.update(TMPDIR=str(tmpdir), HOME=str(case_dir / "home"), PYTHONPATH=str(ROOT),
-               MASSVIZ_CACHE_DIR=str(case_dir / "usercache"), XDG_CACHE_HOME=str(case_dir / "xdg"),
-               TORCHINDUCTOR_CACHE_DIR=str(case_dir / "xdg" / "torchinductor"))
-    logs = case_dir.parent / f"{case_dir.name}.logs"
-    logs.mkdir(exist_ok=True)
-    if forked is not None and preexec is None and send is None:
-        return _run_forked(forked, argv, case_dir, env, logs, timeout)
-    with open(logs / "out", "wb") as fo, open(logs / "err", "wb") as fe:
-        t0 = time.monotonic()
-        proc = subprocess.Popen([sys.executable, "-m", "massviz", *map(str, argv)], stdout=fo, stderr=fe,
-                                stdin=subprocess.DEVNULL, cwd=case_dir, env=env, preexec_fn=preexec)
-        watch = Watch(proc.pid, t0, timeout)
-        sent = []
-        if send is not None:
-            def signal_when_ready():
-                while proc.returncode is None and time.monotonic() - t0 < timeout:
-                    if when is None or (when(proc.pid) if getattr(when, "takes_pid", False) else when()):
-                        proc.send_signal(send)
-                        sent.append(1)
-                        return
-                    time.sleep(0.05)
-            sender = threading.Thread(target=signal_when_ready, daemon=True)
-            sender.start()
-        _, status, usage = os.wait4(proc.pid, 0)
-        proc.returncode = os.waitstatus_to_exitcode(status)
-        seconds = time.monotonic() - t0
-        watch.stop()
-    return Run(proc.returncode, (logs / "out").read_text(errors="replace"), (logs / "err").read_text(errors="replace"),
-               (watch.peak_kb or usage.ru_maxrss) / 1024, seconds, watch.killed, bool(sent))
-
-
-def _run_forked(server: ForkServer, argv, case_dir: Path, env: dict, logs: Path, timeout: float) -> Run:
-    t0 = time.monotonic()
-    watch = Watch(server.start(argv, env, case_dir, logs / "out", logs / "err"), t0, timeout)
-    code = server.wait()
-    watch.stop()
-    return Run(code, (logs / "out").read_text(errors="replace"), (logs / "err").read_text(errors="replace"),
-               watch.peak_kb / 1024, time.monotonic() - t0, watch.killed)
-
-
-class Watch:
-    """While a case's process ``pid`` runs: its VmHWM sampled every 20 ms (``peak_kb``: its own high-water mark;
-    ru_maxrss after exec keeps the forking parent's, i.e. pytest's, peak: 1.5 GB in the full suite), and SIGKILL
-    once ``timeout`` s have passed since ``t0`` (``killed``). ``stop()`` once the process has been waited for."""
-
-    def __init__(self, pid: int, t0: float, timeout: float):
-        self.peak_kb, self.killed = 0, False
-        self._done = threading.Event()
-        self._thread = threading.Thread(target=self._run, args=(pid, t0, timeout), daemon=True)
-        self._thread.start()
-
-    def _run(self, pid: int, t0: float, timeout: float) -> None:
-        while not self._done.is_set():
-            self.peak_kb = max(self.peak_kb, vm_hwm_kb(pid))
-            if not self.killed and time.monotonic() - t0 > timeout:
-                self.killed = True
-                with contextlib.suppress(ProcessLookupError):
-                    os.kill(pid, signal.SIGKILL)
-            self._done.wait(0.02)
-
-    def stop(self) -> None:
-        self._done.set()
-        self._thread.join()
-
-
-def vm_hwm_kb(pid: int) -> int:
-    """Peak resident memory (kB) of the live process ``pid`` so far (/proc/PID/status VmHWM), 0 once it is gone."""
-    try:
-        m = re.search(r"^VmHWM:\s*(\d+) kB", Path(f"/proc/{pid}/status").read_text(), re.M)
-    except OSError:
-        return 0
-    return int(m.group(1)) if m else 0
-
-
-def snapshot(folder: Path, skip: tuple[Path, ...] = ()) -> dict[str, tuple[int, int, int]]:
-    out = {}
-    for p in sorted(folder.rglob("*")):
-        if any(p == s or s in p.parents for s in skip):
-            continue
-        st = p.lstat()
-        out[str(p.relative_to(folder))] = (stat.S_IFMT(st.st_mode), st.st_size if stat.S_ISREG(st.st_mode) else -1,
-                                           st.st_mtime_ns)
-    return out
-
-
-def visible_lines(text: str) -> list[str]:
-    return [line.split("\r")[-1] for line in text.split("\n") if line.split("\r")[-1].strip()]
-
-
-def text_files(folder: Path):
-    for p in folder.rglob("*"):
-        if p.is_file() and not p.is_symlink() and p.suffix in (".csv", ".json", ".txt", ".log"):
-            yield p
-
-
-@dataclass
-class Case:
-    name: str
-    argv: list
-    culprit: object  # the path (or option) the error line must name first
-    what: str  # regex the rest of the line must match
-    outputs: list = field(default_factory=list)  # must not exist after
-    code: int = 2
-    line: str = "error"  # "error" or "interrupted"; "" for a case that must succeed (code 0, ``check`` its outputs)
-    writes: tuple = ()  # folders the command may change (the cache)
-    preexec: Callable | None = None
-    when: Callable | None = None
-    send: int | None = None
-    check: Callable | None = None  # extra checks on (case, run)
-
-
-def check_promise(case: Case, run: Run, work: Path, before: dict) -> None:
-    """The promise every hostile case is held to (see the module docstring)."""
-    both = run.stdout + run.stderr
-    where = f"{case.name}: {run.stderr[-2000:]}"
-    assert not run.killed and run.seconds < TIME_BOUND_S, f"{case.name}: took {run.seconds:.0f} s (killed)"
-    assert run.peak_mb < MEM_BOUND_MB, f"{case.name}: peak memory {run.peak_mb:.0f} MB"
-    assert "Traceback" not in both and "internal error" not in both, where
-    assert not RAW_CONTROL.search(both), f"{case.name}: raw control character on the terminal: {both[-500:]!r}"
-    assert run.code == case.code, f"exit {run.code}: {where}"
-    lines = visible_lines(run.stderr)
-    marker = ": error:" if case.line == "error" else ": interrupted"
-    command = str(case.argv[0])
-    if case.line:
-        errors = [line for line in lines if marker in line]
-        assert len(errors) == 1 and lines[-1] == errors[0], where
-        prefix = f"massviz {command}{marker}" + ("" if case.line != "error" else f" {case.culprit}")
-        assert errors[0].startswith(prefix), (errors[0], prefix)
-        assert re.search(case.what, errors[0][len(prefix):]), (case.name, errors[0])
-    else:  # a case that must end well (e.g. a live session ended by a signal): no error or interrupt line
-        assert not [line for line in lines if re.match(rf"massviz {command}: (error|interrupted)", line)], where
-    assert not NON_FINITE.search(run.stdout) and " nan g" not in both, where
-    for out in case.outputs:
-        assert not os.path.lexists(out) or Path(out).is_char_device() or Path(out).is_fifo() \
-            or Path(out).is_symlink(), f"{case.name}: {out} was written"
-    skip = tuple(work / w for w in ("cache", "usercache", "xdg", "home", "tmpdir")) + tuple(case.writes)
-    after = snapshot(work, skip)
-    assert after == before, (f"{case.name}: something was written, left or replaced: "
-                             f"{sorted(set(after.items()) ^ set(before.items()))[:6]}")
-    assert not any((work / "tmpdir").iterdir()), f"{case.name}: left files in TMPDIR"
-    for p in text_files(work):
-        if not any(s in p.parents for s in skip):
-            assert not NON_FINITE.search(p.read_text(errors="replace")), f"{case.name}: non-finite number in {p}"
-    if case.check is not None:
-        case.check(case, run)
 
 
 # ============================================================================================================= bases
-# ``base`` (a 3-frame copy of the cup sample, random-weight checkpoint, replay JSON, a saved trace) is test_fuzz's.
+# ``base`` (a 3-frame copy of the cup sample, random-weight checkpoint, replay JSON, a saved trace): conftest.py.
 
-
-def pipeline_argv(work: Path, b: Base, command: str, rec: Path, *extra, weights=None, replay=None,
-                  cache: bool = True) -> list:
-    return [command, rec, *extra, "--detector", "replay", "--replay", replay or b.replay,
-            "--weights", weights or b.weights, *(["--cache", work / "cache"] if cache else ["--no-cache"]), "--quiet"]
 
 
 # ============================================================================================================ class 1
@@ -635,7 +450,9 @@ def _classes() -> dict[str, list[tuple[str, Callable]]]:
 
 
 CLASSES = _classes()
-PARAMS = [pytest.param(build, id=name, marks=() if i == 0 else pytest.mark.slow)
+#: every generated case, with its runner: the first of each class a real subprocess, the others forked (a case with a
+#: signal or a resource limit is a subprocess whatever its runner); all start massviz processes, so all are ``slow``
+PARAMS = [pytest.param(build, "subprocess" if i == 0 else "forked", id=name, marks=pytest.mark.slow)
           for cases in CLASSES.values() for i, (name, build) in enumerate(cases)]
 
 
@@ -647,17 +464,17 @@ def fork_server():
     server.close()
 
 
-@pytest.mark.parametrize("build", PARAMS)
-def test_hostile_input_round_two(build, base, tmp_path, request):
-    """The first case of each class runs as a real ``python -m massviz`` subprocess; the others (marked slow) are
-    forked from a server that imported massviz and torch once, unless they need a signal or a resource limit."""
+@pytest.mark.parametrize("build,runner", PARAMS)
+def test_hostile_input_in_a_process_of_its_own(build, runner, base, tmp_path, request):
+    """A ``subprocess`` case runs as a real ``python -m massviz`` subprocess; a ``forked`` one is forked from a
+    server that imported massviz and torch once, unless it needs a signal or a resource limit."""
     work = tmp_path / "w"
     work.mkdir()
     (work / "home").mkdir()
     case = build(work, base)
     case.name = request.node.callspec.id
-    before = snapshot(work, tuple(work / w for w in ("cache", "usercache", "xdg", "home", "tmpdir")) + tuple(case.writes))
-    forked = request.getfixturevalue("fork_server") if request.node.get_closest_marker("slow") else None
+    before = folder_state(work, tuple(work / w for w in ("cache", "usercache", "xdg", "home", "tmpdir")) + tuple(case.writes))
+    forked = request.getfixturevalue("fork_server") if runner == "forked" else None
     for attempt in range(1, 4):
         run = run_massviz(case.argv, work, preexec=case.preexec, when=case.when, send=case.send, forked=forked)
         if case.send is None or run.signalled:
@@ -669,7 +486,7 @@ def test_hostile_input_round_two(build, base, tmp_path, request):
         (work / "home").mkdir()
         case = build(work, base)
         case.name = request.node.callspec.id
-        before = snapshot(work, tuple(work / w for w in ("cache", "usercache", "xdg", "home", "tmpdir"))
+        before = folder_state(work, tuple(work / w for w in ("cache", "usercache", "xdg", "home", "tmpdir"))
                           + tuple(case.writes))
     assert case.send is None or run.signalled, f"{case.name}: the command ended before the signal, three times"
     check_promise(case, run, work, before)
@@ -689,7 +506,7 @@ def test_a_forked_run_equals_a_subprocess_run(cls, base, fork_server, tmp_path):
         case = build(work, base)
         run = run_massviz(case.argv, work, forked=fork_server if how == "forked" else None)
         runs.append((run.code, run.stdout.replace(str(work), "W"), run.stderr.replace(str(work), "W")))
-        trees.append({k: v[:2] for k, v in snapshot(work, (work / "usercache", work / "xdg")).items()})
+        trees.append({k: v[:2] for k, v in folder_state(work, (work / "usercache", work / "xdg")).items()})
     assert runs[0] == runs[1], (name, runs)
     assert trees[0] == trees[1], name
     assert runs[0][0] != 0 and runs[0][2].strip(), (name, runs[0])  # a hostile case: it failed, and said so
@@ -700,6 +517,7 @@ def test_enough_generated_cases():
 
 
 # ======================================================================================== accepted hostile inputs
+@pytest.mark.slow  # a massviz subprocess
 def test_output_symlink_is_written_through_and_kept(base, tmp_path):
     """A symlink as --out: the file it points to gets the CSV, the link stays a link (never replaced)."""
     work = tmp_path / "w"
@@ -715,6 +533,7 @@ def test_output_symlink_is_written_through_and_kept(base, tmp_path):
     assert not [p for p in work.iterdir() if p.name.startswith(".")], "hidden temporary left"
 
 
+@pytest.mark.slow  # a massviz subprocess
 def test_formula_ids_are_neutralised_in_csvs(base, tmp_path):
     """A recording id starting with '=' goes into the challenge CSV as text ("'=..."), matching on the raw id."""
     work = tmp_path / "w"
@@ -777,32 +596,6 @@ def test_printable_escapes_every_control_character():
     assert printable("line\nnext", keep="\n") == "line\nnext"
 
 
-# =============================================================================================== slow: training
-@pytest.fixture(scope="module")
-def patch_set(base, tmp_path_factory) -> Path:
-    from massviz import cli
-
-    root = tmp_path_factory.mktemp("fuzz2_patches")
-    recs = []
-    for i in range(4):
-        rec = copy_sample(root / f"rec{i}", n=3)
-        meta = json.loads((rec / "meta.json").read_text())
-        meta["id"] = f"rec{i}"
-        meta.setdefault("container", {})["mass_g"] = 10.0 + 5 * i
-        (rec / "meta.json").write_text(json.dumps(meta))
-        recs.append(rec)
-    out = root / "patches"
-    code = cli.main(["extract", *map(str, recs), "--out", str(out), "--detector", "replay", "--replay",
-                     str(base.replay), "--weights", str(base.weights), "--cache", str(root / "cache"), "--quiet"])
-    assert code == 0 and (out / "index.csv").is_file()
-    import pandas as pd
-
-    index = pd.read_csv(out / "index.csv")  # copies of one sample: spread d, a, b (min-max ranges need a span)
-    for col, step in (("d", 37.0), ("a", 0.01), ("b", 0.01)):
-        index[col] = index[col] + step * np.arange(len(index))
-    index.to_csv(out / "index.csv", index=False)
-    return out
-
 
 TRAIN_CASES = {
     "lr-10": (lambda w, p, b: ["--lr", "10", "--epochs", "40"], lambda w, p: "training stopped:",
@@ -825,33 +618,33 @@ def _damage_patch(patches: Path, work: Path, data: bytes) -> list:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", list(TRAIN_CASES))
-def test_train_stops_cleanly(name, base, patch_set, tmp_path):
+def test_train_stops_cleanly(name, base, sample_patch_set, tmp_path):
     work = tmp_path / "w"
     work.mkdir()
     extra_of, culprit_of, what = TRAIN_CASES[name]
-    extra = extra_of(work, patch_set, base)
-    patches = work / "patches" if (work / "patches").exists() else patch_set
+    extra = extra_of(work, sample_patch_set, base)
+    patches = work / "patches" if (work / "patches").exists() else sample_patch_set
     culprit = culprit_of(work, patches) if culprit_of else next(p for p in sorted((patches / "images").iterdir()))
     argv = ["train", patches, "--out", work / "run", "--epochs", "2", "--augment", "1", "--quiet", *map(str, extra)]
     case = Case(name, argv, culprit, what, [work / "run"])
-    before = snapshot(work)
+    before = folder_state(work)
     check_promise(case, run_massviz(argv, work), work, before)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP])
-def test_train_signal_leaves_no_run_folder(sig, base, patch_set, tmp_path):
+def test_train_signal_leaves_no_run_folder(sig, base, sample_patch_set, tmp_path):
     work = tmp_path / "w"
     work.mkdir()
     out = work / "run"
-    argv = ["train", patch_set, "--out", out, "--epochs", "200", "--augment", "1", "--quiet"]
+    argv = ["train", sample_patch_set, "--out", out, "--epochs", "200", "--augment", "1", "--quiet"]
     name = signal.Signals(sig).name
 
     def training() -> bool:
         return any(p.name.startswith(".run.") and (p / "metrics.csv").exists() for p in work.iterdir())
     case = Case(f"train-{name}", argv, None, rf"\({name}\)" if sig != signal.SIGINT else "$", [out],
                 code=128 + sig, line="interrupted", when=training, send=sig)
-    before = snapshot(work)
+    before = folder_state(work)
     check_promise(case, run_massviz(argv, work, when=training, send=sig), work, before)
 
 
@@ -864,17 +657,16 @@ LIVE_FRAMES = list(range(18, 30)) * 8
 
 @pytest.fixture(scope="module")
 def live_db3(tmp_path_factory) -> Path:
-    from test_realsense import need_realsense
+    from fakes import need_realsense
 
     need_realsense()
-    from test_recording import write_recording
-
+    from fakes import write_recording
     from massviz.io.formats.realsense_write import write_realsense
     from massviz.io.recording import open_recording
 
     sample = open_recording(ROOT / "data_samples" / "cup_handover")
     frames = {f.index: f for f in sample.frames(indices=sorted(set(LIVE_FRAMES)))}
-    root = tmp_path_factory.mktemp("fuzz2_live")
+    root = tmp_path_factory.mktemp("hostile_live")
     folder = write_recording(root / "played", [frames[i].rgb for i in LIVE_FRAMES],
                              [frames[i].depth for i in LIVE_FRAMES], intrinsics=sample.intrinsics.to_dict(),
                              meta={"id": "played", "fps": 10})
@@ -949,7 +741,7 @@ def test_live_signal(name, base, live_db3, tmp_path):
     (work / "home").mkdir()
     case = LIVE_SIGNAL_CASES[name](work, base, live_db3)
     case.name = name
-    before = snapshot(work, tuple(work / w for w in ("cache", "usercache", "xdg", "home", "tmpdir")) + case.writes)
+    before = folder_state(work, tuple(work / w for w in ("cache", "usercache", "xdg", "home", "tmpdir")) + case.writes)
     run = run_massviz(case.argv, work, when=case.when, send=case.send)
     check_promise(case, run, work, before)
 
@@ -1136,8 +928,8 @@ def _library_calls(work: Path, b: Base):
                   (f"load_exclusions {p}", lambda q=path: load_exclusions(q))]
     for name in CHECKPOINTS:
         (work / f"ck-{name}").mkdir()
-        calls.append((f"load_checkpoint {name}", lambda c=_ckpt(CHECKPOINTS[name][0])(work / f"ck-{name}", b):
-                      load_checkpoint(c)))
+        checkpoint = _ckpt(CHECKPOINTS[name][0])(work / f"ck-{name}", b)
+        calls.append((f"load_checkpoint {name}", lambda c=checkpoint: load_checkpoint(c)))
     for name in ("300MB",):
         bomb = npz_bomb(work / f"bomb-{name}.npz", BOMBS[name][0])
         calls.append((f"load_trace bomb {name}", lambda q=bomb: load_trace(q)))

@@ -13,9 +13,10 @@ import unicodedata
 from pathlib import Path
 
 import pytest
-from test_fuzz import Base, base, copy_sample  # noqa: F401
-from test_fuzz2 import run_massviz
 
+import hostile_runs
+from fakes import Base, copy_sample
+from hostile_runs import run_massviz
 from massviz import cli
 
 
@@ -150,8 +151,8 @@ RESOURCES = {
 }
 
 
-@pytest.mark.parametrize("name", [pytest.param(n, marks=() if i == 0 else pytest.mark.slow)
-                                  for i, n in enumerate(RESOURCES)])
+@pytest.mark.slow  # a massviz process with its own resource limits
+@pytest.mark.parametrize("name", list(RESOURCES))
 def test_scarce_resources_are_one_line_or_work(name, base, tmp_path):
     """``estimate`` (default cache) under each limit: it works, or one line says what is missing; nothing left."""
     work = tmp_path / "w"
@@ -162,14 +163,12 @@ def test_scarce_resources_are_one_line_or_work(name, base, tmp_path):
     argv = ["estimate", rec, "--out", out, "--detector", "replay", "--replay", base.replay, "--weights", base.weights,
             "--quiet"]
     if env:
-        import test_fuzz2
-
-        saved = test_fuzz2.clean_env
-        test_fuzz2.clean_env = lambda: {**saved(), **env}
+        saved = hostile_runs.clean_env
+        hostile_runs.clean_env = lambda: {**saved(), **env}
         try:
             run = run_massviz(argv, work, preexec=preexec)
         finally:
-            test_fuzz2.clean_env = saved
+            hostile_runs.clean_env = saved
     else:
         run = run_massviz(argv, work, preexec=preexec)
     both = run.stdout + run.stderr

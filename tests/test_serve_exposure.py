@@ -13,7 +13,8 @@ import time
 from pathlib import Path
 
 import pytest
-from test_fuzz import Base, base, copy_sample  # noqa: F401
+
+from fakes import copy_sample
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -17,172 +17,37 @@ import os
 import pickle
 import re
 import shutil
-import struct
-import subprocess
-import sys
-import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import cv2
 import numpy as np
 import pytest
+
+from fakes import (
+    ANN_HEADER,
+    ANN_ROWS,
+    PRED_HEADER,
+    PRED_ROWS,
+    SAMPLE,
+    Base,
+    Evil,
+    calib,
+    copy_sample,
+    csv_text,
+    faststart,
+    make_ccm,
+    png_header_only,
+    run_cli,
+    snapshot,
+    visible_lines,
+)
 from support import run_massviz
 
-from massviz import cli
-
 ROOT = Path(__file__).resolve().parents[1]
-SAMPLE = ROOT / "data_samples" / "cup_handover"
-N_FRAMES = 3
 W, H = 480, 270
 
-
-# ============================================================================================================ inputs
-def copy_sample(dst: Path, n: int = N_FRAMES, video: bool = False) -> Path:
-    """The first ``n`` frames of the cup sample as a massviz recording folder (rgb/ or rgb.mp4, depth/, gt/,
-    intrinsics.json, meta.json)."""
-    dst.mkdir(parents=True)
-    for sub in ("depth", "gt") + (() if video else ("rgb",)):
-        (dst / sub).mkdir()
-        for i in range(n):
-            shutil.copy(SAMPLE / sub / f"{i:06d}.png", dst / sub / f"{i:06d}.png")
-    if video:
-        write_mp4(dst / "rgb.mp4", [cv2.imread(str(SAMPLE / "rgb" / f"{i:06d}.png")) for i in range(n)])
-    shutil.copy(SAMPLE / "intrinsics.json", dst / "intrinsics.json")
-    meta = json.loads((SAMPLE / "meta.json").read_text())
-    meta["frames"] = meta["frames"][:n]
-    (dst / "meta.json").write_text(json.dumps(meta))
-    return dst
-
-
-def write_mp4(path: Path, bgrs, fps: float = 30.0) -> Path:
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (bgrs[0].shape[1], bgrs[0].shape[0]))
-    for bgr in bgrs:
-        writer.write(bgr)
-    writer.release()
-    return path
-
-
-def _atoms(data: bytes, start: int = 0, end: int | None = None):
-    end = len(data) if end is None else end
-    i = start
-    while i + 8 <= end:
-        size, kind = struct.unpack(">I4s", data[i:i + 8])
-        hdr = 8
-        if size == 1:
-            size, hdr = struct.unpack(">Q", data[i + 8:i + 16])[0], 16
-        elif size == 0:
-            size = end - i
-        yield kind, i, size, hdr
-        i += size
-
-
-def _shift_chunk_offsets(moov: bytearray, delta: int, start: int = 8, end: int | None = None) -> None:
-    for kind, i, size, hdr in list(_atoms(moov, start, len(moov) if end is None else end)):
-        if kind in (b"trak", b"mdia", b"minf", b"stbl"):
-            _shift_chunk_offsets(moov, delta, i + hdr, i + size)
-        elif kind in (b"stco", b"co64"):
-            width = 4 if kind == b"stco" else 8
-            fmt = ">I" if width == 4 else ">Q"
-            for j in range(struct.unpack(">I", moov[i + 12:i + 16])[0]):
-                p = i + 16 + width * j
-                moov[p:p + width] = struct.pack(fmt, struct.unpack(fmt, moov[p:p + width])[0] + delta)
-
-
-def faststart(data: bytes) -> bytes:
-    """The same mp4 with its index (moov) before the frames (mdat), as ``ffmpeg -movflags +faststart`` writes it:
-    cut in half, such a file still opens and promises every frame."""
-    top = list(_atoms(data))
-    at, size = next((i, s) for k, i, s, _ in top if k == b"moov")
-    mdat = next(i for k, i, _, _ in top if k == b"mdat")
-    moov = bytearray(data[at:at + size])
-    _shift_chunk_offsets(moov, len(moov))
-    head = b"".join(data[i:i + s] for k, i, s, _ in top if i < mdat)
-    rest = b"".join(data[i:i + s] for k, i, s, _ in top if i >= mdat and k != b"moov")
-    return head + bytes(moov) + rest
-
-
-def png_header_only(width: int, height: int) -> bytes:
-    """A 60-byte PNG whose header declares width x height pixels (a decoder would allocate them first)."""
-    def chunk(kind, body):
-        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
-    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 16, 0, 0, 0, 0))
-            + chunk(b"IDAT", zlib.compress(b"")) + chunk(b"IEND", b""))
-
-
-def cup_box(frame: int = 1) -> list[int]:
-    gt = cv2.imread(str(SAMPLE / "gt" / f"{frame:06d}.png"), cv2.IMREAD_UNCHANGED)
-    ys, xs = np.nonzero(gt == 1)
-    return [int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1]
-
-
-class Evil:
-    """Unpickling this runs ``touch CANARY``."""
-
-    def __init__(self, canary: Path, how: str = "os"):
-        self.canary, self.how = canary, how
-
-    def __reduce__(self):
-        if self.how == "subprocess":
-            return subprocess.call, (["touch", str(self.canary)],)
-        if self.how == "eval":
-            return eval, (f"open({str(self.canary)!r}, 'w').close()",)
-        return os.system, (f"touch {self.canary}",)
-
-
-def calib(fx: float = 346.4, fy: float = 346.3, cx: float = 243.7, cy: float = 135.4) -> list:
-    """The structure of a CCM calibration pickle (shared/ccm_real/README.md) with the sample's intrinsics."""
-    k = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
-    ext = {"rvec": np.eye(3), "tvec": np.zeros((3, 1)), "projMatrix": np.zeros((3, 4))}
-    return [{"rgb": k, "ir1": k.copy(), "ir2": k.copy()}, {n: dict(ext) for n in ("rgb", "ir1", "ir2")},
-            np.array([487, 341]), np.array([748, 338])]
-
-
-def make_ccm(root: Path, calib_bytes: bytes | None = None) -> Path:
-    """ROOT/view1/{rgb/000000.mp4, depth/000000/*.png, calib/000000.pickle} from the sample; returns the video."""
-    view = root / "view1"
-    for sub in ("rgb", "depth/000000", "calib"):
-        (view / sub).mkdir(parents=True)
-    write_mp4(view / "rgb" / "000000.mp4", [cv2.imread(str(SAMPLE / "rgb" / f"{i:06d}.png")) for i in range(2)])
-    for i in range(2):
-        shutil.copy(SAMPLE / "depth" / f"{i:06d}.png", view / "depth" / "000000" / f"{i:04d}.png")
-    data = pickle.dumps(calib(), protocol=0) if calib_bytes is None else calib_bytes
-    (view / "calib" / "000000.pickle").write_bytes(data)
-    return view / "rgb" / "000000.mp4"
-
-
-@dataclass
-class Base:
-    root: Path
-    weights: Path
-    replay: Path
-    box: list[int]
-    trace_npz: Path
-
-
-@pytest.fixture(scope="module")
-def base(tmp_path_factory) -> Base:
-    import torch
-
-    from massviz.core.model import MassNet
-    from massviz.io.checkpoint import load_checkpoint, published_ranges, save_checkpoint
-
-    root = tmp_path_factory.mktemp("fuzz_base")
-    torch.manual_seed(0)
-    weights = save_checkpoint(root / "w.torch", MassNet(), published_ranges("Encoder_pool_aug_158.torch"))
-    box = cup_box(1)
-    replay = root / "replay.json"
-    replay.write_text(json.dumps({"detections": [{"frame": 1, "box": box, "score": 0.9, "class": "cup"}]}))
-    from massviz.core.pipeline import run
-    from massviz.detect.saved import ReplayDetector
-    from massviz.io.recording import open_recording
-    from massviz.io.trace_file import save_trace
-
-    trace = run(open_recording(copy_sample(root / "rec")), ReplayDetector(replay),
-                load_checkpoint(weights), k=5)
-    assert len(trace.detections) == 1 and trace.estimate >= 0
-    return Base(root, weights, replay, box, save_trace(trace, root / "trace.npz"))
 
 
 # ============================================================================================================= cases
@@ -606,20 +471,6 @@ def _(work, b):
     return argv, work / "ckpt.torch", "not found|directory", [out]
 
 
-# --- annotation and prediction CSVs -----------------------------------------------------------------------------
-ANN_HEADER = "id,container id,width at the top,width at the bottom,height,depth,container capacity,container mass"
-ANN_ROWS = ["0,1,92,60,110,-1,480,9", "1,4,80,60,150,-1,300,120", "2,7,140,70,200,100,-1,30"]
-PRED_HEADER = "Configuration ID,Container mass"
-PRED_ROWS = ["0,10", "1,100", "2,31"]
-
-
-def csv_text(header: str, rows: list[str], row: int | None = None, column: str | None = None, value: str = "") -> str:
-    names = header.split(",")
-    rows = [r.split(",") for r in rows]
-    if row is not None:
-        rows[row][names.index(column)] = value
-    return "\n".join([header, *(",".join(r) for r in rows)]) + "\n"
-
 
 def score_case(which: str, column: str, value: str, what: str):
     def build(work, b):
@@ -871,36 +722,6 @@ def _(work, b):
     return argv, work / "patches" / "images" / "rec1_0.png", "50000x50000", outputs
 
 
-# ============================================================================================================ runner
-def visible_lines(stderr: str) -> list[str]:
-    lines = [line.split("\r")[-1] for line in stderr.split("\n")]
-    return [line for line in lines if line.strip()]
-
-
-def snapshot(folder: Path, skip: Path | None = None) -> dict[str, tuple[int, int]]:
-    """Every file (and folder) under ``folder`` with its size and modification time, ``skip`` excluded."""
-    out = {}
-    for p in sorted(folder.rglob("*")):
-        if skip is not None and (p == skip or skip in p.parents):
-            continue
-        st = p.lstat()
-        out[str(p.relative_to(folder))] = (st.st_size if p.is_file() else -1, st.st_mtime_ns)
-    return out
-
-
-def run_cli(argv) -> tuple[int, str, str]:
-    """``massviz.cli.main`` in-process; (exit code, stdout, stderr)."""
-    out, err = io.StringIO(), io.StringIO()
-    real = sys.stdout, sys.stderr
-    sys.stdout, sys.stderr = out, err
-    try:
-        code = cli.main([str(a) for a in argv])
-    except SystemExit as exit_:  # argparse
-        code = exit_.code
-    finally:
-        sys.stdout, sys.stderr = real
-    return code, out.getvalue(), err.getvalue()
-
 
 def _as_str(path) -> str:
     return str(path)
@@ -1110,7 +931,7 @@ def test_as_real_subprocesses(base, tmp_path):
 
     with ThreadPoolExecutor(max_workers=2) as pool:
         results = list(pool.map(call, jobs))
-    for (name, work, argv, culprit, what, outputs, before), result in zip(jobs, results):
+    for (name, work, argv, culprit, what, outputs, before), result in zip(jobs, results, strict=False):
         stderr = result.stderr
         lines = visible_lines(stderr)
         assert result.returncode == 2 and "Traceback" not in stderr and len(lines) == 1, (name, stderr)
