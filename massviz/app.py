@@ -318,8 +318,8 @@ def build_pipeline(options: PipelineOptions | None = None, **kwargs) -> Pipeline
     """Build the detector, load the mass CNN and open the trace cache from ``options`` (or keyword options)."""
     from massviz.core.device import resolve_device
     from massviz.detect import make_detector
-    from massviz.io.checkpoint import load_checkpoint
     from massviz.io.cache import TraceCache
+    from massviz.io.checkpoint import load_checkpoint
     from massviz.io.weights import resolve_weights
 
     options = (options or PipelineOptions()).replace(**kwargs) if kwargs else (options or PipelineOptions())

@@ -17,11 +17,10 @@ def measured_trace(args, needs_intrinsics: str | None = None):
     measurements, or, for a command that cannot work without them (``needs_intrinsics``: its name), one error line
     before the pipeline runs."""
     from massviz.commands._common import build
+    from massviz.errors import MassvizError
+    from massviz.io.recording import open_recording
     from massviz.measure3d.settings import skip_reason
     from massviz.measure3d.stage import with_measurements
-    from massviz.io.recording import open_recording
-
-    from massviz.errors import MassvizError
 
     rec = open_recording(args.recording, allow_partial=args.allow_partial)
     if needs_intrinsics and skip_reason(rec):

@@ -56,8 +56,8 @@ def open_dataset(args):
     that cannot be opened becomes a failed outcome under --on-error skip (the default for a dataset), an error under
     stop. Task paths are absolute: Ray workers open the recordings themselves; the local engine takes the opened
     ones (pass them to ``run_tasks(recordings=)``)."""
-    from massviz.errors import MassvizError
     from massviz.commands._warm import cache_root
+    from massviz.errors import MassvizError
     from massviz.io.identity import open_remembered
     from massviz.io.recording import find_recordings
     from massviz.runners.dataset import Outcome, Task, default_on_error

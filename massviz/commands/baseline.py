@@ -42,10 +42,9 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from massviz.evaluation.baselines import RANDOM_RANGE_G, average_mass, random_baseline
+    from massviz.io.atomic import check_output_file
     from massviz.io.ccm_annotations import ANN_ID, read_annotations
     from massviz.io.challenge_csv import write_challenge_csv
-
-    from massviz.io.atomic import check_output_file
 
     check_output_file(args.out, "--out")
     ids = read_annotations(args.annotations)[ANN_ID].tolist()

@@ -48,21 +48,17 @@ def measurement_rows(trace, gt: dict | None) -> list[dict]:
 
 def run(args) -> int:
     import json
-    from pathlib import Path
 
     import pandas as pd
 
-    from massviz.io.atomic import atomic_path, staged_files
     from massviz.commands._3d import measured_trace
-    from massviz.measure3d.geometry import annotation_size, ground_truth_size
-    from massviz.views.open3d_view import write_ply
-
-    from massviz.io.atomic import check_output_dir
-    from massviz.io.untrusted import json_safe, write_csv
-
-    from massviz.measure3d.settings import skip_reason
     from massviz.errors import MassvizError
+    from massviz.io.atomic import atomic_path, check_output_dir, staged_files
     from massviz.io.recording import open_recording
+    from massviz.io.untrusted import json_safe, write_csv
+    from massviz.measure3d.geometry import annotation_size, ground_truth_size
+    from massviz.measure3d.settings import skip_reason
+    from massviz.views.open3d_view import write_ply
 
     out = check_output_dir(args.out, "--out")
     # clouds need the camera intrinsics: without them, one error line naming the recording (exit 2) before any

@@ -73,9 +73,9 @@ def _is_trace(path: str) -> bool:
 def _side(spec: str, args, overrides: dict, label: str):
     """(trace, recording or None, description) of one side."""
     from massviz.app import PipelineOptions, build_pipeline
-    from massviz.io.trace_file import load_trace
     from massviz.errors import MassvizError
     from massviz.io.recording import open_recording
+    from massviz.io.trace_file import load_trace
 
     if _is_trace(spec):
         if overrides:

@@ -63,11 +63,10 @@ def collect_patches(trace, recording, label, *, exclusions=None, skip_flagged: b
 def run(args) -> int:
     from massviz.commands._common import build
     from massviz.commands._runner import exit_status, open_dataset, run_tasks
-    from massviz.io.ccm_annotations import read_annotations
-    from massviz.runners.dataset import Task
-    from massviz.io.patch_set import check_extract, write_patch_set
-
     from massviz.io.atomic import check_output_dir
+    from massviz.io.ccm_annotations import read_annotations
+    from massviz.io.patch_set import check_extract, write_patch_set
+    from massviz.runners.dataset import Task
 
     check_output_dir(args.out, "--out")
     tasks, failed, recordings, on_error = open_dataset(args)

@@ -46,9 +46,8 @@ def run(args) -> int:
 
     from massviz.commands._3d import measured_trace
     from massviz.errors import MassvizError
-    from massviz.views.open3d_view import render_png
-
     from massviz.io.atomic import check_output_file
+    from massviz.views.open3d_view import render_png
 
     out = Path(args.out)
     if out.suffix.lower() != ".png":

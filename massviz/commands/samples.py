@@ -8,7 +8,6 @@ from pathlib import Path
 from tqdm import tqdm
 
 
-
 def register(subparsers) -> None:
     from massviz.samples.specs import N_FRAMES, SAMPLES
 

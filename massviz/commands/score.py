@@ -63,11 +63,9 @@ def _pairs(args: argparse.Namespace) -> list[tuple[str, str, str]]:
 
 def run(args: argparse.Namespace) -> int:
     from massviz.evaluation.metrics import PRED_ID, default_class_of, parse_class_map, read_predictions, score
+    from massviz.io.atomic import atomic_path, check_output_file
     from massviz.io.ccm_annotations import ANN_ID, read_annotations
-    from massviz.io.atomic import atomic_path
     from massviz.io.untrusted import json_safe
-
-    from massviz.io.atomic import check_output_file
 
     for option in ("json", "plot"):
         if getattr(args, option):

@@ -25,7 +25,6 @@ from typing import NamedTuple
 
 import numpy as np
 
-from massviz.errors import MassvizError
 from massviz.core.detector import describe_cut
 from massviz.core.flags import Flags, analyse
 from massviz.core.frame_stage import FramePatches
@@ -33,6 +32,7 @@ from massviz.core.measurement import Measurement, ranked_measurements
 from massviz.core.selection import NearestOrder, Selection, estimate_mass, not_estimated_reason, select_k_nearest
 from massviz.core.tracks import assign_tracks
 from massviz.core.types import Detections, Frame, GroundTruth, RecordingInfo, class_name
+from massviz.errors import MassvizError
 
 
 @dataclass

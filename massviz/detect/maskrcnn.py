@@ -73,8 +73,12 @@ def _construct(threshold: float, skip_init: bool) -> torch.nn.Module:
     return model
 
 
+#: the COCO classes the paper keeps (cup, book, wine glass, bottle), as class ids
+KEEP_CLASSES = tuple(COCO_KEEP.values())
+
+
 def build_model(threshold: float, weights: str | Path | None = None, pretrained: bool = True,
-                classes=tuple(COCO_KEEP.values())) -> torch.nn.Module:
+                classes=KEEP_CLASSES) -> torch.nn.Module:
     """Mask R-CNN in eval mode whose box post-processing keeps only ``classes`` with score > ``threshold``.
 
     ``weights``: a local state_dict file (offline copy); else torchvision's COCO weights through its own
@@ -393,7 +397,7 @@ class MaskRCNNDetector:
     default_threshold = PAPER_THRESHOLD
 
     def __init__(self, threshold: float = PAPER_THRESHOLD, weights: str | Path | None = None, device: str | None = None,
-                 pretrained: bool = True, classes=tuple(COCO_KEEP.values()), precision: str = "fp32",
+                 pretrained: bool = True, classes=KEEP_CLASSES, precision: str = "fp32",
                  fused: bool = True):
         self.threshold = float(threshold)
         self.weights = None if weights is None else Path(weights)

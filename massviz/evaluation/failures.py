@@ -41,15 +41,15 @@ from typing import Iterable, Sequence
 import numpy as np
 import pandas as pd
 
-from massviz.io.atomic import atomic_path
-from massviz.errors import DataError
 from massviz.core.flags import GT_MIN_IOU, ground_truth_overlap
-from massviz.io.ground_truth import ground_truth_masks
-from massviz.io.untrusted import MAX_INDEX, text_id
-from massviz.io.untrusted.text import _CONTROL
 from massviz.core.trace import Trace
 from massviz.core.tracks import box_iou
 from massviz.core.types import class_name
+from massviz.errors import DataError
+from massviz.io.atomic import atomic_path
+from massviz.io.ground_truth import ground_truth_masks
+from massviz.io.untrusted import MAX_INDEX, text_id
+from massviz.io.untrusted.text import _CONTROL
 
 EXCLUSIONS_FORMAT = "massviz.exclusions/1"
 #: IoU a box must reach to match an exclusion entry whose exact box is not found.

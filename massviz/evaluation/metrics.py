@@ -31,8 +31,17 @@ import numpy as np
 import pandas as pd
 
 from massviz.errors import DataError
-from massviz.io.ccm_annotations import (ANN_CONTAINER, ANN_ID, ANN_MASS, MAX_ID, check_unique, column_values,
-                                        parse_id, parse_number, read_table)
+from massviz.io.ccm_annotations import (
+    ANN_CONTAINER,
+    ANN_ID,
+    ANN_MASS,
+    MAX_ID,
+    check_unique,
+    column_values,
+    parse_id,
+    parse_number,
+    read_table,
+)
 
 #: Key and value columns of the challenge prediction CSV.
 PRED_ID, PRED_MASS = "Configuration ID", "Container mass"

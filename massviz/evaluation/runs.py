@@ -28,13 +28,16 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 import pandas as pd
 
 from massviz.app import PipelineOptions
 from massviz.errors import MassvizError
+
+if TYPE_CHECKING:
+    from massviz.core.trace import Trace
 from massviz.evaluation.browser import read_dataset, tables_from_traces
 from massviz.evaluation.compare import DEFAULT_IOU, match_boxes
 

@@ -13,12 +13,11 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 
+from massviz.core.selection import NearestOrder, Selection
+from massviz.core.trace import Trace
 from massviz.errors import MassvizError
 from massviz.evaluation.metrics import default_class_of, recording_scores
 from massviz.io.ccm_annotations import ANN_CONTAINER, ANN_ID, ANN_MASS
-from massviz.core.selection import NearestOrder, Selection
-from massviz.core.trace import Trace
-
 
 #: most values a range may expand to (a step of 1e-9 would otherwise ask for a billion).
 MAX_RANGE_VALUES = 10_000

@@ -23,12 +23,12 @@ from typing import Protocol, Sequence
 import numpy as np
 import pandas as pd
 
-from massviz.evaluation.metrics import ScoreReport, default_class_of, score_from_estimates
-from massviz.evaluation.sweep import annotations_from_meta, match_annotations
 from massviz.core.detector import detector_info
 from massviz.core.selection import Selection, estimate_mass, select_k_nearest
 from massviz.core.trace import Trace, check_reselectable
 from massviz.core.types import Detections
+from massviz.evaluation.metrics import ScoreReport, default_class_of, score_from_estimates
+from massviz.evaluation.sweep import annotations_from_meta, match_annotations
 
 
 def kept_indices(trace: "Trace | SelectionSource", stride: int) -> np.ndarray:

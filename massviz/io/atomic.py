@@ -21,7 +21,6 @@ from pathlib import Path
 from massviz.errors import MassvizError
 from massviz.signals import deferred
 
-
 _KINDS = {stat.S_IFCHR: "a character device", stat.S_IFBLK: "a block device", stat.S_IFIFO: "a FIFO (named pipe)",
           stat.S_IFSOCK: "a socket"}
 

@@ -15,12 +15,12 @@ Location: ``--cache PATH``, else env ``MASSVIZ_CACHE_DIR``, else the user cache 
 """
 from __future__ import annotations
 
-import logging
 import contextlib
 import functools
 import glob
 import hashlib
 import json
+import logging
 import os
 import shutil
 from dataclasses import dataclass, field
@@ -28,14 +28,14 @@ from pathlib import Path
 
 import numpy as np
 
-from massviz.errors import MassvizError
-from massviz.io.filehash import FileHasher
-from massviz.io.untrusted import safe_filename
-from massviz.io.recording import Recording
 from massviz.core.selection import Selection
 from massviz.core.trace import Trace
 from massviz.core.types import Detections, RecordingInfo
+from massviz.errors import MassvizError
+from massviz.io.filehash import FileHasher
+from massviz.io.recording import Recording
 from massviz.io.trace_file import load_trace, save_trace
+from massviz.io.untrusted import safe_filename
 
 _LOG = logging.getLogger(__name__)
 
@@ -216,9 +216,8 @@ class TraceIndex:
         ``massviz.app.process`` gives a cached trace) and the ground-truth overlaps of that recording."""
         import dataclasses
 
-        from massviz.io.ground_truth import with_ground_truth
-
         from massviz.core.trace import analyse_trace
+        from massviz.io.ground_truth import with_ground_truth
 
         return analyse_trace(with_ground_truth(dataclasses.replace(load_trace(self.trace_path),
                                                                    recording=self.recording)))

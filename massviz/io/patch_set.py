@@ -203,8 +203,8 @@ def read_index(patches: str | Path) -> pd.DataFrame:
     table["container_id"] = ids.fillna(-1).astype(np.int64)
     if "flagged" in table.columns:  # patch sets made before massviz flagged patches have no such column
         given = table["flagged"].astype(object)  # an all-empty column is float64 NaN: no False filled into it
-        flagged = given.where(given.notna(), False).map({True: True, False: False, "True": True, "False": False,
-                                                         1: True, 0: False})  # empty: not flagged
+        # empty: not flagged; 1 and 0 (and 1.0, 0.0) are the keys True and False
+        flagged = given.where(given.notna(), False).map({True: True, False: False, "True": True, "False": False})
         if flagged.isna().any():
             i = int(np.flatnonzero(flagged.isna().to_numpy())[0])
             raise DataError(f"row {i + 1}, column 'flagged': {table['flagged'].iloc[i]!r} is not True or False", path)

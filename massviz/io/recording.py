@@ -38,8 +38,14 @@ from pathlib import Path
 from massviz.core.recording_protocol import Recording
 from massviz.errors import RecordingError
 from massviz.io.formats.ccm import CCMRecording, ccm_videos, is_ccm_root, open_ccm
-from massviz.io.formats.common import (IMAGE_SUFFIXES, MAX_FRAME_FILE_BYTES, MAX_JSON_BYTES, RecordingBase,
-                                       check_intrinsics, partial_message)
+from massviz.io.formats.common import (
+    IMAGE_SUFFIXES,
+    MAX_FRAME_FILE_BYTES,
+    MAX_JSON_BYTES,
+    RecordingBase,
+    check_intrinsics,
+    partial_message,
+)
 from massviz.io.formats.folder import FrameFilesRecording, looks_like_recording, open_folder
 from massviz.io.formats.realsense_decode import SUFFIXES as REALSENSE_SUFFIXES
 

@@ -23,7 +23,6 @@ import urllib.error
 from dataclasses import dataclass
 from pathlib import Path
 
-
 from massviz.errors import WeightsError
 
 #: the authors' repository commit the published checkpoints are pinned to.

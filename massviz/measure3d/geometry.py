@@ -42,8 +42,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from massviz._open3d import o3d
 
+from massviz._open3d import o3d
 from massviz.core.measurement import Measurement
 from massviz.core.types import Detections, Frame, GroundTruth, Intrinsics
 from massviz.io.ccm_annotations import annotation_of

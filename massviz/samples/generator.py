@@ -26,15 +26,27 @@ from typing import Callable, Iterable
 
 import cv2
 import numpy as np
-from massviz._open3d import o3d
 
 from massviz import __version__
+from massviz._open3d import o3d
+from massviz.core.types import Intrinsics
 from massviz.io.atomic import atomic_dir, check_replaceable
 from massviz.io.formats.folder import FolderFrameWriter
-from massviz.core.types import Intrinsics
-
-from massviz.samples.specs import (CONTAINER, FPS, HAND, INSTANCES, INTRINSICS, N_FRAMES, PERSON, PITCHER,  # noqa: F401
-                                    PITCHER_LIFT, SAMPLES, TABLE, Container, SampleSpec)
+from massviz.samples.specs import (  # noqa: F401
+    CONTAINER,
+    FPS,
+    HAND,
+    INSTANCES,
+    INTRINSICS,
+    N_FRAMES,
+    PERSON,
+    PITCHER,
+    PITCHER_LIFT,
+    SAMPLES,
+    TABLE,
+    Container,
+    SampleSpec,
+)
 
 # Stereo depth model. The sensor's disparity is computed at its native resolution (focal 640 px, 50 mm baseline) and
 # quantised to 1/8 px, so depth steps and noise grow with z²: about 4 mm / 2.5 mm at 1 m, 10 mm / 6 mm at 1.6 m.
@@ -112,11 +124,12 @@ def cuboid(size: tuple[float, float, float]):
     return verts, tris, np.repeat(np.arange(6), 2)
 
 
-def _part(verts, tris, albedo, instance, rotation=np.eye(3), translation=(0, 0, 0), glass=False) -> Part:
+def _part(verts, tris, albedo, instance, rotation=None, translation=(0, 0, 0), glass=False) -> Part:
     albedo = np.asarray(albedo, dtype=np.uint8)
     if albedo.ndim == 1:
         albedo = np.tile(albedo, (len(tris), 1))
-    return Part(verts @ np.asarray(rotation).T + np.asarray(translation), tris, albedo, instance, glass)
+    rotation = np.eye(3) if rotation is None else np.asarray(rotation)
+    return Part(verts @ rotation.T + np.asarray(translation), tris, albedo, instance, glass)
 
 
 def _ellipsoid(radii, albedo, instance, rotation, centre) -> Part:

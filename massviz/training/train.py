@@ -53,14 +53,26 @@ from torch import nn
 from torch.utils.data import DataLoader, Dataset
 from tqdm.auto import tqdm
 
+from massviz.core.model import MassNet, Ranges, preprocess_patch
 from massviz.errors import DataError, MassvizError
 from massviz.io.atomic import atomic_dir, check_replaceable
-from massviz.io.patch_set import (  # noqa: F401 - the patch set's names, also here
-    DIMENSIONS, IMAGES_DIR, INDEX_COLUMNS, INDEX_NAME, Annotation, ExtractResult, annotation_for, check_extract,
-    flag_columns, patch_files, patch_rows, read_index, write_patch_set)
-from massviz.io.untrusted import csv_writer, number, write_csv
-from massviz.core.model import MassNet, Ranges, preprocess_patch
 from massviz.io.checkpoint import load_checkpoint, save_checkpoint
+from massviz.io.patch_set import (  # noqa: F401 - the patch set's names, also here
+    DIMENSIONS,
+    IMAGES_DIR,
+    INDEX_COLUMNS,
+    INDEX_NAME,
+    Annotation,
+    ExtractResult,
+    annotation_for,
+    check_extract,
+    flag_columns,
+    patch_files,
+    patch_rows,
+    read_index,
+    write_patch_set,
+)
+from massviz.io.untrusted import csv_writer, number, write_csv
 
 #: test containers of each fold (one cup, one glass, one box left out).
 FOLDS = {"fold1": (3, 6, 9), "fold2": (2, 5, 8), "fold3": (1, 4, 7)}

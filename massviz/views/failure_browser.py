@@ -198,8 +198,8 @@ class RecordingViewer:
     def show(self, recording: str, frame: int) -> None:
         import rerun as rr
 
-        from massviz.views.rerun_dataset import rrd_name
         from massviz.views.rerun.output import APPLICATION_ID, use_local_notebook_assets
+        from massviz.views.rerun_dataset import rrd_name
 
         use_local_notebook_assets()  # before rerun_notebook is imported
         from rerun.notebook import Viewer

@@ -15,13 +15,14 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
-from massviz._open3d import o3d
 
+from massviz._open3d import o3d
 from massviz.core.types import Intrinsics
-from massviz.measure3d.geometry import DEPTH_TRUNC_M, measured_box, require_intrinsics, rgbd_cloud
 from massviz.errors import MassvizError
 from massviz.io.atomic import atomic_path, native_stderr
+from massviz.measure3d.geometry import DEPTH_TRUNC_M, measured_box, require_intrinsics, rgbd_cloud
 from massviz.views.palette import BOX_COLOUR, CHOSEN_COLOUR, FLAGGED_COLOUR, rgb255
+
 
 # ------------------------------------------------------------------------------------------------ files
 def save_cloud(path: str | Path, pcd: o3d.geometry.PointCloud) -> Path:
@@ -118,7 +119,7 @@ def frame_geometries(trace, recording, clouds: dict, frame_index: int | None = N
     scene = rgbd_cloud(frame.rgb, np.where(highlight, 0, depth).astype(np.uint16), intr, depth_trunc=depth_trunc)
     geoms: list[tuple[str, object]] = [("scene", scene)]
     stored = {m.detection: m for m in trace.measurements}
-    for r, i in enumerate(chosen):
+    for i in chosen:
         pcd = o3d.geometry.PointCloud(clouds[i])  # a copy: the stage's cloud keeps its colours
         flag = trace.flags.of(i)
         flagged = flag is not None and flag.flagged

@@ -11,12 +11,19 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
-from massviz.evaluation.metrics import ScoreReport
 from massviz.core.trace import Trace
 from massviz.core.types import Frame, Intrinsics, class_name
+from massviz.evaluation.metrics import ScoreReport
 from massviz.views.labels import short_reason
-from massviz.views.palette import (CHOSEN_COLOUR, CHOSEN_HEX, FLAGGED_COLOUR, FLAGGED_HEX, OTHER_HEX,
-                                    WITHOUT_FLAGGED_COLOUR, hex_colour)
+from massviz.views.palette import (
+    CHOSEN_COLOUR,
+    CHOSEN_HEX,
+    FLAGGED_COLOUR,
+    FLAGGED_HEX,
+    OTHER_HEX,
+    WITHOUT_FLAGGED_COLOUR,
+    hex_colour,
+)
 
 #: colour of chosen patches (rank shown) and of the other detections.
 CHOSEN, OTHER, FLAGGED = CHOSEN_HEX, OTHER_HEX, FLAGGED_HEX  # massviz.views.palette: the same in every view

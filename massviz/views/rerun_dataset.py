@@ -40,8 +40,16 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from massviz.core.trace import Trace, frame_results
-from massviz.evaluation.browser import INDEX_NAME, PATCH_COLUMNS as _PATCH_COLUMNS, PATCHES_NAME, best_frame, \
-    patch_rows, recording_properties, recordings_table, rounded_properties
+from massviz.evaluation.browser import (
+    INDEX_NAME,
+    PATCHES_NAME,
+    best_frame,
+    patch_rows,
+    recording_properties,
+    recordings_table,
+    rounded_properties,
+)
+from massviz.evaluation.browser import PATCH_COLUMNS as _PATCH_COLUMNS
 from massviz.io.atomic import atomic_path
 from massviz.io.untrusted import safe_filename, write_csv
 from massviz.views.rerun import entities as rl

@@ -7,14 +7,18 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from massviz.evaluation.sweep import best_pair
-from massviz.io.atomic import atomic_path
 from massviz.errors import MassvizError
 from massviz.evaluation.metrics import CLASS_ORDER, ScoreReport
+from massviz.evaluation.sweep import best_pair
+from massviz.io.atomic import atomic_path
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 #: The paper's colours (RGB 0–255): cup black, glass orange, box grey, total yellow.
 COLOURS = {"cup": (0, 0, 0), "glass": (238, 113, 27), "box": (127, 127, 127), "total": (229, 194, 36)}

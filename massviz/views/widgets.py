@@ -32,11 +32,10 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from massviz.evaluation.failures import (Exclusion, chosen_table, exclusion_of, rank_by_error, save_exclusions,
-                                         track_of)
-from massviz.core.trace import Trace, analyse_trace
-from massviz.evaluation.sweep import SweepTable
 from massviz.core.selection import estimate_mass
+from massviz.core.trace import Trace, analyse_trace
+from massviz.evaluation.failures import Exclusion, chosen_table, exclusion_of, rank_by_error, save_exclusions, track_of
+from massviz.evaluation.sweep import SweepTable
 from massviz.evaluation.tuning import original_selection, retune, retuned_selection, score_estimates
 from massviz.views.palette import CHOSEN_HEX, FLAGGED_HEX
 

@@ -3,8 +3,8 @@
 loading. One copy of each; the formats (``folder``, ``ccm``, ``realsense_file``) build on it."""
 from __future__ import annotations
 
-import logging
 import hashlib
+import logging
 import math
 import os
 from collections import OrderedDict

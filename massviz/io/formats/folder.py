@@ -21,9 +21,19 @@ import numpy as np
 
 from massviz.core.types import Frame, Intrinsics
 from massviz.errors import MassvizError, RecordingError
-from massviz.io.formats.common import (RecordingBase, check_intrinsics, frame_files, load_json, media_type,
-                                       partial_message, read_depth_png, read_rgb, video_frames, wanted_frames,
-                                       warn_once)
+from massviz.io.formats.common import (
+    RecordingBase,
+    check_intrinsics,
+    frame_files,
+    load_json,
+    media_type,
+    partial_message,
+    read_depth_png,
+    read_rgb,
+    video_frames,
+    wanted_frames,
+    warn_once,
+)
 from massviz.io.meta import check_meta, write_intrinsics
 from massviz.io.untrusted import text_id
 

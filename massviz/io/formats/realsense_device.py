@@ -163,7 +163,7 @@ class FileFrames:
                     return
                 if idle > FILE_TIMEOUT_S:
                     raise RecordingError(f"the RealSense playback stalled (no frame for {FILE_TIMEOUT_S:g} s before "
-                                         "the end of the file)", self.path)
+                                         "the end of the file)", self.path) from None
                 continue
             idle = 0.0
             yield item

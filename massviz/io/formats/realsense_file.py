@@ -15,9 +15,9 @@ import numpy as np
 from massviz.core.types import Frame
 from massviz.errors import RecordingError
 from massviz.io.formats.common import RecordingBase, wanted_frames
-from massviz.io.untrusted import text_id
 from massviz.io.formats.realsense_decode import StreamInfo, import_rs, stream_info
 from massviz.io.formats.realsense_device import FileFrames, playback_device
+from massviz.io.untrusted import text_id
 
 KIND = "realsense"
 

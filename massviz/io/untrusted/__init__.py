@@ -21,8 +21,15 @@ The checks every reader makes on what it reads from a file (see docs/untrusted.m
 from __future__ import annotations
 
 from massviz.io.untrusted.bounded import read_bounded
-from massviz.io.untrusted.images import (MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE, check_image_size, decode_image,
-                                         image_format, image_header_size, png_header_size)
+from massviz.io.untrusted.images import (
+                                         MAX_IMAGE_PIXELS,
+                                         MAX_IMAGE_SIDE,
+                                         check_image_size,
+                                         decode_image,
+                                         image_format,
+                                         image_header_size,
+                                         png_header_size,
+)
 from massviz.io.untrusted.jsonfile import MAX_JSON_BYTES, MAX_JSON_DEPTH, MAX_JSON_INT_DIGITS, load_json, parse_json
 from massviz.io.untrusted.npz import MAX_NPZ_BYTES, MAX_NPZ_RATIO, load_npz_checked
 from massviz.io.untrusted.paths import confined, frame_path

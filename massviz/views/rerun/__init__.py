@@ -67,8 +67,16 @@ Class ids (``AnnotationContext`` at ``/camera``): 0 background, 1 cup, 2 book, 3
 from __future__ import annotations
 
 from massviz.views.rerun.blueprint import blueprint_for, default_blueprint
-from massviz.views.rerun.entities import (CHOSEN_ID, CLASS_IDS, CLOUD_VOXEL_M, FLAGGED_ID, MAX_POINTS, POINT_STEP,
-                                          RgbLogger, log_flags)
+from massviz.views.rerun.entities import (
+                                          CHOSEN_ID,
+                                          CLASS_IDS,
+                                          CLOUD_VOXEL_M,
+                                          FLAGGED_ID,
+                                          MAX_POINTS,
+                                          POINT_STEP,
+                                          RgbLogger,
+                                          log_flags,
+)
 from massviz.views.rerun.output import APPLICATION_ID, use_local_notebook_assets
 from massviz.views.rerun.trace_logger import log_trace_with_clouds
 

@@ -6,7 +6,6 @@ import rerun.blueprint as rrb
 
 from massviz.core.trace import Trace
 
-
 #: the 3D view's start, as ``massviz render``'s default: orbited from the recording camera by this yaw (about the
 #: vertical, from the right) and pitch (from above), and backed off to this many times the target's distance so that
 #: the camera's frustum at the origin is in view.

@@ -11,13 +11,20 @@ import cv2
 import numpy as np
 import rerun as rr
 
-from massviz.errors import MassvizError
-from massviz.core.trace import Trace
 from massviz.core.patches import model_view
+from massviz.core.trace import Trace
 from massviz.core.types import Detections, Frame, Intrinsics, class_name
+from massviz.errors import MassvizError
 from massviz.views.labels import short_reason
-from massviz.views.palette import (BELOW_THRESHOLD_COLOUR, BOX_COLOUR, CHOSEN_COLOUR, FLAGGED_COLOUR,
-                                    WITHOUT_FLAGGED_COLOUR, rgb255, track_colour)
+from massviz.views.palette import (
+    BELOW_THRESHOLD_COLOUR,
+    BOX_COLOUR,
+    CHOSEN_COLOUR,
+    FLAGGED_COLOUR,
+    WITHOUT_FLAGGED_COLOUR,
+    rgb255,
+    track_colour,
+)
 
 #: every ``POINT_STEP``-th pixel (in x and y) of the depth image becomes a point of ``/world/points``.
 POINT_STEP = 4

@@ -7,8 +7,15 @@ import rerun as rr
 
 from massviz.core.trace import FrameResult
 from massviz.core.types import Intrinsics
-from massviz.views.rerun.entities import (MAX_POINTS, POINT_STEP, RgbLogger, frustum_depth, log_depth, log_pinhole,
-                                          log_points)
+from massviz.views.rerun.entities import (
+    MAX_POINTS,
+    POINT_STEP,
+    RgbLogger,
+    frustum_depth,
+    log_depth,
+    log_pinhole,
+    log_points,
+)
 
 
 def entrants(result: FrameResult) -> dict[int, int]:

@@ -37,9 +37,20 @@ from massviz.core.trace import Trace, describe_detection
 from massviz.core.types import Intrinsics
 from massviz.errors import MassvizError
 from massviz.views.rerun.blueprint import default_blueprint
-from massviz.views.rerun.entities import (RUNNING_COLOUR, PatchTiles, RgbLogger, detection_class_ids,
-                                          log_annotation_context, log_detections, log_masks, log_patch, log_summary,
-                                          log_timings, summary_markdown, text_log)
+from massviz.views.rerun.entities import (
+    RUNNING_COLOUR,
+    PatchTiles,
+    RgbLogger,
+    detection_class_ids,
+    log_annotation_context,
+    log_detections,
+    log_masks,
+    log_patch,
+    log_summary,
+    log_timings,
+    summary_markdown,
+    text_log,
+)
 from massviz.views.rerun.frame_logger import FrameLogger
 from massviz.views.rerun.output import Output
 from massviz.views.rerun.trace_logger import log_conclusion

@@ -15,10 +15,25 @@ from tqdm.auto import tqdm
 from massviz.core.trace import FrameResult, Trace, frame_results
 from massviz.errors import MassvizError
 from massviz.views.rerun.blueprint import blueprint_for
-from massviz.views.rerun.entities import (MAX_POINTS, POINT_STEP, PatchTiles, RgbLogger, detection_class_ids,
-                                          log_annotation_context, log_cloud_overlays, log_detection_clouds,
-                                          log_detections, log_events, log_flags, log_masks, log_predictions,
-                                          log_running, log_summary, log_timings, text_log)
+from massviz.views.rerun.entities import (
+    MAX_POINTS,
+    POINT_STEP,
+    PatchTiles,
+    RgbLogger,
+    detection_class_ids,
+    log_annotation_context,
+    log_cloud_overlays,
+    log_detection_clouds,
+    log_detections,
+    log_events,
+    log_flags,
+    log_masks,
+    log_predictions,
+    log_running,
+    log_summary,
+    log_timings,
+    text_log,
+)
 from massviz.views.rerun.frame_logger import FrameLogger
 from massviz.views.rerun.output import Output
 
