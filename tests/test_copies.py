@@ -138,8 +138,8 @@ def test_roialign_torchvision_privates_are_those_of_the_pinned_version():
 
     import massviz.detect.roialign as roialign
 
-    pyproject = (Path(__file__).parents[1] / "pyproject.toml").read_text()
-    assert f'"torchvision=={roialign.TESTED_TORCHVISION}"' in pyproject
+    constraints = (Path(__file__).parents[1] / "constraints.txt").read_text()  # the tested pins
+    assert f"torchvision=={roialign.TESTED_TORCHVISION}\n" in constraints
     assert torchvision.__version__.split("+")[0] == roialign.TESTED_TORCHVISION, (
         f"torchvision {torchvision.__version__} is not {roialign.TESTED_TORCHVISION}: re-check the private helpers "
         f"massviz/detect/roialign.py uses ({', '.join(roialign.TORCHVISION_PRIVATES)}) and MultiScaleRoIAlign's "

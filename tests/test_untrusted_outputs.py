@@ -297,8 +297,8 @@ def test_every_output_option_has_a_255_byte_name_case(tmp_path):
     assert output_options() - covered == set()
 
 
-@pytest.mark.parametrize("run", [pytest.param(r, marks=() if i == 0 else pytest.mark.slow)
-                                 for i, r in enumerate(OUTPUT_RUNS)])
+@pytest.mark.slow  # each case a massviz process
+@pytest.mark.parametrize("run", OUTPUT_RUNS)
 def test_output_names_of_255_bytes_work_for_every_output_option(run, ctx, tmp_path):
     """Each output named with 255 bytes (the most a Linux file name may have): written, nothing hidden left beside
     it. A temporary beside an output has a short name of its own (``.mv-PID-XXXXXXXX.tmp``)."""
@@ -313,7 +313,8 @@ def test_output_names_of_255_bytes_work_for_every_output_option(run, ctx, tmp_pa
     assert hidden_beside(folder) == [], "temporaries left beside the outputs"
 
 
-@pytest.mark.parametrize("run", [pytest.param("estimate"), pytest.param("log-rrd-dir", marks=pytest.mark.slow)])
+@pytest.mark.slow  # each case a massviz process
+@pytest.mark.parametrize("run", ["estimate", "log-rrd-dir"])
 def test_an_output_name_too_long_is_one_line_naming_it(run, ctx, tmp_path):
     """A name of 256 bytes cannot be written: one line naming the user's path (not a hidden temporary), nothing
     left beside it."""

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 
 from massviz.core.types import PRECISIONS
 
@@ -106,9 +107,10 @@ def unmatched_line(command: str, trace, unmatched) -> str:
 # -------------------------------------------------------------------------------------------- float option bounds
 #: (lo, hi, lo_open, hi_open) of the float options that have their own bounds; every other float option: finite and
 #: within ±MAX_FLOAT_OPTION.
-FLOAT_OPTION_BOUNDS = {"threshold": (0.0, 1.0, False, True), "b_threshold": (0.0, 1.0, False, True),
-                       "iou": (0.0, 1.0, True, False), "lr": (0.0, 1e3, True, False),
+FLOAT_OPTION_BOUNDS = {"iou": (0.0, 1.0, True, False), "lr": (0.0, 1e3, True, False),
                        "duration": (0.0, 1e9, True, False), "pitch": (-90.0, 90.0, True, True)}
+#: float options that are a value of the selection, checked by ``Selection.check`` (the name it knows them by)
+SELECTION_FLOAT_OPTIONS = {"threshold": "threshold", "b_threshold": "threshold"}
 #: largest magnitude of any other float option (degrees, seconds: all far below).
 MAX_FLOAT_OPTION = 1e9
 
@@ -117,15 +119,24 @@ def check_float_options(args: argparse.Namespace) -> None:
     """Every float option of a parsed command line finite and within its bounds (:data:`FLOAT_OPTION_BOUNDS`, else
     ±:data:`MAX_FLOAT_OPTION`), checked by ``massviz.io.untrusted.number`` as the numbers in files are: ``nan``,
     ``inf`` or ``--iou 0`` is one ``MassvizError`` naming the option, before any work; ``-0`` becomes 0.0."""
+    from massviz.core.selection import Selection
     from massviz.errors import MassvizError
     from massviz.io.untrusted import number
 
     for dest, value in vars(args).items():
         if not isinstance(value, float):
             continue
+        option = f"--{dest.replace('_', '-')}"
+        if dest in SELECTION_FLOAT_OPTIONS:  # the selection's one rule and words; a non-finite value said as such
+            if not math.isfinite(value):
+                number(value, option, lo=0.0, hi=1.0, hi_open=True, error=MassvizError)  # raises: not finite
+            try:
+                setattr(args, dest, Selection.check(SELECTION_FLOAT_OPTIONS[dest], value, option) + 0.0)  # -0 is 0
+            except ValueError as err:
+                raise MassvizError(str(err)) from None
+            continue
         lo, hi, lo_open, hi_open = FLOAT_OPTION_BOUNDS.get(dest, (-MAX_FLOAT_OPTION, MAX_FLOAT_OPTION, False, False))
-        setattr(args, dest, number(value, f"--{dest.replace('_', '-')}", lo=lo, hi=hi, lo_open=lo_open,
-                                   hi_open=hi_open, error=MassvizError))
+        setattr(args, dest, number(value, option, lo=lo, hi=hi, lo_open=lo_open, hi_open=hi_open, error=MassvizError))
 
 
 # ------------------------------------------------------------------------------------------ integer option bounds
