@@ -18,7 +18,7 @@ How the synthetic dataset is built (cheaply) and how realistic it is:
 * Its cache entry is what a run would have written: under the key of its (synthetic) content fingerprint and the
   real depth detector's settings, the full trace file (a copy of a sample's, ~0.2–0.9 MB: smaller than a real
   150-frame trace) and a selection index with 2–10 detections per frame (random d, score above 0.4, prediction,
-  box, track): 1.4 M detections in all, the size of the issue's measurement. Its identity memo (``located/``) is
+  box, track): 1.4 M detections in all, the size of a 1,140-recording dataset. Its identity memo (``located/``) is
   written by ``massviz.io.identity.remember`` from the real files, as opening it would.
 * So every figure below reads exactly the files a warm command reads on a real dataset of that shape; only the
   detections' values are random (the sweep's cost does not depend on them) and the full trace a Tuner loads for

@@ -1,4 +1,4 @@
-"""How long a threshold × K sweep takes over the bundled samples' cached traces (issue: 100 pairs in < 1 s).
+"""How long a threshold × K sweep takes over the bundled samples' cached traces (goal: 100 pairs in < 1 s).
 
     python benchmarks/sweep_speed.py [--cache DIR] [--weights PATH] [--plot heatmap.png]
 

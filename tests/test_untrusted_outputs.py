@@ -188,6 +188,49 @@ def test_writers_of_one_rrd_dir_at_once_leave_one_writers_whole_output(writers, 
     assert hidden_beside(work) == [] and hidden_beside(out) == []
 
 
+@pytest.mark.slow
+def test_writers_of_one_rrd_dir_wait_for_the_swap_and_out_is_one_writers_output(ctx, tmp_path):
+    """The interleaving forced: while this test holds the lock on OUT's parent folder, three ``--force`` writers
+    build their whole outputs beside OUT and then wait (none replaces OUT, which stays the first run's); released,
+    they swap one after another, and OUT is one writer's whole output with the user's file kept."""
+    import fcntl
+    import json
+    import time
+
+    work = tmp_path / "w"
+    work.mkdir()
+    out = work / "out"
+    code, err = massviz(ctx, log_argv(ctx, out), work)
+    assert code == 0, err
+    (out / "notes.txt").write_text("mine")
+    before = (out / "index.csv").stat().st_ino
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    fd = os.open(work, os.O_RDONLY | os.O_DIRECTORY)
+    fcntl.flock(fd, fcntl.LOCK_EX)
+    try:
+        writers = subprocess.Popen([sys.executable, "-c", WRITERS, "3", str(logs),
+                                    *map(str, log_argv(ctx, out, force=True))], cwd=work, stdout=subprocess.PIPE,
+                                   text=True, env={**ctx.env, "PYTHONPATH": str(ROOT)})
+        deadline = time.monotonic() + TIMEOUT_S
+        while len([p for p in work.glob(".mv-*.part") if (p / "index.csv").is_file()]) < 3:
+            assert writers.poll() is None, "a writer ended while another held the lock on OUT's folder"
+            assert time.monotonic() < deadline, "the writers did not build their outputs"
+            time.sleep(0.2)
+        time.sleep(1.0)
+        assert writers.poll() is None, "a writer replaced OUT without the lock"
+        assert (out / "index.csv").stat().st_ino == before  # OUT untouched while they wait
+    finally:
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        os.close(fd)
+    stdout, _ = writers.communicate(timeout=TIMEOUT_S)
+    assert json.loads(stdout.splitlines()[-1]) == [0, 0, 0], [(logs / f"err{i}").read_text() for i in range(3)]
+    files, index, patches = result(out)
+    assert [f for f in files if f != "notes.txt"] == ctx.clean[0] and (index, patches) == ctx.clean[1:]
+    assert (out / "notes.txt").read_text() == "mine"
+    assert hidden_beside(work) == [] and hidden_beside(out) == []
+
+
 # ============================================================================================ 255-byte names
 def long_name(char: str, suffix: str = "", size: int = 255) -> str:
     """A file or folder name of ``size`` bytes ending with ``suffix``."""
