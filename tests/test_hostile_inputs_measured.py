@@ -641,7 +641,7 @@ def test_train_signal_leaves_no_run_folder(sig, base, sample_patch_set, tmp_path
     name = signal.Signals(sig).name
 
     def training() -> bool:
-        return any(p.name.startswith(".run.") and (p / "metrics.csv").exists() for p in work.iterdir())
+        return any(p.name.startswith(".mv-") and (p / "metrics.csv").exists() for p in work.iterdir())
     case = Case(f"train-{name}", argv, None, rf"\({name}\)" if sig != signal.SIGINT else "$", [out],
                 code=128 + sig, line="interrupted", when=training, send=sig)
     before = folder_state(work)
@@ -688,7 +688,7 @@ def live_signal_case(sig: int, outputs: str, when: str) -> Callable[[Path, Base,
         argv = ["live", "--file", db3, "--save", save, *(["--rrd", rrd] if rrd in outs else []),
                 "--detector", "depth", "--weights", b.weights, "--cache", work / "cache", "--quiet"]
         def recording() -> bool:
-            return any(work.glob(".rec.*/rgb/*.png"))
+            return any(work.glob(".mv-*/rgb/*.png"))
 
         if when == "twice":
             def two(pid: int) -> bool:
