@@ -354,3 +354,27 @@ def test_cuda_mask_rcnn_through_the_device_path_equals_the_cpu_estimate(model, t
     assert cuda.compute["kernels"] == "device" and cuda.compute["mode"] == "faithful" and cuda.compute["batch"] == 1
     assert len(cpu.detections) > 100 and abs(len(cuda.detections) - len(cpu.detections)) <= 3
     assert cuda.estimate == pytest.approx(cpu.estimate, rel=0.005)
+
+
+def test_device_tables_made_in_inference_mode_grow_outside_it():
+    """The tables outlive the call that made them: made while a pipeline runs in inference mode, they still take the
+    rows of new sides in a later call outside it (an inference tensor would refuse the in-place update)."""
+    import torch
+
+    from massviz.core import resample
+
+    with resample._TABLES_LOCK:
+        saved = dict(resample._TABLES)
+        resample._TABLES.clear()
+    try:
+        with torch.inference_mode():
+            first, _ = resample.device_tables("cpu", [40, 60])
+        assert not first.is_inference()
+        first, weights = resample.device_tables("cpu", [41, 300])  # new sides, and a larger table
+        want_first, want_weights = resample.coefficients(41)
+        assert first[41].tolist() == want_first.tolist()
+        assert weights[41, :, :want_weights.shape[1]].tolist() == want_weights.tolist()
+    finally:
+        with resample._TABLES_LOCK:
+            resample._TABLES.clear()
+            resample._TABLES.update(saved)

@@ -108,7 +108,9 @@ def device_tables(device, sides):
     Only the rows of new sides are copied (a warm run copies none); S grows by ``TABLE_STEP``."""
     import torch
 
-    with _TABLES_LOCK:
+    # ordinary tensors even when a caller runs in inference mode: the tables outlive the call and grow in place, which
+    # an inference tensor refuses outside inference mode
+    with _TABLES_LOCK, torch.inference_mode(False):
         return _device_tables(torch.device(device), np.unique(np.asarray(sides, dtype=np.int64)))
 
 
