@@ -155,6 +155,25 @@ WRITERS = textwrap.dedent("""
 """)
 
 
+def users_out(c, tmp_path) -> tuple[Path, Path]:
+    """(work, OUT): a clean ``log --rrd-dir`` output OUT in the folder work, holding a file of the user's too."""
+    work = tmp_path / "w"
+    work.mkdir()
+    out = work / "out"
+    code, err = massviz(c, log_argv(c, out), work)
+    assert code == 0, err
+    (out / "notes.txt").write_text("mine")
+    return work, out
+
+
+def assert_one_writers_output(c, work: Path, out: Path) -> None:
+    """OUT is one clean run's whole output with the user's file kept, and no temporary is left beside or in it."""
+    files, index, patches = result(out)
+    assert [f for f in files if f != "notes.txt"] == c.clean[0] and (index, patches) == c.clean[1:]
+    assert (out / "notes.txt").read_text() == "mine"
+    assert hidden_beside(work) == [] and hidden_beside(out) == []
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("writers", [3])
 def test_writers_of_one_rrd_dir_at_once_leave_one_writers_whole_output(writers, ctx, tmp_path):
@@ -163,12 +182,7 @@ def test_writers_of_one_rrd_dir_at_once_leave_one_writers_whole_output(writers, 
     thumbnail named by a row), the user's file kept, no temporary left."""
     import json
 
-    work = tmp_path / "w"
-    work.mkdir()
-    out = work / "out"
-    code, err = massviz(ctx, log_argv(ctx, out), work)
-    assert code == 0, err
-    (out / "notes.txt").write_text("mine")
+    work, out = users_out(ctx, tmp_path)
     logs = tmp_path / "logs"
     logs.mkdir()
     run = subprocess.run([sys.executable, "-c", WRITERS, str(writers), str(logs),
@@ -182,10 +196,7 @@ def test_writers_of_one_rrd_dir_at_once_leave_one_writers_whole_output(writers, 
         errors = [line for line in err.splitlines() if ": error:" in line]
         assert code == 0 or (code == 2 and len(errors) == 1 and "another" in errors[0]), (code, err)
     assert 0 in codes
-    files, index, patches = result(out)
-    assert [f for f in files if f != "notes.txt"] == ctx.clean[0] and (index, patches) == ctx.clean[1:]
-    assert (out / "notes.txt").read_text() == "mine"
-    assert hidden_beside(work) == [] and hidden_beside(out) == []
+    assert_one_writers_output(ctx, work, out)
 
 
 @pytest.mark.slow
@@ -197,12 +208,7 @@ def test_writers_of_one_rrd_dir_wait_for_the_swap_and_out_is_one_writers_output(
     import json
     import time
 
-    work = tmp_path / "w"
-    work.mkdir()
-    out = work / "out"
-    code, err = massviz(ctx, log_argv(ctx, out), work)
-    assert code == 0, err
-    (out / "notes.txt").write_text("mine")
+    work, out = users_out(ctx, tmp_path)
     before = (out / "index.csv").stat().st_ino
     logs = tmp_path / "logs"
     logs.mkdir()
@@ -225,10 +231,7 @@ def test_writers_of_one_rrd_dir_wait_for_the_swap_and_out_is_one_writers_output(
         os.close(fd)
     stdout, _ = writers.communicate(timeout=TIMEOUT_S)
     assert json.loads(stdout.splitlines()[-1]) == [0, 0, 0], [(logs / f"err{i}").read_text() for i in range(3)]
-    files, index, patches = result(out)
-    assert [f for f in files if f != "notes.txt"] == ctx.clean[0] and (index, patches) == ctx.clean[1:]
-    assert (out / "notes.txt").read_text() == "mine"
-    assert hidden_beside(work) == [] and hidden_beside(out) == []
+    assert_one_writers_output(ctx, work, out)
 
 
 # ============================================================================================ 255-byte names
