@@ -82,7 +82,7 @@ def test_the_selection_travels_explicitly_and_step_changes_no_detector_output(re
     same = run(rec, ListDetector(DETECTIONS), fast, k=2).reselect(threshold=0.6, exclude=[1])
     assert trace.selection.tolist() == same.selection.tolist() and len(trace.selection) == 2
     assert 1 not in trace.selection.tolist() and trace.estimate == same.estimate
-    with pytest.raises(ValueError, match="below the detector's score cut"):
+    with pytest.raises(ValueError, match="below the score cut 0.4 of the detector"):
         FramePipeline(det, fast, selection=Selection(threshold=0.3))
     with pytest.raises(ValueError, match="not both"):
         FramePipeline(det, fast, selection=sel, k=3)
@@ -145,7 +145,7 @@ def test_reselect_equals_a_fresh_run(rec, fast):
         assert again.estimate == pytest.approx(fresh.estimate, rel=1e-6), (k, t)
         assert again.estimate == pytest.approx(expected(model, t, k)[2], rel=1e-5), (k, t)
         assert [(e.kind, e.message) for e in again.events] == [(e.kind, e.message) for e in fresh.events], (k, t)  # the log describes the new selection
-    with pytest.raises(MassvizError, match="below the detection threshold"):
+    with pytest.raises(MassvizError, match="below the score cut 0.4 of this trace"):
         base.reselect(threshold=0.3)
 
 

@@ -116,7 +116,7 @@ def test_a_run_from_the_cache_indexes_equals_the_run_from_full_traces(two_runs, 
             assert [(p.detection, p.flagged, p.ground_truth) for p in tf.flags.patches] == \
                 [(p.detection, p.flagged, p.ground_truth) for p in tl.flags.patches]
     pd.testing.assert_frame_equal(compare_runs(a, b), compare_runs(ia, ib))
-    with pytest.raises(MassvizError, match="below the threshold"):
+    with pytest.raises(MassvizError, match="below the score cut 0.4 of the cached trace"):
         run_from_indexes(indexes, k=5, threshold=0.3)
 
 

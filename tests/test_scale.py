@@ -72,7 +72,7 @@ def test_vectorised_sweep_refuses_a_threshold_below_the_traces():
     traces = _random_traces(3)
     for t in traces:
         t.detect_threshold = 0.5
-    with pytest.raises(Exception, match="below 0.5"):
+    with pytest.raises(Exception, match="below the score cut 0.5 of the traces"):
         SweepTable(traces).estimates(0.4, 3)
 
 

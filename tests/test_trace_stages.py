@@ -195,8 +195,39 @@ def test_the_selection_is_resolved_once_from_the_options_and_the_detector():
     assert pipeline.selection == Selection(k=3, threshold=0.45, stride=2) and pipeline.threshold == 0.45
     named = Pipeline(PipelineOptions(k=3, threshold=0.7), det, DistanceModel(), None)
     assert named.selection.threshold == 0.7
-    with pytest.raises(ValueError, match="below the detector's score cut"):
+    with pytest.raises(ValueError, match="below the score cut 0.45 of the detector"):
         Selection(threshold=0.3).at_cut(0.45)
+
+
+def test_every_threshold_below_the_score_cut_is_refused_by_one_rule(rec, tmp_path):
+    """Wherever a selection threshold meets the score cut its detections were kept at (the detector's, a trace's,
+    the retuning sliders', the sweep table's, a cached trace's index), a threshold below it is refused with the one
+    rule's error (a MassvizError and a ValueError, naming both values and the run that would serve it); one at the
+    cut, or a float round trip below it, is accepted everywhere."""
+    from massviz.core.selection import BelowCutError
+    from massviz.evaluation.runs import trace_from_index
+    from massviz.evaluation.sweep import SweepTable
+    from massviz.evaluation.tuning import retuned_selection
+    from massviz.io.cache import TraceIndex
+
+    trace = run(rec, ListDetector(DETECTIONS, threshold=0.4), DistanceModel(), k=3)
+    index = TraceIndex(recording=trace.recording, detector=dict(trace.detector), detect_threshold=0.4,
+                       stride=1, weights_id="w", frames=trace.frames, detections=trace.detections,
+                       trace_path=tmp_path / "scene.npz")
+    places = {
+        "Selection.at_cut": lambda t: Selection(threshold=t).at_cut(0.4),
+        "Trace.reselect": lambda t: trace.reselect(threshold=t),
+        "retuned_selection": lambda t: retuned_selection(trace, k=3, threshold=t),
+        "SweepTable.chosen": lambda t: SweepTable([trace]).chosen(t, 3),
+        "trace_from_index": lambda t: trace_from_index(index, k=3, threshold=t),
+    }
+    for where, call in places.items():
+        with pytest.raises(BelowCutError, match=r"threshold 0\.39 is below the score cut 0\.4 of .*--threshold 0\.39"
+                           ) as err:
+            call(0.39)
+        assert isinstance(err.value, MassvizError) and isinstance(err.value, ValueError), where
+        call(0.4)
+        call(float(np.float32(0.4)) - 5e-10)  # a threshold that went through a float32 column
 
 
 def test_detections_grouped_by_frame():
@@ -230,7 +261,7 @@ def test_retune_is_one_reselect_with_the_result_of_the_step_by_step_chain(rec, a
         index = type("Index", (), {"detections": columns, "detect_threshold": trace.detect_threshold})()
         assert retuned_estimate(index, k=k, threshold=trace.threshold, stride=stride,
                                 exclude=exclude) == one.estimate
-    with pytest.raises(MassvizError, match="below the detection threshold"):
+    with pytest.raises(MassvizError, match="below the score cut 0.4 of these detections"):
         retuned_selection(trace, k=2, threshold=trace.detect_threshold - 0.1)
 
 

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from massviz.core.types import Detections
+from massviz.errors import MassvizError
 
 
 def _shown(value, n: int = 60) -> str:
@@ -91,17 +92,15 @@ class Selection:
 
     def at_cut(self, detect_threshold: float) -> "Selection":
         """This selection with its threshold resolved for a detector whose score cut is ``detect_threshold`` (and
-        ``cut`` set): the cut itself when it names none; ``ValueError`` when it names one below the cut (those
-        detections were never kept). What the edge (``massviz.app.Pipeline``, ``massviz.app.process`` and
+        ``cut`` set): the cut itself when it names none; ``BelowCutError`` when it names one below the cut
+        (``check_not_below_cut``). What the edge (``massviz.app.Pipeline``, ``massviz.app.process`` and
         ``FramePipeline`` given a selection not resolved for their detector) does once; every stage and sink after it
         reads the trace's (or the ``FrameResult``'s) values."""
         cut = float(detect_threshold)
         if self.threshold is None:
             out = dataclasses.replace(self, threshold=cut)
-        elif self.threshold < cut - 1e-9:
-            raise ValueError(f"selection threshold {self.threshold} is below the detector's score cut "
-                             f"{cut} (lower-scored detections are never kept)")
         else:
+            check_not_below_cut(self.threshold, cut)
             out = dataclasses.replace(self)
         object.__setattr__(out, "cut", cut)
         return out
@@ -111,6 +110,27 @@ class Selection:
         ``at_cut(detect_threshold)``: what a stage given a selection calls, so that one resolved at the edge is not
         resolved again."""
         return self if self.cut is not None and self.cut == float(detect_threshold) else self.at_cut(detect_threshold)
+
+
+#: how far below a score cut a threshold may read and still be at it (a threshold that went through a float32 column
+#: or a CSV round trip)
+CUT_SLACK = 1e-9
+
+
+class BelowCutError(MassvizError, ValueError):
+    """A selection threshold below the score cut its detections were kept at (``check_not_below_cut``)."""
+
+
+def check_not_below_cut(threshold: float, cut: float, kept_by: str = "the detector", path=None) -> None:
+    """The one rule of a selection threshold against the score cut its detections were kept at (``cut``, by
+    ``kept_by``: the detector, a trace, a cached trace, traces): it may be at or above it, never below (lower-scored
+    detections were never kept; detections kept at t serve any threshold >= t). ``BelowCutError`` (a ``MassvizError``
+    and a ``ValueError``) naming both and what to run. ``Selection.at_cut``, ``Trace.reselect``, the retuning
+    sliders, the sweep table and a cached trace's index all refuse with it."""
+    if float(threshold) < float(cut) - CUT_SLACK:
+        raise BelowCutError(f"threshold {threshold} is below the score cut {cut} of {kept_by} (lower-scored "
+                            f"detections were never kept); run the detector again with --threshold {threshold} "
+                            "or lower", path)
 
 
 class NearestOrder:

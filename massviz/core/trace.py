@@ -29,10 +29,16 @@ from massviz.core.detector import describe_cut
 from massviz.core.flags import Flags, analyse
 from massviz.core.frame_stage import FramePatches
 from massviz.core.measurement import Measurement, ranked_measurements
-from massviz.core.selection import NearestOrder, Selection, estimate_mass, not_estimated_reason, select_k_nearest
+from massviz.core.selection import (
+    NearestOrder,
+    Selection,
+    check_not_below_cut,
+    estimate_mass,
+    not_estimated_reason,
+    select_k_nearest,
+)
 from massviz.core.tracks import assign_tracks
 from massviz.core.types import Detections, Frame, GroundTruth, RecordingInfo, class_name
-from massviz.errors import MassvizError
 
 
 @dataclass
@@ -227,7 +233,7 @@ class Trace:
         """
         k = self.k if k is None else int(k)
         threshold = self.threshold if threshold is None else float(threshold)
-        check_reselectable(threshold, self.detect_threshold)
+        check_not_below_cut(threshold, self.detect_threshold, "this trace")
         if exclude is None:
             excluded = self.excluded
         else:
@@ -242,15 +248,6 @@ class Trace:
                                   excluded=excluded, events=events,
                                   measurements=ranked_measurements(self.measurements, selection), flags=None)
         return analyse_trace(out)
-
-
-def check_reselectable(threshold: float, detect_threshold: float) -> None:
-    """``MassvizError`` when a selection at ``threshold`` is asked of detections kept above ``detect_threshold``
-    (lower-scored boxes were never kept)."""
-    if threshold < detect_threshold - 1e-9:
-        raise MassvizError(f"threshold {threshold} is below the detection threshold {detect_threshold} "
-                           "this trace was made with; run the detector again with --threshold "
-                           f"{threshold} (detections at threshold t serve any threshold >= t)")
 
 
 def analyse_trace(trace: Trace) -> Trace:

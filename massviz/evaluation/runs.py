@@ -194,12 +194,10 @@ def trace_from_index(index, *, k: int, threshold: float) -> "Trace":
     overlaps the index kept (``Detections.gt_iou`` ...) are those of the recording's ground truth when the trace
     was cached."""
     from massviz.core.flags import analyse, ground_truth_source
-    from massviz.core.selection import estimate_mass, select_k_nearest
+    from massviz.core.selection import check_not_below_cut, estimate_mass, select_k_nearest
     from massviz.core.trace import Trace
 
-    if threshold < index.detect_threshold - 1e-9:
-        raise MassvizError(f"threshold {threshold} is below the threshold {index.detect_threshold} the cached trace "
-                           "was made at; run again with a lower --threshold first", index.trace_path)
+    check_not_below_cut(threshold, index.detect_threshold, "the cached trace", index.trace_path)
     dets = index.detections
     selection = select_k_nearest(dets.d, dets.score, int(k), float(threshold), index.excluded)
     trace = Trace(recording=index.recording, detector=dict(index.detector), detect_threshold=index.detect_threshold,

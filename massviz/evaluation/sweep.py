@@ -13,7 +13,7 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 
-from massviz.core.selection import NearestOrder, Selection
+from massviz.core.selection import NearestOrder, Selection, check_not_below_cut
 from massviz.core.trace import Trace
 from massviz.errors import MassvizError
 from massviz.evaluation.metrics import default_class_of, recording_scores
@@ -86,9 +86,7 @@ class SweepTable:
         self._by_threshold: dict = {}
 
     def _check(self, threshold: float) -> None:
-        if threshold < self.min_threshold - 1e-9:
-            raise MassvizError(f"threshold {threshold} is below {self.min_threshold}, the threshold the traces were "
-                               "made at; run again with a lower --threshold first")
+        check_not_below_cut(threshold, self.min_threshold, "the traces")
 
     def _ranked(self, threshold: float, stride: int):
         """(recording, rank, prediction) of the detections above ``threshold`` on frames ``% stride == 0``, in each

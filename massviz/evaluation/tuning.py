@@ -24,8 +24,8 @@ import numpy as np
 import pandas as pd
 
 from massviz.core.detector import detector_info
-from massviz.core.selection import Selection, estimate_mass, select_k_nearest
-from massviz.core.trace import Trace, check_reselectable
+from massviz.core.selection import Selection, check_not_below_cut, estimate_mass, select_k_nearest
+from massviz.core.trace import Trace
 from massviz.core.types import Detections
 from massviz.evaluation.metrics import ScoreReport, default_class_of, score_from_estimates
 from massviz.evaluation.sweep import annotations_from_meta, match_annotations
@@ -129,7 +129,7 @@ def retuned_selection(source: SelectionSource, *, k: int, threshold: float, stri
     """The selection stage alone: what ``retune(source, k=, threshold=, stride=, exclude=)`` selects, as indices
     into ``source.detections`` (nearest first; ``original_selection`` of the retuned trace), with no trace made and
     so no flags analysis: what a slider needs for every recording but the one shown."""
-    check_reselectable(float(threshold), source.detect_threshold)
+    check_not_below_cut(float(threshold), source.detect_threshold, "these detections")
     dets = source.detections
     excluded = _exclusions(exclude)
     if int(stride) == 1:
