@@ -187,6 +187,32 @@ def test_live_software_camera_stand_in(rs, played, depth_detector, tmp_path, cap
     assert summary_line(err, "camera-sw").startswith(f"camera-sw: {trace.estimate:.1f} g")
 
 
+
+def test_a_live_session_sets_the_faithful_flags_once(rs, played, depth_detector, monkeypatch):
+    """The faithful settings (IEEE fp32, deterministic cuDNN) are entered once for the whole session, as a run enters
+    them once: torch's flags are written when the session starts and restored when it ends, not around every frame
+    (the stage is made to ask for them as on a CUDA GPU; each step's own entering only counts a user)."""
+    import massviz.core.device as device
+    from massviz.io.formats.realsense_live import SoftwareCamera, open_device_stream
+    from massviz.runners.camera_loop import run_live
+
+    writes = []
+    real_write = device._write_flags
+    monkeypatch.setattr(device, "_write_flags", lambda *a: (writes.append(a), real_write(*a))[1])
+    rec = open_recording(played)
+    cam = SoftwareCamera(list(rec.frames()), rec.intrinsics, fps=30, loops=100)
+    stream = open_device_stream(cam.device, "software camera", on_stop=cam.stop)
+    started = stream.start
+    stream.start = lambda sink: (started(sink), cam.start())[0]
+    info = RecordingInfo(id="flags", kind="live", width=rec.width, height=rec.height, fps=30,
+                         intrinsics=rec.intrinsics)
+    fp = FramePipeline(depth_detector, FastModel(), k=5, recording=info)
+    fp.stage.faithful = lambda: device.faithful_fp32("cuda")
+    result = run_live(stream, fp, max_frames=6)
+    assert result.stats.processed == 6, result.stats
+    assert len(writes) == 2 and writes[0][:2] == (True, False), writes  # set once at the start, restored at the end
+    assert device.faithful_users() == 0
+
 @pytest.mark.slow
 def test_slow_detector_drops_frames_counts_them_and_memory_stays_flat(rs, depth_detector, tmp_path):
     """A 640x480 stand-in camera at 60 fps and a detector taking 0.15 s: most frames are dropped, each counted,

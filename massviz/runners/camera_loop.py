@@ -244,7 +244,8 @@ def run_live(stream, frame_pipeline, *, logger=None, duration: float | None = No
         bar = tqdm(total=None, desc=f"live {name}", unit="frame", file=sys.stderr, disable=not progress,
                    leave=False)
         warm_up(fp, info)
-        with _StopFlag() as flag:
+        # the faithful settings once for the whole session (each step's own entering only counts a user)
+        with fp.stage.faithful(), _StopFlag() as flag:
             stream.start(sink)
             started = last_arrival = time.perf_counter()
             while True:
