@@ -363,6 +363,17 @@ class FastModel:
         return (np.asarray(features, np.float64).reshape(-1, 3)[:, 2] / 10).astype(np.float32)
 
 
+def software_camera_stream(frames, intrinsics: Intrinsics, **camera):
+    """A live stream from ``massviz.io.formats.realsense_live.SoftwareCamera(frames, intrinsics, **camera)`` (fps,
+    loops) whose frames start to flow once the session listens (``stream.start``), as a camera's do."""
+    from massviz.io.formats.realsense_live import SoftwareCamera, open_device_stream
+
+    cam = SoftwareCamera(frames, intrinsics, **camera)
+    stream = open_device_stream(cam.device, "software camera", on_stop=cam.stop)
+    started = stream.start
+    stream.start = lambda sink: (started(sink), cam.start())[0]
+    return stream
+
 def live_pipeline(detector, tmp_path: Path, model=None):
     from massviz.app import Pipeline, PipelineOptions
     from massviz.io.cache import TraceCache

@@ -26,6 +26,7 @@ from fakes import (
     realsense_bad_files,
     scene,
     session_args,
+    software_camera_stream,
     write_recording,
 )
 from massviz.core.pipeline import FramePipeline, run
@@ -165,14 +166,10 @@ def test_live_file_in_real_time(rs, played_db3, played, depth_detector, tmp_path
 @pytest.mark.slow
 def test_live_software_camera_stand_in(rs, played, depth_detector, tmp_path, capsys):
     from massviz.commands.live import run_session
-    from massviz.io.formats.realsense_live import SoftwareCamera, open_device_stream
     from rrd_reader import rrd_entities
 
     rec = open_recording(played)
-    cam = SoftwareCamera(list(rec.frames()), rec.intrinsics, fps=10)
-    stream = open_device_stream(cam.device, "software camera", on_stop=cam.stop)
-    started = stream.start
-    stream.start = lambda sink: (started(sink), cam.start())[0]  # frames flow once the session listens
+    stream = software_camera_stream(list(rec.frames()), rec.intrinsics, fps=10)
     p = live_pipeline(depth_detector, tmp_path)
     args = session_args(rrd=str(tmp_path / "cam.rrd"), save=str(tmp_path / "cam_rec"), duration=2.5)
     assert run_session(args, p, stream, "camera-sw") == 0
@@ -193,17 +190,13 @@ def test_a_live_session_sets_the_faithful_flags_once(rs, played, depth_detector,
     them once: torch's flags are written when the session starts and restored when it ends, not around every frame
     (the stage is made to ask for them as on a CUDA GPU; each step's own entering only counts a user)."""
     import massviz.core.device as device
-    from massviz.io.formats.realsense_live import SoftwareCamera, open_device_stream
     from massviz.runners.camera_loop import run_live
 
     writes = []
     real_write = device._write_flags
     monkeypatch.setattr(device, "_write_flags", lambda *a: (writes.append(a), real_write(*a))[1])
     rec = open_recording(played)
-    cam = SoftwareCamera(list(rec.frames()), rec.intrinsics, fps=30, loops=100)
-    stream = open_device_stream(cam.device, "software camera", on_stop=cam.stop)
-    started = stream.start
-    stream.start = lambda sink: (started(sink), cam.start())[0]
+    stream = software_camera_stream(list(rec.frames()), rec.intrinsics, fps=30, loops=100)
     info = RecordingInfo(id="flags", kind="live", width=rec.width, height=rec.height, fps=30,
                          intrinsics=rec.intrinsics)
     fp = FramePipeline(depth_detector, FastModel(), k=5, recording=info)
@@ -217,7 +210,6 @@ def test_a_live_session_sets_the_faithful_flags_once(rs, played, depth_detector,
 def test_slow_detector_drops_frames_counts_them_and_memory_stays_flat(rs, depth_detector, tmp_path):
     """A 640x480 stand-in camera at 60 fps and a detector taking 0.15 s: most frames are dropped, each counted,
     and resident memory does not grow with the frames that arrived (a queue would hold ~1.5 MB per frame)."""
-    from massviz.io.formats.realsense_live import SoftwareCamera, open_device_stream
     from massviz.runners.camera_loop import run_live
     from massviz.views.rerun.live_logger import LiveLogger
 
@@ -228,10 +220,7 @@ def test_slow_detector_drops_frames_counts_them_and_memory_stays_flat(rs, depth_
     frames = [Frame(f.index, cv2.resize(f.rgb, (640, 480)), cv2.resize(f.depth, (640, 480),
                                                                         interpolation=cv2.INTER_NEAREST))
               for f in sample.frames(indices=PLAYED)]
-    cam = SoftwareCamera(frames, big, fps=60, loops=100)
-    stream = open_device_stream(cam.device, "software camera", on_stop=cam.stop)
-    started = stream.start
-    stream.start = lambda sink: (started(sink), cam.start())[0]
+    stream = software_camera_stream(frames, big, fps=60, loops=100)
     info = RecordingInfo(id="slow", kind="live", width=640, height=480, fps=60, intrinsics=big)
     fp = FramePipeline(SlowDetector(depth_detector, 0.15), FastModel(), k=5, recording=info)
     logger = LiveLogger(name="slow", k=5, intrinsics=big, rrd=tmp_path / "slow.rrd")
@@ -329,15 +318,11 @@ def test_ctrl_c_ends_the_session_cleanly(rs, played, depth_detector, tmp_path):
     import signal
     import threading
 
-    from massviz.io.formats.realsense_live import SoftwareCamera, open_device_stream
     from massviz.runners.camera_loop import run_live
     from massviz.views.rerun.live_logger import LiveLogger
 
     rec = open_recording(played)
-    cam = SoftwareCamera(list(rec.frames()), rec.intrinsics, fps=15, loops=100)
-    stream = open_device_stream(cam.device, "software camera", on_stop=cam.stop)
-    started = stream.start
-    stream.start = lambda sink: (started(sink), cam.start())[0]
+    stream = software_camera_stream(list(rec.frames()), rec.intrinsics, fps=15, loops=100)
     info = RecordingInfo(id="ctrl-c", kind="live", width=rec.width, height=rec.height, fps=15,
                          intrinsics=rec.intrinsics)
     fp = FramePipeline(depth_detector, FastModel(), k=5, recording=info)
