@@ -121,13 +121,20 @@ class BelowCutError(MassvizError, ValueError):
     """A selection threshold below the score cut its detections were kept at (``check_not_below_cut``)."""
 
 
+def serves(cut: float, threshold: float) -> bool:
+    """Whether detections kept at score cut ``cut`` serve a selection at ``threshold``: the threshold is not below
+    the cut (``CUT_SLACK`` aside). The one predicate of that rule: ``check_not_below_cut`` refuses what it does not
+    serve, and the trace cache picks the entry that serves a threshold with it."""
+    return float(threshold) >= float(cut) - CUT_SLACK
+
+
 def check_not_below_cut(threshold: float, cut: float, kept_by: str = "the detector", path=None) -> None:
     """The one rule of a selection threshold against the score cut its detections were kept at (``cut``, by
     ``kept_by``: the detector, a trace, a cached trace, traces): it may be at or above it, never below (lower-scored
     detections were never kept; detections kept at t serve any threshold >= t). ``BelowCutError`` (a ``MassvizError``
     and a ``ValueError``) naming both and what to run. ``Selection.at_cut``, ``Trace.reselect``, the retuning
     sliders, the sweep table and a cached trace's index all refuse with it."""
-    if float(threshold) < float(cut) - CUT_SLACK:
+    if not serves(cut, threshold):
         raise BelowCutError(f"threshold {threshold} is below the score cut {cut} of {kept_by} (lower-scored "
                             f"detections were never kept); run the detector again with --threshold {threshold} "
                             "or lower", path)

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from massviz.core.selection import Selection
+from massviz.core.selection import Selection, serves
 from massviz.core.trace import Trace
 from massviz.core.types import Detections, RecordingInfo
 from massviz.errors import MassvizError
@@ -108,7 +108,7 @@ class TraceCache:
                 t = float(p.stem[1:])
             except ValueError:
                 continue
-            if t <= threshold + 1e-9 and (best is None or t > best[0]):
+            if serves(t, threshold) and (best is None or t > best[0]):
                 best = (t, p)
         return best[1] if best else None
 
@@ -130,7 +130,7 @@ class TraceCache:
                 save_index(trace, path)
             except (OSError, MassvizError):
                 pass
-        return trace if trace.detect_threshold <= threshold else None
+        return trace if serves(trace.detect_threshold, threshold) else None
 
     def load_index(self, recording, detector_info: dict, stride: int, threshold: float) -> "TraceIndex | None":
         """The selection index of the cached trace ``load`` would return (see :class:`TraceIndex`), or None when
@@ -149,7 +149,7 @@ class TraceCache:
             except (OSError, MassvizError):
                 return None
             index = load_index(path)
-        return index if index is not None and index.detect_threshold <= threshold + 1e-9 else None
+        return index if index is not None and serves(index.detect_threshold, threshold) else None
 
     def save(self, trace: Trace, recording: Recording, detector_info: dict, known: dict | None = None) -> Path | None:
         """Write the trace's entry (``known``: see :meth:`watch`); a file system refusal at this point (the folder
