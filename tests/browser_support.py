@@ -160,7 +160,11 @@ def record_timing(key: str, value) -> None:
     path.write_text(json.dumps(data, indent=1) + "\n")
 
 
-def block_differences(a: np.ndarray, b: np.ndarray, px: int = 40, panel: float = 0.766, ignore=()):
+#: the side of the square blocks screenshots are compared by (``block_differences``), pixels
+BLOCK_PX = 40
+
+
+def block_differences(a: np.ndarray, b: np.ndarray, px: int = BLOCK_PX, panel: float = 0.766, ignore=()):
     """Mean absolute difference (0-255) of each ``px``-pixel block of two screenshots of the viewer, left of Rerun's
     selection panel (the right ``1 - panel`` of the page, which shows each run's recording id, times and URL) and
     outside the ``ignore`` boxes (x1, y1, x2, y2: e.g. a server's port): {(x, y): difference}; None when the
@@ -200,14 +204,14 @@ DOCS_MAX_DIFFERENCE = 20.0
 
 
 def check_docs_picture(fresh: np.ndarray, name: str, *, retake=None, timeout: float = 0.0, page=None,
-                       **kw) -> None:
+                       **kw) -> np.ndarray:
     """README's ``docs/NAME`` must look like the screenshot a browser test just took (``picture_difference``);
     ``MASSVIZ_REFRESH_DOCS=1`` copies the fresh one there first. With ``retake`` (a function taking a new
     screenshot), screenshots are taken again for up to ``timeout`` seconds until one matches: a viewer on a loaded
     machine may still be loading or playing when it first looks still. A stale picture fails naming the block that
     differs most, with both pictures and their difference saved beside the screenshots (``NAME`` .fresh/.diff.png)
     and, given the ``page``, the browser's graphics (a renderer other than the committed picture's draws points and
-    images differently)."""
+    images differently). Returns the screenshot that matched."""
     docs = ROOT / "docs" / name
     if os.environ.get("MASSVIZ_REFRESH_DOCS"):
         cv2.imwrite(str(docs), fresh)
@@ -221,15 +225,15 @@ def check_docs_picture(fresh: np.ndarray, name: str, *, retake=None, timeout: fl
     record_timing(f"docs_{name}_difference", round(diff, 1))
     print(f"docs/{name} against this run's screenshot: largest block difference {diff:.1f}")
     if diff <= DOCS_MAX_DIFFERENCE:
-        return
+        return fresh
     stem = ARTIFACTS / Path(name).stem
     cv2.imwrite(f"{stem}.fresh.png", fresh)
-    where = ""
     blocks = block_differences(committed, fresh, **kw)
     if blocks is not None:
         (x, y), _ = max(blocks.items(), key=lambda kv: kv[1])
         cv2.imwrite(f"{stem}.diff.png", np.abs(committed.astype(np.int16) - fresh.astype(np.int16)).astype(np.uint8))
-        where = f" at x {x}-{x + 40}, y {y}-{y + 40} px"
+        px = kw.get("px", BLOCK_PX)
+        where = f" at x {x}-{x + px}, y {y}-{y + px} px"
     else:
         where = f" (sizes {None if committed is None else committed.shape} and {fresh.shape})"
     graphics = f"; the browser draws with {page_graphics(page)}" if page is not None else ""

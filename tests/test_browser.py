@@ -194,13 +194,12 @@ def test_rerun_web_viewer_shows_the_demo_recording(browser, demo_rrd, cup, tmp_p
         idle_cpu = {p.name(): p.cpu_percent() for p in tree}
         record_timing("massviz_view_idle_cpu_percent", idle_cpu)
         print("massviz view: listening on", listening, "; CPU while idle (%, over 3 s):", idle_cpu)
+        stale = None
         try:
-            check_docs_picture(image, "rerun_viewer.png", retake=lambda: shot(page, "rerun_web_viewer"), timeout=60,
-                               page=page)
-            stale = None
+            image = check_docs_picture(image, "rerun_viewer.png", retake=lambda: shot(page, "rerun_web_viewer"),
+                                       timeout=60, page=page)
         except AssertionError as e:  # reported after the server's checks
             stale = e
-        image = shot(page, "rerun_web_viewer")
     assert proc.returncode == 0, (tmp_path / "view.log").read_text()
     assert len(listening) == 2 and all(ip == "127.0.0.1" for _, ip in listening), listening
     assert sum(idle_cpu.values()) < 5.0, idle_cpu
