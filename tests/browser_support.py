@@ -122,6 +122,26 @@ def wait_for_image(page, name: str, locator, template: np.ndarray, scales, timeo
     return match
 
 
+#: Rerun's web viewer sizes its time panel once, when it first draws it expanded: a quarter of the page's height,
+#: 150 to 250 px. Drawn while the canvas is still being sized it gets 150 px, drawn after it 191 px on an 800 px
+#: page: a race between loading and layout that moved every view by 40 px from one machine to another. On a page
+#: this high the panel is a collapsed bar (the viewer expands it on pages over 600 px), so it is first drawn
+#: expanded when the page is made its full size, at the size that page gives it.
+FIRST_DRAW = {"width": 1280, "height": 600}
+
+
+def open_rerun_viewer(page, url: str, frame: np.ndarray, viewport: dict = VIEWER,
+                      timeout: float = LOAD_TIMEOUT_S) -> float:
+    """Opens Rerun's web viewer at ``url`` on a ``FIRST_DRAW`` page until the recording's ``frame`` (BGR) is shown,
+    then makes the page ``viewport``'s size; returns the frame's match. The layout is then the same on every
+    machine, whatever the order in which the viewer loaded the recording and sized its canvas."""
+    page.set_viewport_size(FIRST_DRAW)
+    page.goto(url)
+    match = wait_for_image(page, "rerun_first_draw", None, frame, np.arange(0.3, 2.01, 0.05), timeout)
+    page.set_viewport_size(viewport)
+    return match
+
+
 def find(image: np.ndarray, template: np.ndarray, scales, reduce: float = 1.0
          ) -> tuple[float, tuple[int, int, int, int]]:
     """Best normalised correlation of ``template`` (BGR) in ``image`` over ``scales`` (searched on both shrunk by

@@ -44,6 +44,7 @@ from browser_support import (
     find,
     offline_page,
     open_and_run,
+    open_rerun_viewer,
     record_timing,
     saturated_fraction,
     settle,
@@ -185,7 +186,7 @@ def test_rerun_web_viewer_shows_the_demo_recording(browser, demo_rrd, cup, tmp_p
         listening = [(p.name(), c.laddr.ip) for p in tree for c in p.net_connections(kind="inet")
                      if c.status == psutil.CONN_LISTEN]
         # WebGL, as in README's picture: a browser offered WebGPU draws the points and images differently
-        page.goto(url + "&renderer=webgl")
+        open_rerun_viewer(page, url + "&renderer=webgl", expected[0])
         result = wait_for_viewer(page, "rerun_web_viewer", expected)
         image = settle(page, "rerun_web_viewer")  # (the time cursor plays to the end of the recording, then stops)
         for p in tree:
